@@ -1,0 +1,332 @@
+"""Machine topology descriptions: the Python API and the TOML files that map onto it.
+
+A topology is a serial chain from the workpiece through the machine frame to the tool.
+Axes are listed in chain order: first the workpiece-branch axes, from the workpiece towards
+the frame, then the tool-branch axes, from the frame towards the tool.  Every field of a
+TOML ``[[axis]]`` table is a field of :class:`AxisSpec`, and the top-level keys are the
+fields of :class:`MachineSpec`, one to one.
+
+Error names are generated (ISO 230-1 / ISO 230-7), never typed by hand:
+
+* component error motions of axis ``J`` (linear or rotary): ``EXJ, EYJ, EZJ`` (translational,
+  mm) and ``EAJ, EBJ, ECJ`` (angular, rad);
+* location errors of a linear axis (squareness of its direction of travel), one per pair of
+  linear axes, carried by the later axis of the pair in x < y < z order: ``EC0Y`` (Y to X
+  about z), ``EB0Z`` (Z to X about y), ``EA0Z`` (Z to Y about x);
+* location errors of a rotary axis ``J`` (position and orientation of its average line):
+  two offsets perpendicular to it (``EX0C, EY0C`` for a C axis) and two tilts (``EA0C, EB0C``).
+
+Reading a model file never executes code: TOML is parsed with :mod:`tomllib` and every
+value is type-checked; numbers must be TOML numbers, never strings or expressions.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+import tomllib
+from dataclasses import asdict, dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+from volcal.exceptions import InputError
+
+AXIS_LETTERS = "XYZ"
+ROT_LETTERS = "ABC"
+_NAME_RE = re.compile(r"^[A-Z][A-Z0-9]{0,3}$")
+_DIRECTIONS = {"+x": (0, 1), "-x": (0, -1), "+y": (1, 1), "-y": (1, -1), "+z": (2, 1), "-z": (2, -1)}
+
+
+@dataclass(frozen=True)
+class AxisSpec:
+    """One machine axis.
+
+    name: axis name (``X``, ``Y``, ``Z``, ``A``, ``B``, ``C``, ``U`` ...).
+    kind: ``"linear"`` (positions in mm) or ``"rotary"`` (positions in deg in files and
+        reports, rad inside the code).
+    direction: nominal direction of travel (linear) or of the rotation vector by the
+        right-hand rule (rotary): one of ``+x -x +y -y +z -z`` in the machine frame.
+    branch: ``"workpiece"`` (the axis moves the workpiece) or ``"tool"``.
+    travel: (min, max) axis position, mm or deg.
+    reference: reference position where datum conventions put errors to zero, mm or deg.
+    center: a point on the nominal rotation axis line, mm (rotary axes only).
+    errors: ``"all"`` or the list of component error names to include (e.g. ``["EXX"]``).
+    location: ``"all"``/``"none"`` or the list of location error names to include.
+    exclude: names to drop from the generated set (component or location).
+    """
+
+    name: str
+    kind: Literal["linear", "rotary"]
+    direction: str
+    branch: Literal["workpiece", "tool"]
+    travel: tuple[float, float]
+    reference: float = 0.0
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    errors: str | tuple[str, ...] = "all"
+    location: str | tuple[str, ...] = "all"
+    exclude: tuple[str, ...] = ()
+
+    @property
+    def dir_index(self) -> int:
+        return _DIRECTIONS[self.direction][0]
+
+    @property
+    def dir_sign(self) -> int:
+        return _DIRECTIONS[self.direction][1]
+
+    @property
+    def is_rotary(self) -> bool:
+        return self.kind == "rotary"
+
+    def component_error_names(self) -> list[str]:
+        """All six ISO 230-1 component error motion names of this axis."""
+        return [f"E{c}{self.name}" for c in AXIS_LETTERS + ROT_LETTERS]
+
+
+@dataclass(frozen=True)
+class MachineSpec:
+    """A machine topology: a name, a description and the axes in chain order."""
+
+    name: str
+    axes: tuple[AxisSpec, ...]
+    description: str = ""
+
+    @property
+    def axis_names(self) -> list[str]:
+        return [a.name for a in self.axes]
+
+    def axis(self, name: str) -> AxisSpec:
+        for a in self.axes:
+            if a.name == name:
+                return a
+        raise KeyError(name)
+
+    def fingerprint(self) -> str:
+        """Content hash of the topology (used as the build-cache key)."""
+        blob = json.dumps(asdict(self), sort_keys=True, default=list).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
+
+# --------------------------------------------------------------------------------------
+# error names
+
+
+@dataclass(frozen=True)
+class ErrorSymbol:
+    """One error quantity of the model.
+
+    name: ISO name (``EXX``, ``EC0Y`` ...); axis: the axis it belongs to;
+    kind: ``"component"`` (function of the axis position) or ``"location"`` (constant);
+    quantity: ``"translation"`` (mm) or ``"rotation"`` (rad);
+    component: index 0..2 of the machine-frame direction it acts along / about.
+    """
+
+    name: str
+    axis: str
+    kind: Literal["component", "location"]
+    quantity: Literal["translation", "rotation"]
+    component: int
+
+    @property
+    def unit(self) -> str:
+        return "mm" if self.quantity == "translation" else "rad"
+
+
+def _location_candidates(axis: AxisSpec, linear_dirs: set[int]) -> list[ErrorSymbol]:
+    i = axis.dir_index
+    out: list[ErrorSymbol] = []
+    if axis.kind == "linear":
+        # A squareness belongs to a pair of linear axes; the later one in x<y<z order
+        # carries it, so that each pair is counted once.
+        for j in range(3):
+            k = 3 - i - j
+            if j == i or k == i:
+                continue
+            if k < i and k in linear_dirs:
+                out.append(ErrorSymbol(f"E{ROT_LETTERS[j]}0{axis.name}", axis.name,
+                                       "location", "rotation", j))
+    else:
+        for j in range(3):
+            if j != i:
+                out.append(ErrorSymbol(f"E{AXIS_LETTERS[j]}0{axis.name}", axis.name,
+                                       "location", "translation", j))
+        for j in range(3):
+            if j != i:
+                out.append(ErrorSymbol(f"E{ROT_LETTERS[j]}0{axis.name}", axis.name,
+                                       "location", "rotation", j))
+    return out
+
+
+def error_symbols(spec: MachineSpec) -> list[ErrorSymbol]:
+    """The error quantities of a topology in canonical order: per axis in chain order,
+    its selected component errors (X, Y, Z, A, B, C order) then its location errors."""
+    linear_dirs = {a.dir_index for a in spec.axes if a.kind == "linear"}
+    out: list[ErrorSymbol] = []
+    for a in spec.axes:
+        comps = [ErrorSymbol(f"E{c}{a.name}", a.name, "component",
+                             "translation" if k < 3 else "rotation", k % 3)
+                 for k, c in enumerate(AXIS_LETTERS + ROT_LETTERS)]
+        if a.errors != "all":
+            comps = [s for s in comps if s.name in a.errors]
+        locs = _location_candidates(a, linear_dirs)
+        if a.location == "none":
+            locs = []
+        elif a.location != "all":
+            locs = [s for s in locs if s.name in a.location]
+        out.extend(s for s in comps + locs if s.name not in a.exclude)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# validation and TOML
+
+
+def _check_number(value: Any, where: str, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(f"expected a number, got {type(value).__name__} {value!r}",
+                         source=where, column=key)
+    return float(value)
+
+
+def _check_names(value: Any, where: str, key: str, allowed: list[str]) -> str | tuple[str, ...]:
+    if isinstance(value, str) and value in ("all", "none"):
+        return value
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+        raise InputError(f"expected \"all\", \"none\" or a list of error names from {allowed}, "
+                         f"got {value!r}", source=where, column=key)
+    bad = [v for v in value if v not in allowed]
+    if bad:
+        raise InputError(f"unknown error name(s) {bad}; this axis generates {allowed}",
+                         source=where, column=key)
+    return tuple(value)
+
+
+_AXIS_KEYS = {"name", "kind", "direction", "branch", "travel", "reference", "center", "errors",
+              "location", "exclude"}
+
+
+def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
+    """Validate one ``[[axis]]`` table (``where`` names it in errors)."""
+    unknown = set(d) - _AXIS_KEYS
+    if unknown:
+        raise InputError(f"unknown key(s) {sorted(unknown)}; allowed: {sorted(_AXIS_KEYS)}",
+                         source=where)
+    for key in ("name", "kind", "direction", "branch", "travel"):
+        if key not in d:
+            raise InputError("missing required key", source=where, column=key)
+    name = d["name"]
+    if not isinstance(name, str) or not _NAME_RE.match(name):
+        raise InputError(f"expected an axis name of 1-4 upper-case letters/digits starting with a "
+                         f"letter, got {name!r}", source=where, column="name")
+    where = f"{where} (axis {name})"
+    kind = d["kind"]
+    if kind not in ("linear", "rotary"):
+        raise InputError(f"unknown axis kind {kind!r}; expected \"linear\" or \"rotary\"",
+                         source=where, column="kind")
+    if d["direction"] not in _DIRECTIONS:
+        raise InputError(f"expected one of {list(_DIRECTIONS)}, got {d['direction']!r}",
+                         source=where, column="direction")
+    if d["branch"] not in ("workpiece", "tool"):
+        raise InputError(f"expected \"workpiece\" or \"tool\", got {d['branch']!r}",
+                         source=where, column="branch")
+    travel = d["travel"]
+    if not isinstance(travel, list) or len(travel) != 2:
+        raise InputError(f"expected [min, max], got {travel!r}", source=where, column="travel")
+    lo, hi = (_check_number(v, where, "travel") for v in travel)
+    if not lo < hi:
+        raise InputError(f"expected min < max, got [{lo}, {hi}]", source=where, column="travel")
+    ref = _check_number(d.get("reference", lo if lo > 0 or hi < 0 else 0.0), where, "reference")
+    if not lo <= ref <= hi:
+        raise InputError(f"reference {ref} outside travel [{lo}, {hi}]", source=where,
+                         column="reference")
+    center = d.get("center", [0.0, 0.0, 0.0])
+    if not isinstance(center, list) or len(center) != 3:
+        raise InputError(f"expected [x, y, z] in mm, got {center!r}", source=where, column="center")
+    center = tuple(_check_number(v, where, "center") for v in center)
+    if kind == "linear" and "center" in d:
+        raise InputError("'center' applies to rotary axes only", source=where, column="center")
+    probe = AxisSpec(name, kind, d["direction"], d["branch"], (lo, hi), ref, center)
+    comp_names = probe.component_error_names()
+    errors = _check_names(d.get("errors", "all"), where, "errors", comp_names)
+    if errors == "none":
+        errors = ()
+    loc_names = [s.name for s in _location_candidates(probe, {0, 1, 2})]
+    location = _check_names(d.get("location", "all"), where, "location", loc_names)
+    exclude = d.get("exclude", [])
+    exclude = _check_names(exclude, where, "exclude", comp_names + loc_names) if exclude else ()
+    if isinstance(exclude, str):
+        raise InputError("expected a list of error names", source=where, column="exclude")
+    return AxisSpec(name, kind, d["direction"], d["branch"], (lo, hi), ref, center, errors,
+                    location, exclude)
+
+
+def machine_from_dict(d: dict[str, Any], where: str = "<model>") -> MachineSpec:
+    """Validate a parsed model document and build its :class:`MachineSpec`."""
+    allowed = {"name", "description", "axis"}
+    unknown = set(d) - allowed
+    if unknown:
+        raise InputError(f"unknown top-level key(s) {sorted(unknown)}; allowed: {sorted(allowed)}",
+                         source=where)
+    if not isinstance(d.get("name"), str) or not d["name"]:
+        raise InputError("missing or empty model name", source=where, column="name")
+    desc = d.get("description", "")
+    if not isinstance(desc, str):
+        raise InputError("expected a string", source=where, column="description")
+    axes_raw = d.get("axis")
+    if not isinstance(axes_raw, list) or not axes_raw:
+        raise InputError("expected one or more [[axis]] tables", source=where, column="axis")
+    axes = []
+    for k, a in enumerate(axes_raw):
+        if not isinstance(a, dict):
+            raise InputError("expected a table", source=where, column=f"axis[{k}]")
+        axes.append(axis_from_dict(a, f"{where} [[axis]] #{k + 1}"))
+    names = [a.name for a in axes]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"duplicate axis name(s) {dup}", source=where, column="axis.name")
+    branches = [a.branch for a in axes]
+    if "workpiece" in branches[branches.index("tool"):] if "tool" in branches else False:
+        raise InputError("axes must be listed in chain order: all workpiece-branch axes "
+                         "(workpiece -> frame) before all tool-branch axes (frame -> tool)",
+                         source=where, column="axis.branch")
+    lin_dirs = [a.dir_index for a in axes if a.kind == "linear"]
+    if len(set(lin_dirs)) != len(lin_dirs):
+        raise InputError("two linear axes share a direction; volcal needs distinct directions "
+                         "for the ISO error names", source=where, column="axis.direction")
+    return MachineSpec(d["name"], tuple(axes), desc)
+
+
+def load_model_file(path: str | Path) -> MachineSpec:
+    """Parse and validate a model TOML file (never executes any of its content)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"cannot read model file: {exc.strerror}", source=str(path)) from exc
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"not valid TOML: {exc}", source=str(path)) from exc
+    return machine_from_dict(doc, str(path))
+
+
+def bundled_models() -> dict[str, Path]:
+    """Names and paths of the models shipped with volcal."""
+    root = resources.files("volcal.models")
+    return {Path(p.name).stem: Path(str(p)) for p in sorted(root.iterdir(), key=lambda p: p.name)
+            if p.name.endswith(".toml")}
+
+
+def resolve_model(model: str | Path | MachineSpec) -> MachineSpec:
+    """A bundled model name, a model file path, or a spec (returned as is)."""
+    if isinstance(model, MachineSpec):
+        return model
+    models = bundled_models()
+    if isinstance(model, str) and model in models:
+        return load_model_file(models[model])
+    p = Path(model)
+    if p.exists():
+        return load_model_file(p)
+    raise InputError(f"no bundled model named {str(model)!r} and no such file; bundled models: "
+                     f"{sorted(models)}", source=str(model))
