@@ -1,0 +1,48 @@
+"""Observation models: what an instrument reads for a given actual tool point.
+
+An instrument has parameters per station (or per laser) and global parameters, and one
+CasADi SX expression for a single reading.  The identification replicates that expression
+over all readings with ``Function.map``; nothing here knows about the data.
+
+* :class:`SequentialMultilateration`: one laser tracker or LaserTRACER set up at several
+  stations in turn.  Per station its position (x, y, z) in the workpiece frame and a dead
+  length d (paper 002 eq. 5-6; paper 000's L_k): reading = ||P - Q|| - d.
+* :class:`MultiLaserInstrument`: paper 001's simultaneous telescopic instrument; see
+  :mod:`volcal.multilaser`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+
+
+@dataclass(frozen=True)
+class SequentialMultilateration:
+    """Sequential multilateration with one tracker: per station ``x, y, z`` (mm) and a dead
+    length (mm); no global parameters."""
+
+    name: str = "sequential"
+    station_param_names: tuple[str, ...] = ("x_mm", "y_mm", "z_mm", "dead_length_mm")
+    global_param_names: tuple[str, ...] = ()
+
+    @property
+    def n_station_params(self) -> int:
+        return len(self.station_param_names)
+
+    @property
+    def n_global_params(self) -> int:
+        return len(self.global_param_names)
+
+    def reading(self, point: ca.SX, station: ca.SX, glob: ca.SX) -> ca.SX:
+        """Model of one reading (mm) for the actual tool point ``point`` (3, mm)."""
+        diff = point - station[:3]
+        return ca.sqrt(ca.sumsqr(diff)) - station[3]
+
+    def direction(self, point, station) -> ca.SX:
+        """Unit vector from the station to the point: d(reading)/d(point)."""
+        diff = point - station[:3]
+        return diff / ca.sqrt(ca.sumsqr(diff))
+
+
+Instrument = SequentialMultilateration
