@@ -24,7 +24,15 @@ class SequentialMultilateration:
 
     name: str = "sequential"
     station_param_names: tuple[str, ...] = ("x_mm", "y_mm", "z_mm", "dead_length_mm")
-    global_param_names: tuple[str, ...] = ()
+    # A rigid motion of the whole station set (first order): redundant with the stations
+    # while they are free (the identification then fixes it), but it is what lets a
+    # two-phase or points-only solve absorb the frame mismatch once stations are fixed.
+    global_param_names: tuple[str, ...] = ("frame_tx_mm", "frame_ty_mm", "frame_tz_mm",
+                                           "frame_rx_rad", "frame_ry_rad", "frame_rz_rad")
+
+    @property
+    def global_param_units(self) -> tuple[str, ...]:
+        return tuple("rad" if n.endswith("_rad") else "mm" for n in self.global_param_names)
 
     @property
     def n_station_params(self) -> int:
@@ -36,13 +44,10 @@ class SequentialMultilateration:
 
     def reading(self, point: ca.SX, station: ca.SX, glob: ca.SX) -> ca.SX:
         """Model of one reading (mm) for the actual tool point ``point`` (3, mm)."""
-        diff = point - station[:3]
+        q = station[:3] + glob[:3] + ca.cross(glob[3:6], station[:3])
+        diff = point - q
         return ca.sqrt(ca.sumsqr(diff)) - station[3]
 
-    def direction(self, point, station) -> ca.SX:
-        """Unit vector from the station to the point: d(reading)/d(point)."""
-        diff = point - station[:3]
-        return diff / ca.sqrt(ca.sumsqr(diff))
 
 
 Instrument = SequentialMultilateration

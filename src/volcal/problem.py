@@ -31,6 +31,7 @@ class Layout:
 
     station_index: np.ndarray
     n_stations: int
+    station_ids: tuple[str, ...] | None = None
 
     @property
     def n_readings(self) -> int:
@@ -70,7 +71,8 @@ class IdentificationProblem:
         # geometry of the experiment, not the choice of units.
         self.scale = np.concatenate([
             [1e-3 if u == "mm" else 1e-6 for u in em.param_units],
-            np.full(n_ps * n_st + n_g, 1e-3)])
+            np.full(n_ps * n_st, 1e-3),
+            [1e-3 if u == "mm" else 1e-6 for u in ins.global_param_units]])
 
         # one reading as an SX function returning its value and its own Jacobian row: the
         # Jacobian is then assembled explicitly instead of by AD through the map.
@@ -132,10 +134,11 @@ class IdentificationProblem:
         self.names = list(em.param_names)
         self.units = list(em.param_units)
         for k in range(n_st):
-            self.names += [f"station{k}.{nm}" for nm in ins.station_param_names]
+            sid = lay.station_ids[k] if lay.station_ids else f"station{k}"
+            self.names += [f"{sid}.{nm}" for nm in ins.station_param_names]
             self.units += ["mm"] * n_ps
         self.names += list(ins.global_param_names)
-        self.units += ["mm"] * n_g
+        self.units += list(ins.global_param_units)
 
     # ---- packing ------------------------------------------------------------------------
     def pack_data(self, q: np.ndarray, t: np.ndarray, m: np.ndarray, w: np.ndarray) -> np.ndarray:

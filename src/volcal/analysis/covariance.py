@@ -1,0 +1,41 @@
+"""Linearised covariance of constrained least squares (KKT / Fisher information).
+
+For whitened residuals r(x) with Jacobian J at the solution and equality constraints
+C x = 0, the covariance of the estimate is Z (Z^T J^T J Z)^-1 Z^T with Z an orthonormal
+basis of null(C): the Fisher information restricted to the directions the constraints
+leave free.  Multiplying by the residual variance factor s^2 = ||r||^2 / (m - p) gives the
+a-posteriori covariance for budgets that are only known up to a factor.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sla
+
+
+def constrained_covariance(J: np.ndarray, C: np.ndarray | None = None, *,
+                           fixed: np.ndarray | None = None) -> np.ndarray:
+    """(n, n) covariance of x; rows/columns of fixed variables are NaN."""
+    J = np.asarray(J, float)
+    n = J.shape[1]
+    fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
+    free = np.flatnonzero(~fixed)
+    Jf = J[:, free]
+    # scale columns for a well-conditioned inverse, undo afterwards
+    norms = np.linalg.norm(Jf, axis=0)
+    d = 1.0 / np.where(norms > 0, norms, 1.0)
+    if C is not None and len(C):
+        Cf = np.asarray(C, float)[:, free] * d
+        Cf = Cf[np.linalg.norm(Cf, axis=1) > 0]
+        Z = sla.null_space(Cf) if Cf.shape[0] else np.eye(len(free))
+    else:
+        Z = np.eye(len(free))
+    A = (Jf * d) @ Z
+    # pseudo-inverse via SVD: exact for full rank, and never explodes on a near-null direction
+    R = np.linalg.qr(A, mode="r") if A.shape[0] > A.shape[1] else A
+    _, s, Vt = np.linalg.svd(R, full_matrices=False)
+    keep = s > max(A.shape) * np.finfo(float).eps * (s[0] if len(s) else 0)
+    Minv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
+    cov_s = Z @ Minv @ Z.T
+    cov = np.full((n, n), np.nan)
+    cov[np.ix_(free, free)] = cov_s * d[:, None] * d[None, :]
+    return cov

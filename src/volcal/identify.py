@@ -1,0 +1,414 @@
+"""Identification: from a machine model and length readings to its geometric errors.
+
+:class:`Identifier` holds what depends only on the model and the layout of the data (the
+NLP, the IPOPT solver, the error model): build it once, then :meth:`Identifier.run` any
+number of data sets of that layout (Monte Carlo, studies).  :func:`identify` is the
+one-call front end used by the CLI.
+
+Strategies (all on the same problem and solver, differing only in which variables are
+free and which constraints are active):
+
+``joint``       error parameters, stations, dead lengths together (one-step);
+``two-phase``   stations and dead lengths on nominal points first (errors held at zero),
+                then the errors with the stations fixed; a rigid motion of the station set
+                is free in phase two so that the frame mismatch of phase one is absorbed;
+``points-only`` stations fixed at known positions (stations table) or at the analytical
+                linear solution (paper 002 eq. 12-20), only errors (+ frame motion) solved;
+``classic``     the calibrate -> multilaterate -> fit pipeline of :mod:`volcal.strategies`.
+
+Unidentifiable directions are found from the Jacobian at the start point (names in
+:attr:`IdentificationResult.identifiability`), held at zero, and reported; their standard
+uncertainties are NaN and ``identifiable`` is False in the parameter table.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+
+from volcal.analysis import Identifiability, analyse_jacobian, constrained_covariance
+from volcal.data import Measurements, load_measurements, load_stations
+from volcal.errors import Datum, ErrorForm, ErrorModel
+from volcal.exceptions import InputError, SolverError
+from volcal.instruments import SequentialMultilateration
+from volcal.machine import Machine
+from volcal.problem import IdentificationProblem, Layout
+from volcal.solve import NLPSolver, SolveOutcome
+from volcal.spec import MachineSpec
+from volcal.uncertainty.budget import Budget, load_budget
+
+log = logging.getLogger(__name__)
+
+Strategy = Literal["joint", "two-phase", "points-only", "classic"]
+STRATEGIES: tuple[str, ...] = ("joint", "two-phase", "points-only", "classic")
+
+
+@dataclass
+class IdentificationResult:
+    """Everything an identification produced (values in mm / rad unless a name says)."""
+
+    machine: Machine
+    error_model: ErrorModel
+    strategy: str
+    theta: np.ndarray
+    cov_theta: np.ndarray
+    identifiable: np.ndarray
+    stations: pd.DataFrame
+    frame: np.ndarray
+    residuals: pd.DataFrame
+    identifiability: Identifiability | None
+    outcomes: list[SolveOutcome]
+    conditions: dict[str, float]
+    rejected: pd.DataFrame
+    seconds: float
+    sigma_source: str
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def success(self) -> bool:
+        return all(o.success for o in self.outcomes)
+
+    @property
+    def status(self) -> str:
+        return "; ".join(o.status for o in self.outcomes)
+
+    @property
+    def residual_rms_um(self) -> float:
+        r = self.residuals.loc[~self.residuals["rejected"], "residual_um"]
+        return float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan")
+
+    def parameters(self) -> pd.DataFrame:
+        """name, value, unit, std, identifiable (values in um / urad)."""
+        units = self.error_model.param_units
+        f = np.array([1e3 if u == "mm" else 1e6 for u in units])
+        std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
+        std[~self.identifiable] = np.nan
+        return pd.DataFrame({
+            "name": self.error_model.param_names,
+            "value": self.theta * f,
+            "unit": ["um" if u == "mm" else "urad" for u in units],
+            "std": std,
+            "identifiable": self.identifiable,
+        })
+
+    def predict(self, q_internal: np.ndarray, tool: np.ndarray | None = None, *,
+                with_uncertainty: bool = True) -> pd.DataFrame:
+        """Volumetric error (um) at poses q (N, n_axes; mm, rad) with tool offsets (N, 3)."""
+        return predict_volumetric(self.machine, self.error_model, self.theta,
+                                  self.cov_theta if with_uncertainty else None, q_internal, tool)
+
+
+def predict_volumetric(machine: Machine, em: ErrorModel, theta: np.ndarray,
+                       cov_theta: np.ndarray | None, q: np.ndarray,
+                       tool: np.ndarray | None = None) -> pd.DataFrame:
+    """dx_um, dy_um, dz_um (and u_dx_um ... standard uncertainties when a covariance is
+    given) of the first-order model at poses q (N, n_axes; mm, rad) and tools (N, 3) mm."""
+    q = np.atleast_2d(np.asarray(q, float))
+    tool = np.zeros((len(q), 3)) if tool is None else np.broadcast_to(tool, (len(q), 3))
+    e = em.values(q, theta)
+    _, dp, Je = machine.evaluate(q, tool, e)
+    out = pd.DataFrame(dp * 1e3, columns=["dx_um", "dy_um", "dz_um"])
+    if cov_theta is not None:
+        G = np.einsum("nik,nkp->nip", Je, em.basis(q))
+        cov = np.nan_to_num(cov_theta)
+        var = np.einsum("nip,pq,niq->ni", G, cov, G)
+        out[["u_dx_um", "u_dy_um", "u_dz_um"]] = np.sqrt(np.clip(var, 0, None)) * 1e3
+    return out
+
+
+def rigid_fit(points: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Best-fit small rigid motion (a, w) with d ~ a + w x points, least squares.
+    Returns (params (6,), residual d - fit). Multilateration cannot see this motion."""
+    points = np.asarray(points, float)
+    n = len(points)
+    A = np.zeros((3 * n, 6))
+    A[0::3, 0] = A[1::3, 1] = A[2::3, 2] = 1.0
+    x, y, z = points.T
+    # w x p = (wy z - wz y, wz x - wx z, wx y - wy x)
+    A[0::3, 4], A[0::3, 5] = z, -y
+    A[1::3, 3], A[1::3, 5] = -z, x
+    A[2::3, 3], A[2::3, 4] = y, -x
+    sol = np.linalg.lstsq(A, np.asarray(d, float).ravel(), rcond=None)[0]
+    return sol, (np.asarray(d, float).ravel() - A @ sol).reshape(n, 3)
+
+
+# ---------------------------------------------------------------------------------------
+
+
+class Identifier:
+    """Model + error model + layout -> a reusable solver (see the module docstring)."""
+
+    def __init__(self, machine: Machine, error_model: ErrorModel, layout: Layout, *,
+                 exact: bool = False, hessian: str = "gauss-newton", verbose: bool = False):
+        self.machine = machine
+        self.error_model = error_model
+        self.instrument = SequentialMultilateration()
+        self.layout = layout
+        t0 = time.perf_counter()
+        self.problem = IdentificationProblem(machine, error_model, self.instrument, layout,
+                                             exact=exact)
+        self.solver = NLPSolver(self.problem, hessian=hessian, verbose=verbose)
+        self.build_seconds = time.perf_counter() - t0
+        n = self.problem.n_x
+        nt, ss = self.problem.n_theta, self.problem.station_slice()
+        self.is_theta = np.zeros(n, bool)
+        self.is_theta[:nt] = True
+        self.is_station = np.zeros(n, bool)
+        self.is_station[ss] = True
+        self.is_frame = ~(self.is_theta | self.is_station)
+        # which variable to hold when a direction is unidentifiable: the frame motion first
+        # (it duplicates the stations), then error parameters, stations last
+        self.prefer = np.where(self.is_frame, 4.0, np.where(self.is_theta, 1.0, 0.0))
+
+    # ---- pieces ---------------------------------------------------------------------
+    def jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened residuals and Jacobian wrt the scaled variables at physical x."""
+        r, J = self.problem.jacobian(self.problem.to_scaled(x), p)
+        return np.asarray(r).ravel(), np.asarray(J.full() if hasattr(J, "full") else J)
+
+    def analyse(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray,
+                constrained: bool = True) -> Identifiability:
+        _, J = self.jacobian(x, p)
+        C = self._scaled_constraints() if constrained else None
+        return analyse_jacobian(J, self.problem.names, C, fixed=fixed, prefer=self.prefer)
+
+    def _scaled_constraints(self) -> np.ndarray:
+        pr = self.problem
+        C = np.zeros((pr.C.shape[0], pr.n_x))
+        C[:, :pr.n_theta] = pr.C * pr.scale[None, :pr.n_theta]
+        return C
+
+    def covariance(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray,
+                   constrained: bool = True) -> np.ndarray:
+        """Linearised covariance of x (physical units) with fixed variables NaN."""
+        _, J = self.jacobian(x, p)
+        C = self._scaled_constraints() if constrained else None
+        cov_s = constrained_covariance(J, C, fixed=fixed)
+        s = self.problem.scale
+        return cov_s * s[:, None] * s[None, :]
+
+    def _solve(self, x0, p, fixed, constrained=True) -> SolveOutcome:
+        return self.solver.solve(x0, p, fixed=fixed, constrained=constrained)
+
+    # ---- strategies -----------------------------------------------------------------
+    def run(self, strategy: str, x0: np.ndarray, p: np.ndarray, *,
+            user_fixed: np.ndarray | None = None) -> tuple[np.ndarray, list[SolveOutcome],
+                                                           np.ndarray, Identifiability]:
+        """Solve with a strategy from x0 (physical). Returns (x, outcomes, fixed mask,
+        identifiability of the final phase)."""
+        n = self.problem.n_x
+        user_fixed = np.zeros(n, bool) if user_fixed is None else user_fixed
+        outcomes: list[SolveOutcome] = []
+        if strategy == "joint":
+            ident = self.analyse(x0, p, user_fixed)
+            fixed = user_fixed.copy()
+            fixed[ident.unidentifiable & ~self.is_station] = True
+            fixed[ident.pivots] = True
+            x0 = np.where(fixed & ~user_fixed & ~self.is_station, 0.0, x0)
+            out = self._solve(x0, p, fixed)
+            outcomes.append(out)
+            return out.x, outcomes, fixed, ident
+        if strategy in ("two-phase", "points-only"):
+            x = x0.copy()
+            if strategy == "two-phase":
+                f1 = user_fixed | self.is_theta | self.is_frame
+                x[self.is_theta | self.is_frame] = 0.0
+                out1 = self._solve(x, p, f1)
+                outcomes.append(out1)
+                x = out1.x
+            f2 = user_fixed | self.is_station
+            ident = self.analyse(x, p, f2)
+            f2 = f2.copy()
+            f2[ident.unidentifiable & ~self.is_station] = True
+            f2[ident.pivots] = True
+            x = np.where(f2 & ~self.is_station & ~user_fixed, 0.0, x)
+            out2 = self._solve(x, p, f2)
+            outcomes.append(out2)
+            return out2.x, outcomes, f2, ident
+        raise InputError(f"unknown strategy {strategy!r}; expected one of {STRATEGIES}")
+
+
+# ---------------------------------------------------------------------------------------
+
+
+def reading_sigma(machine: Machine, budget: Budget, meas: Measurements,
+                  stations_xyz: np.ndarray) -> np.ndarray:
+    """Standard uncertainty (mm) of each reading from the budget: the length part combined
+    with the axis repeatability projected on the beam direction (unit vector station ->
+    nominal point); rotary repeatability enters through d(point)/d(angle)."""
+    q, t = meas.q_internal, meas.tool
+    p0, _, _ = machine.evaluate(q, t, np.zeros(machine.n_errors))
+    S = stations_xyz[meas.station_index]
+    u = p0 - S
+    L = np.linalg.norm(u, axis=1)
+    u /= L[:, None]
+    var = budget.length_sigma(meas.length) ** 2
+    h = 1e-6
+    for k, a in enumerate(machine.spec.axes):
+        sig = budget.axis_sigma(a.name)
+        if not sig:
+            continue
+        dq = np.zeros_like(q)
+        dq[:, k] = h
+        p1, _, _ = machine.evaluate(q + dq, t, np.zeros(machine.n_errors))
+        dpdq = (p1 - p0) / h
+        var = var + (np.einsum("ni,ni->n", u, dpdq) * sig) ** 2
+    return np.sqrt(var)
+
+
+def _initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFrame | None
+                      ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """(K, 4) station start values (x, y, z, dead length), fixed mask (K,), notes."""
+    from volcal.multilateration import calibrate_stations
+
+    notes = []
+    K = len(meas.station_ids)
+    est = np.full((K, 4), np.nan)
+    fixed = np.zeros(K, bool)
+    if stations is not None:
+        tab = stations.set_index("station")
+        for k, sid in enumerate(meas.station_ids):
+            if sid in tab.index:
+                row = tab.loc[sid]
+                est[k, :3] = [row["x_mm"], row["y_mm"], row["z_mm"]]
+                est[k, 3] = row["dead_length_mm"]
+                fixed[k] = bool(row["fixed"])
+    missing = np.isnan(est[:, 0])
+    if missing.any():
+        p0, _, _ = machine.evaluate(meas.q_internal, meas.tool, np.zeros(machine.n_errors))
+        sel = np.isin(meas.station_index, np.flatnonzero(missing))
+        ids = np.asarray(meas.station_ids, dtype=object)[meas.station_index[sel]]
+        cal = calibrate_stations(ids, p0[sel], meas.length[sel], method="sqrt")
+        for sid, pos, d, ok, st in zip(cal.stations, cal.positions, cal.dead_lengths,
+                                       cal.converged, cal.status):
+            k = meas.station_ids.index(str(sid))
+            if not ok:
+                raise SolverError(f"could not locate station {sid} from the nominal points",
+                                  status=str(st))
+            est[k, :3], est[k, 3] = pos, d
+        notes.append("station start values: paper 002 linear solution refined by the "
+                     "sqrt residual (paper 000 Case A) on nominal points")
+    return est, fixed, notes
+
+
+def build_error_model(spec: MachineSpec, *, degree: int = 3, datum: Datum = "iso230",
+                      forms: dict[str, ErrorForm] | None = None) -> ErrorModel:
+    return ErrorModel(spec, forms, default=ErrorForm("poly", degree), datum=datum)
+
+
+def identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.DataFrame | Measurements,
+             stations: str | Path | pd.DataFrame | None = None, *, strategy: str = "joint",
+             degree: int = 3, datum: Datum = "iso230", error_model: ErrorModel | None = None,
+             budget: str | Path | Budget = "paper002", robust: bool = False,
+             reject_k: float = 4.0, exact: bool = False, hessian: str = "gauss-newton",
+             scale_covariance: bool = False, station_method: str = "sqrt",
+             point_method: str = "sqrt", verbose: bool = False) -> IdentificationResult:
+    """Identify the geometric errors of a machine from length readings.
+
+    model: bundled model name, model file, spec or Machine; data: measurement table (CSV,
+    DataFrame or validated Measurements); stations: optional stations table (start values,
+    or known positions where ``fixed``). Readings without ``sigma`` are weighted by the
+    budget. ``robust`` rejects readings whose normalised residual exceeds ``reject_k``
+    robust standard deviations and re-solves (the rejected readings are listed).
+    Raises SolverError when IPOPT does not succeed.
+    """
+    t_start = time.perf_counter()
+    machine = model if isinstance(model, Machine) else Machine.from_model(model)
+    spec = machine.spec
+    st_table = None
+    if stations is not None:
+        st_table = stations if isinstance(stations, pd.DataFrame) and "x_mm" in stations \
+            and "dead_length_given" in stations else load_stations(stations)
+    meas = data if isinstance(data, Measurements) else load_measurements(
+        data, spec, stations=st_table)
+    em = error_model or build_error_model(spec, degree=degree, datum=datum)
+    bud = budget if isinstance(budget, Budget) else load_budget(budget)
+    if strategy not in STRATEGIES:
+        raise InputError(f"unknown strategy {strategy!r}; expected one of {list(STRATEGIES)}")
+
+    st0, st_fixed, notes = _initial_stations(machine, meas, st_table)
+    sigma = meas.sigma.copy()
+    budget_sigma = reading_sigma(machine, bud, meas, st0[:, :3])
+    no_sigma = ~np.isfinite(sigma)
+    sigma[no_sigma] = budget_sigma[no_sigma]
+    sigma_source = "table" if not no_sigma.any() else (
+        f"budget {bud.name}" if no_sigma.all() else f"table and budget {bud.name}")
+
+    if strategy == "classic":
+        from volcal.strategies import classic_pipeline
+        return classic_pipeline(machine, em, meas, st0, sigma, station_method=station_method,
+                                point_method=point_method, t_start=t_start,
+                                sigma_source=sigma_source, notes=notes)
+
+    layout = Layout(meas.station_index, len(meas.station_ids), tuple(meas.station_ids))
+    ider = Identifier(machine, em, layout, exact=exact, hessian=hessian, verbose=verbose)
+    pr = ider.problem
+    weights = 1.0 / sigma
+    x0 = pr.pack_x(np.zeros(em.n_params), st0)
+    user_fixed = np.zeros(pr.n_x, bool)
+    for k in np.flatnonzero(st_fixed):
+        user_fixed[pr.n_theta + 4 * k: pr.n_theta + 4 * k + 4] = True
+    if strategy == "points-only" and not st_fixed.all():
+        user_fixed[ider.is_station] = True
+        notes.append("points-only: stations held at their start values "
+                     "(given table or analytical solution)")
+
+    rejected = np.zeros(len(meas), bool)
+    for round_ in range(6 if robust else 1):
+        p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
+        x, outcomes, fixed, ident = ider.run(strategy, x0, p, user_fixed=user_fixed)
+        r = np.asarray(pr.residual(pr.to_scaled(x), pr.pack_data(
+            meas.q_internal, meas.tool, meas.length, weights))).ravel()
+        if not robust:
+            break
+        ok = ~rejected
+        scale = 1.4826 * np.median(np.abs(r[ok] - np.median(r[ok])))
+        new = (np.abs(r) > reject_k * max(scale, 1.0)) & ~rejected
+        if not new.any():
+            break
+        rejected |= new
+        log.info("robust round %d: rejected %d readings", round_ + 1, int(new.sum()))
+
+    for o in outcomes:
+        if not o.success:
+            raise SolverError(f"identification ({strategy}) did not converge after "
+                              f"{o.iterations} iterations", status=o.status)
+
+    p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
+    cov = ider.covariance(x, p, fixed)
+    resid_w = r
+    dof = max(int((~rejected).sum()) - int((~fixed).sum()) + pr.C.shape[0], 1)
+    chi2 = float(np.sum(resid_w[~rejected] ** 2) / dof)
+    if scale_covariance:
+        cov = cov * chi2
+        notes.append(f"covariance scaled by the residual variance factor {chi2:.3g}")
+    theta, st, frame = pr.unpack_x(x)
+    nt = pr.n_theta
+    cov_theta = cov[:nt, :nt]
+    identifiable = ~(fixed[:nt] & ~user_fixed[:nt])
+    identifiable &= ~ident.unidentifiable[:nt]
+    stations_out = pd.DataFrame({
+        "station": meas.station_ids, "x_mm": st[:, 0], "y_mm": st[:, 1], "z_mm": st[:, 2],
+        "dead_length_mm": st[:, 3],
+        "std_x_um": np.sqrt(np.abs(np.diag(cov)[ider.is_station][0::4])) * 1e3,
+        "std_y_um": np.sqrt(np.abs(np.diag(cov)[ider.is_station][1::4])) * 1e3,
+        "std_z_um": np.sqrt(np.abs(np.diag(cov)[ider.is_station][2::4])) * 1e3,
+        "std_dead_length_um": np.sqrt(np.abs(np.diag(cov)[ider.is_station][3::4])) * 1e3,
+        "fixed": st_fixed if strategy != "points-only" else True,
+    })
+    residuals = meas.table.copy()
+    residuals["residual_um"] = resid_w * sigma * 1e3
+    residuals["normalised_residual"] = resid_w
+    residuals["rejected"] = rejected
+    rej = residuals.loc[rejected].assign(row=meas.rows[rejected])
+    conditions = {"jacobian_scaled": ident.condition,
+                  "jacobian_unscaled": ident.condition_unscaled,
+                  "chi2_per_dof": chi2}
+    return IdentificationResult(machine, em, strategy, theta, cov_theta, identifiable,
+                                stations_out, frame, residuals, ident, outcomes, conditions,
+                                rej, time.perf_counter() - t_start, sigma_source, notes)
