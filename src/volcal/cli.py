@@ -17,6 +17,10 @@ import sys
 _COMMANDS = [
     "volcal.commands.models",
     "volcal.iso230_2.cli",
+    "volcal.commands.simulate",
+    "volcal.commands.demo",
+    "volcal.commands.identify",
+    "volcal.commands.predict",
 ]
 
 

@@ -169,7 +169,7 @@ class Identifier:
     def jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Whitened residuals and Jacobian wrt the scaled variables at physical x."""
         r, J = self.problem.jacobian(self.problem.to_scaled(x), p)
-        return np.asarray(r).ravel(), np.asarray(J.full() if hasattr(J, "full") else J)
+        return r.full().ravel(), J.full()
 
     def analyse(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray,
                 constrained: bool = True) -> Identifiability:
@@ -206,8 +206,9 @@ class Identifier:
         outcomes: list[SolveOutcome] = []
         if strategy == "joint":
             ident = self.analyse(x0, p, user_fixed)
+            # hold one variable per null direction (the pivot); the others involved stay
+            # free and are reported as not individually identifiable
             fixed = user_fixed.copy()
-            fixed[ident.unidentifiable & ~self.is_station] = True
             fixed[ident.pivots] = True
             x0 = np.where(fixed & ~user_fixed & ~self.is_station, 0.0, x0)
             out = self._solve(x0, p, fixed)
@@ -224,7 +225,6 @@ class Identifier:
             f2 = user_fixed | self.is_station
             ident = self.analyse(x, p, f2)
             f2 = f2.copy()
-            f2[ident.unidentifiable & ~self.is_station] = True
             f2[ident.pivots] = True
             x = np.where(f2 & ~self.is_station & ~user_fixed, 0.0, x)
             out2 = self._solve(x, p, f2)
@@ -359,20 +359,27 @@ def identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.Da
                      "(given table or analytical solution)")
 
     rejected = np.zeros(len(meas), bool)
-    for round_ in range(6 if robust else 1):
+    for round_ in range(12 if robust else 1):
         p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
         x, outcomes, fixed, ident = ider.run(strategy, x0, p, user_fixed=user_fixed)
-        r = np.asarray(pr.residual(pr.to_scaled(x), pr.pack_data(
-            meas.q_internal, meas.tool, meas.length, weights))).ravel()
+        r = pr.residual(pr.to_scaled(x), pr.pack_data(
+            meas.q_internal, meas.tool, meas.length, weights)).full().ravel()
         if not robust:
             break
+        # data snooping with re-admission: a blunder spreads into its neighbours' residuals
+        # while it is in the fit, so reject only the clearly worst ones per round and take
+        # back readings that fit again once the blunders are out
         ok = ~rejected
-        scale = 1.4826 * np.median(np.abs(r[ok] - np.median(r[ok])))
-        new = (np.abs(r) > reject_k * max(scale, 1.0)) & ~rejected
-        if not new.any():
+        scale = max(1.4826 * np.median(np.abs(r[ok] - np.median(r[ok]))), 1.0)
+        limit = reject_k * scale
+        worst = np.max(np.abs(r[ok])) if ok.any() else 0.0
+        new = ok & (np.abs(r) > limit) & (np.abs(r) >= 0.5 * worst)
+        back = rejected & (np.abs(r) <= limit)
+        if not new.any() and not back.any():
             break
-        rejected |= new
-        log.info("robust round %d: rejected %d readings", round_ + 1, int(new.sum()))
+        rejected = (rejected | new) & ~back
+        log.info("robust round %d: rejected %d, re-admitted %d readings", round_ + 1,
+                 int(new.sum()), int(back.sum()))
 
     for o in outcomes:
         if not o.success:
@@ -390,8 +397,9 @@ def identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.Da
     theta, st, frame = pr.unpack_x(x)
     nt = pr.n_theta
     cov_theta = cov[:nt, :nt]
-    identifiable = ~(fixed[:nt] & ~user_fixed[:nt])
-    identifiable &= ~ident.unidentifiable[:nt]
+    # a parameter taking part in an unidentifiable direction has no value of its own: its
+    # value depends on which variable was held (reported), so it gets no uncertainty
+    identifiable = ~ident.unidentifiable[:nt]
     stations_out = pd.DataFrame({
         "station": meas.station_ids, "x_mm": st[:, 0], "y_mm": st[:, 1], "z_mm": st[:, 2],
         "dead_length_mm": st[:, 3],

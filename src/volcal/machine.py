@@ -135,7 +135,7 @@ class Machine:
         t = np.broadcast_to(np.asarray(t, float), (n, 3))
         e = np.broadcast_to(np.asarray(e, float), (n, self.n_errors))
         f = self.functions["tool_point_exact" if exact else "tool_point"].map(n)
-        p, dp, J = f(q.T, t.T, e.T)
+        p, dp, J = (v.full() for v in f(q.T, t.T, e.T))
         # map stacks the (3, n_err) blocks side by side: column a * n_err + b
         J = np.asarray(J).reshape(3, n, self.n_errors).transpose(1, 0, 2) \
             if self.n_errors else np.zeros((n, 3, 0))

@@ -74,55 +74,65 @@ class IdentificationProblem:
             np.full(n_ps * n_st, 1e-3),
             [1e-3 if u == "mm" else 1e-6 for u in ins.global_param_units]])
 
-        # one reading as an SX function returning its value and its own Jacobian row: the
-        # Jacobian is then assembled explicitly instead of by AD through the map.
+        # One reading as SX functions of the *scaled* variables, weight included: the value
+        # (all IPOPT needs for f and its gradient) and, separately, its Jacobian row (for
+        # the Gauss-Newton Hessian and the analysis).  The Jacobian is then assembled
+        # explicitly instead of by AD through the map.
+        nt = em.n_params
         qs, ts = ca.SX.sym("q", n_ax), ca.SX.sym("t", 3)
-        ths, ss, gs = ca.SX.sym("theta", em.n_params), ca.SX.sym("s", n_ps), ca.SX.sym("g", n_g)
-        e = em.values_function()(qs, ths)
+        ths, ss, gs = ca.SX.sym("theta", nt), ca.SX.sym("s", n_ps), ca.SX.sym("g", n_g)
+        ms, ws = ca.SX.sym("m"), ca.SX.sym("w")
+        sc = self.scale
+        th_phys = ths * ca.DM(sc[:nt])
+        s_phys = ss * ca.DM(sc[nt:nt + n_ps])
+        g_phys = gs * ca.DM(sc[nt + n_ps * n_st:]) if n_g else gs
+        e = em.values_function()(qs, th_phys)
         point = m["tool_point_exact" if self.exact else "tool_point"](qs, ts, e)[0]
-        val = ins.reading(point, ss, gs)
-        row = ca.jacobian(val, ca.vertcat(ths, ss, gs)).T
-        reading = ca.Function("reading", [qs, ts, ths, ss, gs], [val, row],
-                              ["q", "t", "theta", "s", "g"], ["m", "dm_dx"], {"cse": True})
-        self.reading_function = reading
+        val = ins.reading(point, s_phys, g_phys)
+        res = ws * (val - ms)
+        row = ca.jacobian(res, ca.vertcat(ths, ss, gs)).T
+        ins_ = [qs, ts, ths, ss, gs, ms, ws]
+        names_ = ["q", "t", "theta", "s", "g", "m", "w"]
+        f_res = ca.Function("residual1", ins_, [res], names_, ["r"], {"cse": True})
+        f_row = ca.Function("jacobian1", ins_, [row], names_, ["dr_dx"], {"cse": True})
 
         # all readings in MX (x is the scaled variable vector)
         xs = ca.MX.sym("x", self.n_x)
-        xp = xs * ca.DM(self.scale)
-        th = xp[:em.n_params]
-        sp = xp[em.n_params:em.n_params + n_ps * n_st]
-        g = xp[em.n_params + n_ps * n_st:]
+        th = xs[:nt]
+        sp = xs[nt:nt + n_ps * n_st]
+        g = xs[nt + n_ps * n_st:]
         Q, T = ca.MX.sym("q", n_ax, N), ca.MX.sym("t", 3, N)
         meas, w = ca.MX.sym("m", N), ca.MX.sym("w", N)
         p = ca.vertcat(ca.vec(Q), ca.vec(T), meas, w)
-        st_idx = [int(i) for i in lay.station_index]
-        sel = ca.DM(ca.Sparsity.triplet(n_st, N, st_idx, list(range(N))), 1.0)
+        st_idx = np.asarray(lay.station_index, int)
+        sel = ca.DM(ca.Sparsity.triplet(n_st, N, [int(i) for i in st_idx], list(range(N))), 1.0)
         S = ca.mtimes(ca.reshape(sp, n_ps, n_st), sel)
-        model, rows = reading.map(N)(Q, T, th, S, g)
-        r = w * (model.T - meas)
-        # Jacobian wrt the scaled variables, rows weighted by w
-        Wd = ca.diag(w)
-        J_th = ca.mtimes(Wd, rows[:em.n_params, :].T) * ca.repmat(
-            ca.DM(self.scale[:em.n_params]).T, N, 1)
-        J_st = None
+        args = (Q, T, th, S, g, meas.T, w.T)
+        r = f_res.map(N)(*args).T
+        rows = f_row.map(N)(*args)  # (n_vars_per_reading, N)
+
+        # J: dense columns for theta and the globals, one nonzero per row in the columns of
+        # the reading's own station.  Built from its sparsity pattern and nonzeros.
+        rr, cc = [], []
+        for j in range(nt):
+            rr.append(np.arange(N)); cc.append(np.full(N, j))
         for k in range(n_ps):
-            # station parameter k of reading i sits in column n_ps * station(i) + k
-            pick = ca.DM(ca.Sparsity.triplet(N, n_ps * n_st, list(range(N)),
-                                             [n_ps * i + k for i in st_idx]), 1.0)
-            part = ca.mtimes(ca.diag(w * rows[em.n_params + k, :].T), pick)
-            J_st = part if J_st is None else J_st + part
-        blocks = [J_th, J_st]
-        if n_g:
-            blocks.append(ca.mtimes(Wd, rows[em.n_params + n_ps:, :].T))
-        # chain rule for the variable scaling of the instrument columns
-        J = ca.horzcat(*blocks)
-        J = ca.horzcat(J[:, :em.n_params],
-                       J[:, em.n_params:] * ca.repmat(ca.DM(self.scale[em.n_params:]).T, N, 1))
+            rr.append(np.arange(N)); cc.append(nt + n_ps * st_idx + k)
+        for j in range(n_g):
+            rr.append(np.arange(N)); cc.append(np.full(N, nt + n_ps * n_st + j))
+        rr, cc = np.concatenate(rr), np.concatenate(cc)
+        # nonzeros of rows stacked reading-major per variable: index v * N + i
+        src = np.concatenate([np.arange(N) + v * N for v in range(nt + n_ps + n_g)])
+        order = np.lexsort((rr, cc))  # column-major order of the sparsity
+        colind = np.concatenate([[0], np.cumsum(np.bincount(cc, minlength=self.n_x))])
+        sp_J = ca.Sparsity(N, self.n_x, colind.tolist(), rr[order].tolist())
+        nz = ca.vec(rows.T)[src[order].tolist()]
+        J = ca.MX(sp_J, nz)
         self.residual = ca.Function("residual", [xs, p], [r], ["x", "p"], ["r"])
         self.jacobian = ca.Function("jacobian", [xs, p], [r, J], ["x", "p"], ["r", "J"])
 
         self.C, self.constraint_labels = em.constraints()
-        Cs = self.C * self.scale[None, :em.n_params]
+        Cs = self.C * self.scale[None, :nt]
         gvec = ca.mtimes(ca.DM(Cs), xs[:em.n_params]) if self.C.shape[0] else ca.MX(0, 1)
         self.nlp = {"x": xs, "p": p, "f": 0.5 * ca.sumsqr(r), "g": gvec}
         lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", gvec.shape[0])

@@ -73,6 +73,6 @@ class NLPSolver:
         dt = time.perf_counter() - t0
         st = self.solver.stats()
         status = st.get("return_status", "unknown")
-        x = self.problem.from_scaled(sol["x"])
+        x = self.problem.from_scaled(sol["x"].full())
         ok = status in _OK and bool(np.all(np.isfinite(x)))
         return SolveOutcome(x, float(sol["f"]), status, ok, int(st.get("iter_count", -1)), dt)

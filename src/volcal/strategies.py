@@ -97,7 +97,7 @@ def classic_pipeline(machine: Machine, em: ErrorModel, meas: Measurements, st0: 
     names = em.param_names + ["frame_tx_mm", "frame_ty_mm", "frame_tz_mm",
                               "frame_rx_rad", "frame_ry_rad", "frame_rz_rad"]
     ident = analyse_jacobian(As, names, Cs, prefer=np.r_[np.ones(em.n_params), np.zeros(6)])
-    fixed = ident.unidentifiable.copy()
+    fixed = np.zeros(len(names), bool)
     fixed[ident.pivots] = True
     free = np.flatnonzero(~fixed)
     Cf = Cs[:, free]

@@ -1,0 +1,189 @@
+"""Identification against simulated truth: accuracy, strategies, unobservable errors,
+and honest failure reporting."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volcal.errors import ErrorModel
+from volcal.exceptions import SolverError
+from volcal.identify import identify, rigid_fit
+from volcal.machine import Machine
+from volcal.plans import default_stations, grid_plan
+from volcal.simulate import draw_true_parameters, simulate
+
+TOOLS = np.array([[0, 0, 0], [0, 0, -100.0], [80, 0, -100.0], [0, 80, -100.0]])
+
+
+def field_error_um(res, machine, em, theta_true, n=5):
+    """RMS (over grid points and components) of identified minus true volumetric error,
+    after removing the best-fit rigid motion, tool offset 0."""
+    grid = grid_plan(machine.spec, n)
+    q = machine.axis_to_internal(grid.to_numpy(float))
+    pred = res.predict(q, with_uncertainty=False)[["dx_um", "dy_um", "dz_um"]].to_numpy()
+    _, true_dp, _ = machine.evaluate(q, np.zeros(3), em.values(q, theta_true), exact=True)
+    p0, _, _ = machine.evaluate(q, np.zeros(3), np.zeros(machine.n_errors))
+    _, resid = rigid_fit(p0, pred - true_dp * 1e3)
+    return float(np.sqrt(np.mean(resid ** 2))), float(np.max(np.abs(true_dp))) * 1e3
+
+
+def simulated(model, *, tools=TOOLS, grid=None, seed=1, noise=True, vmax_um=60.0):
+    machine = Machine.from_model(model)
+    em = ErrorModel(machine.spec)
+    theta = draw_true_parameters(machine, em, np.random.default_rng(seed), vmax_um)
+    plan = grid_plan(machine.spec, grid or 5)
+    stations = default_stations(machine.spec, 6, seed=seed, tools=tools)
+    sim = simulate(machine, em, theta, stations, plan, tools, "paper002", seed, noise=noise)
+    return machine, em, theta, sim
+
+
+@pytest.mark.parametrize("model", ["mcv754_wxyzt", "xfyz"])
+def test_three_axis_field_within_half_micron(model):
+    machine, em, theta, sim = simulated(model)
+    assert sim.measurements["point"].nunique() >= 100 * 1  # >= 100 points (poses x tools)
+    res = identify(machine, sim.measurements, error_model=em)
+    assert res.success, res.status
+    rms, vmax = field_error_um(res, machine, em, theta)
+    assert vmax > 20.0  # a realistic error field, not a trivial one
+    assert rms < 0.5, f"{model}: field error {rms:.3f} um RMS"
+    # the residuals are at the level of the budget (chi2 per degree of freedom ~ 1)
+    assert 0.7 < res.conditions["chi2_per_dof"] < 1.3
+
+
+def test_single_tool_offset_reports_unobservable_angles_by_name():
+    machine, em, theta, sim = simulated("mcv754_wxyzt", tools=np.zeros((1, 3)))
+    res = identify(machine, sim.measurements, error_model=em)
+    assert res.success
+    names = set(np.asarray(em.param_names)[~res.identifiable])
+    # with the reflector always at the spindle reference point, the angular error motions
+    # of Z (the last axis) do not move the measured point at all
+    for err in ("EAZ", "EBZ", "ECZ"):
+        assert any(n.startswith(err + "_") for n in names), (err, names)
+    assert not any(n.startswith(("EXX", "EYY", "EZZ")) for n in names)
+    combos = " | ".join(res.identifiability.combinations)
+    assert "EAZ" in combos and "ECZ" in combos
+    # unidentifiable parameters are held at zero and carry no uncertainty
+    table = res.parameters()
+    unid = table[~table["identifiable"]]
+    assert np.all(unid["value"] == 0.0) and unid["std"].isna().all()
+    # what the data do determine is still right: the volumetric field at tool offset 0
+    rms, _ = field_error_um(res, machine, em, theta)
+    assert rms < 0.5
+
+
+def test_multi_offset_identifies_everything():
+    machine, em, theta, sim = simulated("mcv754_wxyzt")
+    res = identify(machine, sim.measurements, error_model=em)
+    assert res.identifiable.all(), np.asarray(em.param_names)[~res.identifiable]
+    # identified parameters agree with the truth within their uncertainty (z-scores)
+    tab = res.parameters()
+    f = np.array([1e3 if u == "mm" else 1e6 for u in em.param_units])
+    z = (tab["value"].to_numpy() - theta * f) / tab["std"].to_numpy()
+    assert np.mean(np.abs(z) < 3) > 0.95
+    assert np.all(np.abs(z) < 6)
+
+
+def test_strategies_consistent_on_well_posed_data():
+    # "well posed" for the two-step strategies: machine errors small enough that stations
+    # self-calibrated on nominal points are not biased by them (2 um maximum; their bias
+    # is about a tenth of the error field, see the next test)
+    machine, em, theta, sim = simulated("mcv754_wxyzt", seed=3, vmax_um=2.0)
+    preds = {}
+    for strategy in ("joint", "two-phase", "classic"):
+        res = identify(machine, sim.measurements, error_model=em, strategy=strategy)
+        assert res.success, (strategy, res.status)
+        err, _ = field_error_um(res, machine, em, theta)
+        assert err < 0.5, (strategy, err)
+        preds[strategy] = res.predict(machine.axis_to_internal(
+            grid_plan(machine.spec, 4).to_numpy(float)), with_uncertainty=False).to_numpy()
+    p0 = machine.evaluate(machine.axis_to_internal(grid_plan(machine.spec, 4).to_numpy(float)),
+                          np.zeros(3), np.zeros(machine.n_errors))[0]
+    for other in ("two-phase", "classic"):
+        _, d = rigid_fit(p0, preds[other] - preds["joint"])
+        assert np.sqrt(np.mean(d ** 2)) < 0.5, other
+
+
+def test_joint_beats_two_step_strategies_on_realistic_errors():
+    # with realistic (48 um) errors, stations calibrated on nominal points absorb part of
+    # the machine's errors; the one-step joint identification does not have that bias
+    machine, em, theta, sim = simulated("mcv754_wxyzt", seed=3)
+    errs = {}
+    for strategy in ("joint", "two-phase", "classic"):
+        res = identify(machine, sim.measurements, error_model=em, strategy=strategy)
+        errs[strategy], vmax = field_error_um(res, machine, em, theta)
+    assert errs["joint"] < 0.5
+    assert errs["two-phase"] > 5 * errs["joint"] and errs["classic"] > 5 * errs["joint"]
+    # the two two-step strategies agree with each other (same bias, same cause)
+    assert abs(errs["two-phase"] - errs["classic"]) < 0.5 * errs["classic"]
+
+
+def test_noise_free_joint_is_exact_to_second_order():
+    machine, em, theta, sim = simulated("mcv754_wxyzt", noise=False, seed=5)
+    res = identify(machine, sim.measurements, error_model=em)
+    rms, vmax = field_error_um(res, machine, em, theta)
+    # the simulator uses the exact model, the identification the first-order one: what is
+    # left is second order in the errors (~ (60 um)^2 / 500 mm ~ 1e-5 um)
+    assert rms < 2e-3, rms
+
+
+def test_solver_failure_is_reported_with_status():
+    machine, em, theta, sim = simulated("mcv754_wxyzt", grid=4)
+    from volcal.identify import Identifier
+    from volcal.problem import Layout
+    from volcal.data import load_measurements
+
+    meas = load_measurements(sim.measurements, machine.spec)
+    ider = Identifier(machine, em, Layout(meas.station_index, len(meas.station_ids)))
+    ider.solver = type(ider.solver)(ider.problem, max_iter=1)
+    pr = ider.problem
+    st = sim.stations[["x_mm", "y_mm", "z_mm", "dead_length_mm"]].to_numpy() + 5.0
+    x0 = pr.pack_x(np.zeros(em.n_params), st)
+    p = pr.pack_data(meas.q_internal, meas.tool, meas.length, 1 / meas.sigma)
+    x, outcomes, _, _ = ider.run("joint", x0, p)
+    assert not outcomes[-1].success
+    assert outcomes[-1].status == "Maximum_Iterations_Exceeded"
+
+
+def test_identify_raises_solver_error_on_nonconvergence(monkeypatch):
+    machine, em, theta, sim = simulated("mcv754_wxyzt", grid=4)
+    import volcal.solve as solve_mod
+
+    orig = solve_mod.NLPSolver.__init__
+
+    def one_iteration(self, problem, **kw):
+        kw["max_iter"] = 1
+        orig(self, problem, **kw)
+
+    monkeypatch.setattr(solve_mod.NLPSolver, "__init__", one_iteration)
+    data = sim.measurements.copy()
+    data.loc[::7, "length"] += 0.3  # gross errors: one step cannot converge
+    with pytest.raises(SolverError) as info:
+        identify(machine, data, error_model=em)
+    assert info.value.status == "Maximum_Iterations_Exceeded"
+
+
+def test_robust_rejection_lists_outliers():
+    machine, em, theta, sim = simulated("mcv754_wxyzt", grid=4)
+    data = sim.measurements.copy()
+    bad = [10, 200, 333]
+    data.loc[bad, "length"] += 0.05  # 50 um blunders
+    res = identify(machine, data, error_model=em, robust=True)
+    assert sorted(res.rejected.index.tolist()) == bad
+    assert res.rejected["row"].tolist() == [i + 2 for i in sorted(bad)]
+    rms, _ = field_error_um(res, machine, em, theta)
+    assert rms < 0.5
+
+
+@pytest.mark.parametrize("model", ["trunnion_ac", "head_bc"])
+def test_five_axis_identification_runs_and_is_close(model):
+    # 4 positions per axis: a cubic needs 4 distinct positions (with 3, P1 and P3 coincide,
+    # which the analysis reports as "EXX_1 - 1 EXX_3")
+    machine, em, theta, sim = simulated(model, grid=4)
+    res = identify(machine, sim.measurements, error_model=em)
+    assert res.success, res.status
+    rms, vmax = field_error_um(res, machine, em, theta, n=4)
+    # the 5-axis figure is stated, not tuned: unidentifiable combinations are held at zero
+    # and reported, so the field error can exceed the 3-axis bound
+    print(f"{model}: field error {rms:.3f} um RMS of {vmax:.1f} um max;"
+          f" unidentifiable {int((~res.identifiable).sum())}")
+    assert rms < 0.1 * vmax
