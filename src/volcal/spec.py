@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 import tomllib
 from dataclasses import asdict, dataclass, field
@@ -35,6 +36,8 @@ from volcal.exceptions import InputError
 AXIS_LETTERS = "XYZ"
 ROT_LETTERS = "ABC"
 _NAME_RE = re.compile(r"^[A-Z][A-Z0-9]{0,3}$")
+# model names end up in file names (the build cache): no path separators, no spaces
+_MODEL_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 _DIRECTIONS = {"+x": (0, 1), "-x": (0, -1), "+y": (1, 1), "-y": (1, -1), "+z": (2, 1), "-z": (2, -1)}
 
 
@@ -186,6 +189,8 @@ def _check_number(value: Any, where: str, key: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InputError(f"expected a number, got {type(value).__name__} {value!r}",
                          source=where, column=key)
+    if not math.isfinite(value):
+        raise InputError(f"expected a finite number, got {value!r}", source=where, column=key)
     return float(value)
 
 
@@ -224,7 +229,7 @@ def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
     if kind not in ("linear", "rotary"):
         raise InputError(f"unknown axis kind {kind!r}; expected \"linear\" or \"rotary\"",
                          source=where, column="kind")
-    if d["direction"] not in _DIRECTIONS:
+    if not isinstance(d["direction"], str) or d["direction"] not in _DIRECTIONS:
         raise InputError(f"expected one of {list(_DIRECTIONS)}, got {d['direction']!r}",
                          source=where, column="direction")
     if d["branch"] not in ("workpiece", "tool"):
@@ -240,12 +245,12 @@ def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
     if not lo <= ref <= hi:
         raise InputError(f"reference {ref} outside travel [{lo}, {hi}]", source=where,
                          column="reference")
+    if kind == "linear" and "center" in d:
+        raise InputError("'center' applies to rotary axes only", source=where, column="center")
     center = d.get("center", [0.0, 0.0, 0.0])
     if not isinstance(center, list) or len(center) != 3:
         raise InputError(f"expected [x, y, z] in mm, got {center!r}", source=where, column="center")
     center = tuple(_check_number(v, where, "center") for v in center)
-    if kind == "linear" and "center" in d:
-        raise InputError("'center' applies to rotary axes only", source=where, column="center")
     probe = AxisSpec(name, kind, d["direction"], d["branch"], (lo, hi), ref, center)
     comp_names = probe.component_error_names()
     errors = _check_names(d.get("errors", "all"), where, "errors", comp_names)
@@ -254,9 +259,10 @@ def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
     loc_names = [s.name for s in _location_candidates(probe, {0, 1, 2})]
     location = _check_names(d.get("location", "all"), where, "location", loc_names)
     exclude = d.get("exclude", [])
-    exclude = _check_names(exclude, where, "exclude", comp_names + loc_names) if exclude else ()
-    if isinstance(exclude, str):
-        raise InputError("expected a list of error names", source=where, column="exclude")
+    if not isinstance(exclude, list):
+        raise InputError(f"expected a list of error names from {comp_names + loc_names}, "
+                         f"got {exclude!r}", source=where, column="exclude")
+    exclude = _check_names(exclude, where, "exclude", comp_names + loc_names)
     return AxisSpec(name, kind, d["direction"], d["branch"], (lo, hi), ref, center, errors,
                     location, exclude)
 
@@ -268,8 +274,12 @@ def machine_from_dict(d: dict[str, Any], where: str = "<model>") -> MachineSpec:
     if unknown:
         raise InputError(f"unknown top-level key(s) {sorted(unknown)}; allowed: {sorted(allowed)}",
                          source=where)
-    if not isinstance(d.get("name"), str) or not d["name"]:
-        raise InputError("missing or empty model name", source=where, column="name")
+    if "name" not in d:
+        raise InputError("missing required key (the model name)", source=where, column="name")
+    if not isinstance(d["name"], str) or not _MODEL_NAME_RE.match(d["name"]):
+        raise InputError("expected a model name of 1-64 letters, digits, '_', '-' or '.' "
+                         f"starting with a letter or digit, got {d['name']!r}",
+                         source=where, column="name")
     desc = d.get("description", "")
     if not isinstance(desc, str):
         raise InputError("expected a string", source=where, column="description")
@@ -297,6 +307,30 @@ def machine_from_dict(d: dict[str, Any], where: str = "<model>") -> MachineSpec:
     return MachineSpec(d["name"], tuple(axes), desc)
 
 
+def spec_to_dict(spec: MachineSpec) -> dict[str, Any]:
+    """The model document (TOML form, as parsed by :mod:`tomllib`) of a spec:
+    ``machine_from_dict(spec_to_dict(spec)) == spec``.  Plain lists, strings and floats
+    only, so that it serialises to JSON or TOML as is."""
+
+    def names(v: str | tuple[str, ...]) -> str | list[str]:
+        return v if isinstance(v, str) else list(v)
+
+    axes = []
+    for a in spec.axes:
+        d: dict[str, Any] = {"name": a.name, "kind": a.kind, "direction": a.direction,
+                             "branch": a.branch,
+                             "travel": [float(a.travel[0]), float(a.travel[1])],
+                             "reference": float(a.reference)}
+        if a.is_rotary:
+            d["center"] = [float(c) for c in a.center]
+        d["errors"] = names(a.errors)
+        d["location"] = names(a.location)
+        if a.exclude:
+            d["exclude"] = list(a.exclude)
+        axes.append(d)
+    return {"name": spec.name, "description": spec.description, "axis": axes}
+
+
 def load_model_file(path: str | Path) -> MachineSpec:
     """Parse and validate a model TOML file (never executes any of its content)."""
     path = Path(path)
@@ -304,6 +338,9 @@ def load_model_file(path: str | Path) -> MachineSpec:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise InputError(f"cannot read model file: {exc.strerror}", source=str(path)) from exc
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not a UTF-8 text file (TOML expected): {exc.reason} at byte "
+                         f"{exc.start}", source=str(path)) from exc
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -1,0 +1,135 @@
+"""``volcal identify``: identify a machine's geometric errors from a measurement table.
+
+Example::
+
+    volcal identify --model mcv754_wxyzt --data sim/measurements.csv --out result/
+
+Writes the result folder of DESIGN.md (see :mod:`volcal.results`) and prints a short
+summary.  Exit codes: 0 success, 1 the solver did not converge, 2 bad input.  The input
+files are only read; the output folder is written atomically and replaces only a previous
+result folder.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+# kept here (not imported from volcal.identify) so that `volcal --help` stays light
+_STRATEGIES = ("joint", "two-phase", "points-only", "classic")
+_DATUMS = ("iso230", "reference", "none")
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "identify",
+        help="identify the geometric errors from length readings",
+        description="Identify the geometric error motions of a machine from multilateration "
+                    "length readings and write parameters, stations, residuals, component "
+                    "errors, a volumetric grid, plots, report.md and result.json (for "
+                    "`volcal predict`) to --out.  Every value written is an error "
+                    "(actual - nominal), not a correction.",
+    )
+    p.add_argument("--model", required=True, metavar="M",
+                   help="bundled model name (see `volcal models`) or model TOML file")
+    p.add_argument("--data", required=True, type=Path, metavar="D.csv",
+                   help="measurement table (station, point, axis columns in mm/deg, "
+                        "optional tool_x/y/z, length in mm, optional time, sigma)")
+    p.add_argument("--stations", type=Path, metavar="S.csv",
+                   help="stations table (station, x, y, z in mm, optional dead_length, "
+                        "fixed): start values, or known positions where fixed")
+    p.add_argument("--strategy", default="joint", choices=_STRATEGIES,
+                   help="joint (default): errors, stations and dead lengths together; "
+                        "two-phase; points-only (stations held); classic "
+                        "(calibrate -> multilaterate -> fit)")
+    p.add_argument("--degree", type=int, default=3, metavar="N",
+                   help="Legendre degree of the component error motions (default 3)")
+    p.add_argument("--datum", default="iso230", choices=_DATUMS,
+                   help="datum convention of the error motions (default iso230)")
+    p.add_argument("--budget", default="paper002", metavar="NAME|FILE",
+                   help="uncertainty budget weighting readings without sigma: bundled name "
+                        "or TOML file (default paper002)")
+    p.add_argument("--robust", action="store_true",
+                   help="reject readings whose normalised residual exceeds --reject-k robust "
+                        "standard deviations and re-solve")
+    p.add_argument("--reject-k", type=float, default=None, metavar="K",
+                   help="rejection threshold of --robust (default 4)")
+    p.add_argument("--exact", action="store_true",
+                   help="exact rotations in the model instead of the first-order one")
+    p.add_argument("--scale-covariance", action="store_true",
+                   help="scale the covariance by the residual variance factor (chi2/dof)")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR",
+                   help="output folder (created; a previous result folder is replaced)")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.set_defaults(func=run)
+    return p
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    try:
+        path.resolve().relative_to(folder.resolve())
+        return True
+    except ValueError:
+        return False
+
+
+def run(args: argparse.Namespace) -> int:
+    from volcal.exceptions import InputError
+    from volcal.identify import identify
+    from volcal.results import check_out_dir, save_result
+
+    if args.degree < 0:
+        raise InputError(f"expected a degree >= 0, got {args.degree}", source="--degree")
+    if args.reject_k is not None and not args.robust:
+        raise InputError("--reject-k applies with --robust only", source="--reject-k")
+    reject_k = 4.0 if args.reject_k is None else args.reject_k
+    if not reject_k > 0:
+        raise InputError(f"expected a positive threshold, got {reject_k:g}", source="--reject-k")
+    # fail before the solve: the output must be writable without touching any input
+    out = check_out_dir(args.out)
+    for name, path in (("--data", args.data), ("--stations", args.stations),
+                       ("--budget", Path(args.budget)), ("--model", Path(args.model))):
+        if path is not None and path.exists() and _inside(path, out):
+            raise InputError(f"the input {path} is inside the output folder, which is "
+                             "replaced; write the result elsewhere", source=name)
+
+    log.info("identifying: model %s, data %s, strategy %s", args.model, args.data,
+             args.strategy)
+    res = identify(args.model, args.data, args.stations, strategy=args.strategy,
+                   degree=args.degree, datum=args.datum, budget=args.budget,
+                   robust=args.robust, reject_k=reject_k, exact=args.exact,
+                   scale_covariance=args.scale_covariance,
+                   verbose=getattr(args, "verbose", 0) > 1)
+    log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
+    options = {"model": args.model, "strategy": args.strategy, "degree": args.degree,
+               "datum": args.datum, "budget": args.budget, "robust": args.robust,
+               "reject_k": reject_k, "exact": args.exact,
+               "scale_covariance": args.scale_covariance,
+               "stations": str(args.stations) if args.stations else None}
+    path = save_result(res, out, data_name=str(args.data), plots=not args.no_plots,
+                       options=options)
+    meta = json.loads((path / "result.json").read_text(encoding="utf-8"))
+    if not getattr(args, "quiet", False):
+        spec = res.machine.spec
+        n_rej = meta["n_rejected"]
+        unid = meta["unidentifiable"]
+        iters = sum(o.iterations for o in res.outcomes)
+        print(f"volcal identify: model '{spec.name}', {meta['n_readings']} readings from "
+              f"{res.residuals['station'].nunique()} stations, strategy {res.strategy}")
+        print(f"  solver status            {res.status} ({iters} iterations, "
+              f"{res.seconds:.1f} s)")
+        print(f"  residual RMS             {res.residual_rms_um:.3f} um (chi2/dof "
+              f"{res.conditions.get('chi2_per_dof', float('nan')):.3g})")
+        print(f"  largest volumetric error {meta['max_volumetric_um']:.2f} um "
+              "(grid over the linear axes, tool offset 0)")
+        print("  unidentifiable           " + (", ".join(unid) if unid else "none"))
+        if args.robust:
+            print(f"  rejected readings        {n_rej}")
+        print(f"  report                   {path / 'report.md'}")
+        print(f"  files                    {path}")
+    if not res.success:
+        return 1
+    return 0

@@ -1,0 +1,453 @@
+"""The result folder of `volcal identify` (volcal.results), `volcal identify` and
+`volcal predict`.
+
+One small simulated data set (model xfyz, Legendre degree 2, 4 x 3 x 3 poses, 4 tool
+offsets, 4 stations: 576 readings) is identified once and saved once per module.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import volcal.cli
+import volcal.results as results
+from volcal.errors import ErrorForm, ErrorModel
+from volcal.exceptions import InputError, SolverError
+from volcal.identify import IdentificationResult, identify
+from volcal.machine import Machine
+from volcal.plans import default_stations, grid_plan
+from volcal.results import (DATA_FILES, PLOT_FILES, RESULT_FILES, load_result, read_points,
+                            save_result)
+from volcal.simulate import draw_true_parameters, simulate
+from volcal.solve import SolveOutcome
+
+TOOLS = np.array([[0, 0, 0], [0, 0, -100.0], [80, 0, -100.0], [0, 80, -100.0]])
+OUTLIER_INDEX = 37          # 0-based reading given a blunder in the robust CLI run
+OUTLIER_MM = 0.05
+
+
+def run_cli(argv: list[str], monkeypatch) -> int:
+    """volcal.cli.main with only this file's commands registered (independent of the
+    other commands' modules)."""
+    monkeypatch.setattr(volcal.cli, "_COMMANDS",
+                        ["volcal.commands.identify", "volcal.commands.predict"])
+    return volcal.cli.main(argv)
+
+
+def file_hash(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def folder_hashes(path: Path) -> dict[str, str]:
+    return {p.name: file_hash(p) for p in sorted(Path(path).iterdir())}
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("results")
+    machine = Machine.from_model("xfyz")
+    em = ErrorModel(machine.spec, default=ErrorForm("poly", 2))
+    theta = draw_true_parameters(machine, em, np.random.default_rng(3), 30.0)
+    plan = grid_plan(machine.spec, {"X": 4, "Y": 3, "Z": 3})
+    stations = default_stations(machine.spec, 4, seed=3, tools=TOOLS)
+    sim = simulate(machine, em, theta, stations, plan, TOOLS, "paper002", 3)
+    data = tmp / "measurements.csv"
+    sim.measurements.to_csv(data, index=False)
+    res = identify(machine, data, error_model=em)
+    out = save_result(res, tmp / "result", data_name="measurements.csv")
+    return {"tmp": tmp, "machine": machine, "em": em, "res": res, "out": out, "data": data,
+            "plan": plan, "measurements": sim.measurements}
+
+
+# --------------------------------------------------------------------------------------
+# the folder
+
+
+def test_every_file_is_written_with_its_columns_and_units(case):
+    out = case["out"]
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted(RESULT_FILES)
+    for png in PLOT_FILES:
+        assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    par = pd.read_csv(out / "parameters.csv")
+    assert list(par.columns) == ["name", "value", "unit", "std", "identifiable"]
+    assert set(par["unit"]) == {"um", "urad"}
+    st = pd.read_csv(out / "stations.csv")
+    assert list(st.columns[:5]) == ["station", "x_mm", "y_mm", "z_mm", "dead_length_mm"]
+    resid = pd.read_csv(out / "residuals.csv")
+    meas = case["measurements"]
+    assert list(resid.columns[:len(meas.columns)]) == list(meas.columns)
+    assert list(resid.columns[len(meas.columns):]) == ["residual_um", "normalised_residual",
+                                                       "rejected"]
+    assert len(resid) == len(meas)
+    np.testing.assert_allclose(resid["length"], meas["length"], rtol=0, atol=0)
+    comp = pd.read_csv(out / "component_errors.csv")
+    assert list(comp.columns[:2]) == ["axis", "position_mm"]
+    assert "position_deg" not in comp  # no rotary axis in this model
+    for a in "XYZ":
+        for e in "XYZ":
+            assert f"E{e}{a}_um" in comp and f"u_E{e}{a}_um" in comp
+        for e in "ABC":
+            assert f"E{e}{a}_urad" in comp and f"u_E{e}{a}_urad" in comp
+    assert set(comp["axis"]) == {"X", "Y", "Z"}
+    grid = pd.read_csv(out / "volumetric_grid.csv")
+    assert list(grid.columns) == ["X", "Y", "Z", "dx_um", "dy_um", "dz_um", "u_dx_um",
+                                  "u_dy_um", "u_dz_um", "norm_um"]
+    assert len(grid) == 7 ** 3
+    report = (out / "report.md").read_text()
+    for needle in ("# volcal identification: xfyz", "error = actual - nominal", "correction",
+                   "Solve_Succeeded", "residual RMS", "chi2 / dof", "largest volumetric error",
+                   "Condition numbers", "Null-space combinations", "## Parameters",
+                   "## Stations", "(component_errors.png)", "(volumetric_map.png)",
+                   "(residuals.png)", "`measurements.csv`"):
+        assert needle in report, needle
+    # no temporary folder left next to the result
+    assert sorted(p.name for p in out.parent.iterdir()) == ["measurements.csv", "result"]
+
+
+def test_tables_hold_the_result(case):
+    res, out = case["res"], case["out"]
+    par = pd.read_csv(out / "parameters.csv")
+    exp = res.parameters()
+    assert list(par["name"]) == list(exp["name"])
+    np.testing.assert_allclose(par["value"], exp["value"], rtol=1e-15, atol=0)
+    np.testing.assert_allclose(par["std"], exp["std"], rtol=1e-15, atol=0)
+    grid = pd.read_csv(out / "volumetric_grid.csv")
+    q = case["machine"].axis_to_internal(grid[["X", "Y", "Z"]].to_numpy())
+    pred = res.predict(q)
+    np.testing.assert_allclose(grid[pred.columns], pred, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(grid["norm_um"],
+                               np.linalg.norm(pred[["dx_um", "dy_um", "dz_um"]], axis=1))
+    doc = json.loads((out / "result.json").read_text())
+    assert doc["max_volumetric_um"] == pytest.approx(grid["norm_um"].max(), rel=1e-12)
+    assert doc["residual_rms_um"] == pytest.approx(res.residual_rms_um, rel=1e-12)
+
+
+def test_component_errors_equal_an_independent_evaluation(case):
+    em, res = case["em"], case["res"]
+    comp = pd.read_csv(case["out"] / "component_errors.csv")
+    spec = em.spec
+    ref = np.array([a.reference for a in spec.axes])
+    eye = np.eye(em.n_params)
+    cov = np.nan_to_num(res.cov_theta)
+    for j, a in enumerate(spec.axes):
+        rows = comp[comp["axis"] == a.name]
+        x = rows["position_mm"].to_numpy()
+        assert x[0] == a.travel[0] and x[-1] == a.travel[1] and len(x) == 41
+        q = np.tile(ref, (len(x), 1))
+        q[:, j] = x
+        e = em.values(q, res.theta)  # (N, n_errors) mm / rad
+        # the error model is linear in theta: its columns from values() at unit vectors
+        G = np.stack([em.values(q, eye[p]) for p in range(em.n_params)], axis=-1)
+        for k, s in enumerate(em.errors):
+            unit, f = ("um", 1e3) if s.unit == "mm" else ("urad", 1e6)
+            col = f"{s.name}_{unit}"
+            if s.axis != a.name or s.kind != "component":
+                assert col not in comp or rows[col].isna().all()
+                continue
+            np.testing.assert_allclose(rows[col], e[:, k] * f, rtol=1e-12, atol=1e-12)
+            var = np.einsum("np,pq,nq->n", G[:, k], cov, G[:, k])
+            u = np.sqrt(np.clip(var, 0, None)) * f  # ~ -1e-20 at a datum point
+            np.testing.assert_allclose(rows[f"u_{col}"], u, rtol=1e-9, atol=1e-12)
+    # the datum (iso230): positioning and angular errors vanish at the reference position,
+    # straightness at both ends of travel
+    xrow = comp[comp["axis"] == "X"]
+    assert abs(xrow["EXX_um"].iloc[0]) < 1e-9 and abs(xrow["EYX_um"].iloc[-1]) < 1e-9
+
+
+def test_result_json_is_strict_json_and_round_trips(case):
+    res, out, machine = case["res"], case["out"], case["machine"]
+    text = (out / "result.json").read_text()
+    doc = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
+    assert doc["format"] == results.RESULT_FORMAT and doc["format_version"] == 1
+    assert doc["data"] == "measurements.csv" and doc["strategy"] == "joint"
+    assert doc["versions"]["volcal"] and doc["versions"]["casadi"]
+    assert doc["param_names"] == res.error_model.param_names
+    assert doc["error_model"]["datum"] == "iso230"
+    loaded = load_result(out)
+    assert loaded.machine.spec == machine.spec
+    assert loaded.error_model.param_names == res.error_model.param_names
+    np.testing.assert_array_equal(loaded.theta, res.theta)
+    np.testing.assert_array_equal(loaded.cov_theta, res.cov_theta)  # NaN where NaN
+    np.testing.assert_array_equal(loaded.identifiable, res.identifiable)
+    pd.testing.assert_frame_equal(loaded.parameters(), res.parameters())
+    # predictions from the file equal the in-memory result, tool offsets included
+    rng = np.random.default_rng(0)
+    n = 25
+    pts = pd.DataFrame({"point": [f"q{i}" for i in range(n)],
+                        "X": rng.uniform(0, 800, n), "Y": rng.uniform(0, 500, n),
+                        "Z": rng.uniform(-500, 0, n), "tool_x": rng.uniform(-50, 50, n),
+                        "tool_z": rng.uniform(-150, 0, n)})
+    before = pts.copy()
+    got = loaded.predict(pts)
+    pd.testing.assert_frame_equal(pts, before)  # the caller's table is not modified
+    assert list(got.columns) == list(pts.columns) + ["dx_um", "dy_um", "dz_um", "u_dx_um",
+                                                     "u_dy_um", "u_dz_um"]
+    tool = np.column_stack([pts["tool_x"], np.zeros(n), pts["tool_z"]])
+    exp = res.predict(machine.axis_to_internal(pts[["X", "Y", "Z"]].to_numpy()), tool)
+    np.testing.assert_allclose(got[exp.columns].to_numpy(), exp.to_numpy(), rtol=0, atol=1e-9)
+    assert list(got["point"]) == list(pts["point"])
+
+
+# --------------------------------------------------------------------------------------
+# atomic writing
+
+
+def test_a_failure_mid_write_leaves_no_folder(case, tmp_path, monkeypatch):
+    def boom(*args, **kwargs):
+        raise RuntimeError("plot failed")
+
+    # the component plot (slow) is stubbed; the failure comes after the tables, result.json
+    # and one plot are in the temporary folder
+    monkeypatch.setattr(results, "_plot_component_errors",
+                        lambda table, em, path: Path(path).write_bytes(b"png"))
+    monkeypatch.setattr(results, "_plot_volumetric_map", boom)
+    out = tmp_path / "new"
+    with pytest.raises(RuntimeError, match="plot failed"):
+        save_result(case["res"], out)
+    assert list(tmp_path.iterdir()) == []  # neither out nor a temporary folder
+
+    # a previous result stays exactly as it was
+    prev = tmp_path / "prev"
+    save_result(case["res"], prev, plots=False)
+    before = folder_hashes(prev)
+    with pytest.raises(RuntimeError, match="plot failed"):
+        save_result(case["res"], prev, data_name="other.csv")
+    assert folder_hashes(prev) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["prev"]
+
+
+def test_a_previous_result_is_replaced_and_other_folders_are_refused(case, tmp_path):
+    out = tmp_path / "r"
+    save_result(case["res"], out, plots=False, data_name="first.csv")
+    assert sorted(p.name for p in out.iterdir()) == sorted(DATA_FILES)
+    save_result(case["res"], out, plots=False, data_name="second.csv")
+    assert json.loads((out / "result.json").read_text())["data"] == "second.csv"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r"]
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="other files"):
+        save_result(case["res"], out, plots=False)
+    assert (out / "notes.txt").read_text() == "mine"
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "data.csv").write_text("x")
+    with pytest.raises(InputError, match="choose a new folder"):
+        save_result(case["res"], other, plots=False)
+    assert [p.name for p in other.iterdir()] == ["data.csv"]
+
+
+# --------------------------------------------------------------------------------------
+# a rotary model, a synthetic result (no identification needed)
+
+
+def test_rotary_axes_unidentifiable_parameters_and_round_trip(tmp_path):
+    machine = Machine.from_model("head_bc")
+    em = ErrorModel(machine.spec, default=ErrorForm("poly", 1), datum="reference")
+    rng = np.random.default_rng(5)
+    n = em.n_params
+    theta = rng.normal(size=n) * np.where(np.array(em.param_units) == "mm", 2e-3, 5e-6)
+    A = rng.normal(size=(n, n)) * 1e-4
+    cov = A @ A.T
+    identifiable = np.ones(n, bool)
+    unid = [i for i, p in enumerate(em.param_names) if p.startswith("EBB_")]
+    identifiable[unid] = False
+    theta[unid] = 0.0
+    cov[unid, :] = np.nan
+    cov[:, unid] = np.nan
+    resid = pd.DataFrame({"station": ["S1"] * 4, "point": ["a", "b", "c", "d"],
+                          "X": 0.0, "Y": 0.0, "Z": 0.0, "C": 0.0, "B": 0.0,
+                          "tool_x": 0.0, "tool_y": 0.0, "tool_z": 0.0,
+                          "length": [1000.0, 1001.0, 1002.0, 1003.0],
+                          "residual_um": [0.1, -0.2, 0.3, 5.0],
+                          "normalised_residual": [0.2, -0.4, 0.6, 10.0],
+                          "rejected": [False, False, False, True]})
+    res = IdentificationResult(
+        machine, em, "joint", theta, cov, identifiable,
+        pd.DataFrame({"station": ["S1"], "x_mm": [1.0], "y_mm": [2.0], "z_mm": [3.0],
+                      "dead_length_mm": [0.1], "fixed": [False]}),
+        np.zeros(6), resid, None, [SolveOutcome(np.zeros(1), 0.0, "Solve_Succeeded", True, 3,
+                                                0.01)],
+        {"jacobian_scaled": 12.0, "chi2_per_dof": 1.0},
+        resid.iloc[[3]].assign(row=[5]), 0.5, "budget test", ["a note"])
+    out = save_result(res, tmp_path / "bc", plots=False, grid_points=3, component_points=5)
+    comp = pd.read_csv(out / "component_errors.csv")
+    assert list(comp.columns[:3]) == ["axis", "position_mm", "position_deg"]
+    rows_b = comp[comp["axis"] == "B"]
+    np.testing.assert_allclose(rows_b["position_deg"], np.linspace(-100, 100, 5))
+    assert rows_b["position_mm"].isna().all()
+    assert "ECC_urad" in comp and "u_EXB_um" in comp
+    # an error motion with an unidentifiable parameter has no uncertainty; others do
+    assert rows_b["u_EBB_urad"].isna().all() and rows_b["u_EAB_urad"].notna().all()
+    assert (rows_b["EBB_urad"] == 0).all()
+    grid = pd.read_csv(out / "volumetric_grid.csv")
+    assert len(grid) == 27 and (grid["C"] == 0).all() and (grid["B"] == 0).all()
+    report = (out / "report.md").read_text()
+    assert "`EBB_0`" in report and "`EBB_1`" in report and "a note" in report
+    assert "| 5 | S1 | d |" in report  # the rejected reading, with its file row
+    assert ".png" not in report.split("## Files")[0]
+    loaded = load_result(out)
+    pts = pd.DataFrame({"X": [100.0, 900.0], "Y": [0.0, 800.0], "Z": [-600.0, -10.0],
+                        "C_deg": [-170.0, 45.0], "B_deg": [30.0, -90.0],
+                        "tool_z": [-120.0, -80.0]})
+    got = loaded.predict(pts)
+    q = machine.axis_to_internal(pts[["X", "Y", "Z", "C_deg", "B_deg"]].to_numpy())
+    exp = res.predict(q, np.column_stack([np.zeros(2), np.zeros(2), pts["tool_z"]]))
+    np.testing.assert_allclose(got[exp.columns].to_numpy(), exp.to_numpy(), rtol=0, atol=1e-9)
+    assert list(got.columns[:6]) == list(pts.columns)
+
+
+# --------------------------------------------------------------------------------------
+# points validation
+
+
+def test_bad_points_name_file_row_and_column(case, tmp_path):
+    spec = case["machine"].spec
+    bad = tmp_path / "points.csv"
+    bad.write_text("point,X,Y,Z\np1,0,0,-10\np2,10,abc,-10\n")
+    with pytest.raises(InputError) as ei:
+        read_points(bad, spec)
+    msg = str(ei.value)
+    assert str(bad) in msg and "row 3" in msg and "column 'Y'" in msg and "'abc'" in msg
+    assert ei.value.row == 3 and ei.value.column == "Y"
+
+    bad.write_text("X,Y\n0,0\n")
+    with pytest.raises(InputError, match=r"row 1.*column 'Z'.*missing column\(s\) for Z"):
+        read_points(bad, spec)
+
+    bad.write_text("X,Y,Z\n0,0,-10\n900,0,-10\n")
+    with pytest.raises(InputError) as ei:
+        read_points(bad, spec)
+    assert ei.value.row == 3 and ei.value.column == "X" and "outside the travel" in str(ei.value)
+
+    bad.write_text("X,Y,Z,tool_xx\n0,0,-10,5\n")
+    with pytest.raises(InputError, match="unknown column 'tool_xx'.*did you mean 'tool_x'"):
+        read_points(bad, spec)
+
+    bad.write_text("X,Y,Z,tool_x\n0,0,-10,\n")
+    with pytest.raises(InputError, match=r"row 2, column 'tool_x': missing value"):
+        read_points(bad, spec)
+
+    with pytest.raises(InputError, match=r"<DataFrame>, row 2, column 'Z'"):
+        read_points(pd.DataFrame({"X": [0.0], "Y": [0.0], "Z": [np.inf]}), spec)
+
+
+# --------------------------------------------------------------------------------------
+# the commands
+
+
+def test_predict_cli_stdout_and_file(case, tmp_path, monkeypatch, capsys):
+    out = case["out"]
+    pts = tmp_path / "poses.csv"
+    pd.DataFrame({"point": ["a", "b", "c"], "X_mm": [0.0, 400.0, 800.0],
+                  "Y_mm": [0.0, 250.0, 500.0], "Z_mm": [-500.0, -250.0, 0.0],
+                  "tool_z": [0.0, -100.0, -50.0]}).to_csv(pts, index=False)
+    h_points, h_result = file_hash(pts), folder_hashes(out)
+    assert run_cli(["predict", "--result", str(out), "--points", str(pts)], monkeypatch) == 0
+    printed = capsys.readouterr().out
+    from io import StringIO
+    table = pd.read_csv(StringIO(printed))
+    assert list(table.columns) == ["point", "X_mm", "Y_mm", "Z_mm", "tool_z", "dx_um", "dy_um",
+                                   "dz_um", "u_dx_um", "u_dy_um", "u_dz_um"]
+    exp = load_result(out).predict(pts)
+    np.testing.assert_allclose(table[exp.columns[5:]], exp[exp.columns[5:]], rtol=1e-12)
+    v = tmp_path / "sub" / "v.csv"
+    assert run_cli(["predict", "--result", str(out), "--points", str(pts), "--out", str(v),
+                    "--no-uncertainty"], monkeypatch) == 0
+    written = pd.read_csv(v)
+    assert "u_dx_um" not in written and "dx_um" in written
+    np.testing.assert_allclose(written["dx_um"], exp["dx_um"], rtol=1e-12)
+    assert file_hash(pts) == h_points and folder_hashes(out) == h_result
+    assert sorted(p.name for p in v.parent.iterdir()) == ["v.csv"]
+
+
+def test_predict_cli_bad_input_exits_2(case, tmp_path, monkeypatch, capsys):
+    pts = tmp_path / "poses.csv"
+    pts.write_text("X,Y,Z\n0,0,-10\n1,2,oops\n")
+    code = run_cli(["predict", "--result", str(case["out"]), "--points", str(pts)], monkeypatch)
+    err = capsys.readouterr().err
+    assert code == 2 and "row 3" in err and "column 'Z'" in err and str(pts) in err
+    code = run_cli(["predict", "--result", str(tmp_path), "--points", str(pts)], monkeypatch)
+    assert code == 2 and "no result.json" in capsys.readouterr().err
+    code = run_cli(["predict", "--result", str(case["out"]), "--points", str(pts), "--out",
+                    str(pts)], monkeypatch)
+    assert code == 2 and "overwrite the points file" in capsys.readouterr().err
+    assert pts.read_text() == "X,Y,Z\n0,0,-10\n1,2,oops\n"
+
+
+def test_identify_cli_robust_summary_and_inputs_untouched(case, tmp_path, monkeypatch,
+                                                          capsys):
+    meas = case["measurements"].copy()
+    meas.loc[OUTLIER_INDEX, "length"] += OUTLIER_MM
+    data = tmp_path / "blunder.csv"
+    meas.to_csv(data, index=False)
+    h = file_hash(data)
+    out = tmp_path / "res"
+    code = run_cli(["identify", "--model", "xfyz", "--data", str(data), "--degree", "2",
+                    "--robust", "--out", str(out), "--no-plots"], monkeypatch)
+    printed = capsys.readouterr().out
+    assert code == 0, printed
+    assert file_hash(data) == h
+    assert sorted(p.name for p in out.iterdir()) == sorted(DATA_FILES)
+    for needle in ("Solve_Succeeded", "residual RMS", "largest volumetric error",
+                   "unidentifiable           none", "rejected readings        1",
+                   str(out / "report.md")):
+        assert needle in printed, needle
+    resid = pd.read_csv(out / "residuals.csv")
+    assert list(np.flatnonzero(resid["rejected"])) == [OUTLIER_INDEX]
+    report = (out / "report.md").read_text()
+    row = OUTLIER_INDEX + 2  # spreadsheet row: header = row 1
+    assert f"| {row} | {meas.loc[OUTLIER_INDEX, 'station']} |" in report
+    doc = json.loads((out / "result.json").read_text())
+    assert doc["options"]["robust"] is True and doc["options"]["degree"] == 2
+    assert doc["n_rejected"] == 1 and doc["data"] == str(data)
+    # the blunder is out: the result agrees with the clean identification
+    loaded = load_result(out)
+    pts = case["plan"]
+    got = loaded.predict(pts)
+    ref = load_result(case["out"]).predict(pts)
+    diff = (got[["dx_um", "dy_um", "dz_um"]] - ref[["dx_um", "dy_um", "dz_um"]]).abs()
+    assert float(diff.to_numpy().max()) < 0.5
+
+
+def test_identify_cli_bad_input_and_options_exit_2(case, tmp_path, monkeypatch, capsys):
+    data = tmp_path / "d.csv"
+    case["measurements"].drop(columns=["length"]).to_csv(data, index=False)
+    out = tmp_path / "res"
+    code = run_cli(["identify", "--model", "xfyz", "--data", str(data), "--out", str(out)],
+                   monkeypatch)
+    err = capsys.readouterr().err
+    assert code == 2 and str(data) in err and "'length'" in err
+    assert not out.exists()
+    code = run_cli(["identify", "--model", "xfyz", "--data", str(case["data"]), "--out",
+                    str(out), "--reject-k", "3"], monkeypatch)
+    assert code == 2 and "--robust" in capsys.readouterr().err
+    # an input inside the output folder (which would be replaced) is refused
+    out2 = tmp_path / "prev"
+    out2.mkdir()
+    inside = out2 / "d.csv"
+    inside.write_bytes(case["data"].read_bytes())
+    code = run_cli(["identify", "--model", "xfyz", "--data", str(inside), "--out", str(out2)],
+                   monkeypatch)
+    assert code == 2 and inside.exists()
+    assert not out.exists()
+
+
+def test_identify_cli_solver_failure_exits_1(case, tmp_path, monkeypatch, capsys):
+    import volcal.identify
+
+    def fail(*args, **kwargs):
+        raise SolverError("identification (joint) did not converge",
+                          status="Maximum_Iterations_Exceeded")
+
+    monkeypatch.setattr(volcal.identify, "identify", fail)
+    out = tmp_path / "res"
+    code = run_cli(["identify", "--model", "xfyz", "--data", str(case["data"]), "--out",
+                    str(out)], monkeypatch)
+    assert code == 1 and "Maximum_Iterations_Exceeded" in capsys.readouterr().err
+    assert not out.exists() and os.listdir(tmp_path) == []
