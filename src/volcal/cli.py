@@ -65,6 +65,10 @@ def main(argv: list[str] | None = None) -> int:
     except SolverError as exc:
         print(f"volcal {args.command}: solver failed: {exc}", file=sys.stderr)
         return 1
+    except BrokenPipeError:
+        # output piped into e.g. `head`, which closed early: not an error of ours
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":  # pragma: no cover

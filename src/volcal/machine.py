@@ -84,7 +84,9 @@ class Machine:
         """Build (or load from the cache) the machine of a bundled name, file or spec."""
         spec = resolve_model(model)
         t0 = time.perf_counter()
-        key = f"{spec.name}-{spec.fingerprint()}-v{__version__}-ca{ca.__version__}"
+        # the name only makes the entry readable; the content hash is the key
+        safe = "".join(c if c.isalnum() or c in "_-" else "_" for c in spec.name)[:40]
+        key = f"{safe}-{spec.fingerprint()}-v{__version__}-ca{ca.__version__}"
         path = cache_dir() / f"{key}.casadi"
         funcs = None
         if use_cache and path.exists():

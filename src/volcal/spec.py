@@ -241,7 +241,9 @@ def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
     lo, hi = (_check_number(v, where, "travel") for v in travel)
     if not lo < hi:
         raise InputError(f"expected min < max, got [{lo}, {hi}]", source=where, column="travel")
-    ref = _check_number(d.get("reference", lo if lo > 0 or hi < 0 else 0.0), where, "reference")
+    # default reference: zero when it lies in the travel, else the end nearest to zero
+    default_ref = lo if lo > 0 else hi if hi < 0 else 0.0
+    ref = _check_number(d.get("reference", default_ref), where, "reference")
     if not lo <= ref <= hi:
         raise InputError(f"reference {ref} outside travel [{lo}, {hi}]", source=where,
                          column="reference")
