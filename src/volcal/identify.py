@@ -162,8 +162,13 @@ class Identifier:
         self.is_station[ss] = True
         self.is_frame = ~(self.is_theta | self.is_station)
         # which variable to hold when a direction is unidentifiable: the frame motion first
-        # (it duplicates the stations), then error parameters, stations last
-        self.prefer = np.where(self.is_frame, 4.0, np.where(self.is_theta, 1.0, 0.0))
+        # (it duplicates the stations), then error parameters, highest polynomial order
+        # first (holding it keeps the identified curves smooth), stations last
+        order = np.zeros(n)
+        for k, name in enumerate(error_model.param_names):
+            tail = name.rsplit("_", 1)[-1]
+            order[k] = int(tail) if tail.isdigit() else 0
+        self.prefer = np.where(self.is_frame, 4.0, np.where(self.is_theta, 1.0 + 0.1 * order, 0.0))
 
     # ---- pieces ---------------------------------------------------------------------
     def jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -29,11 +29,11 @@ def constrained_covariance(J: np.ndarray, C: np.ndarray | None = None, *,
         Z = sla.null_space(Cf) if Cf.shape[0] else np.eye(len(free))
     else:
         Z = np.eye(len(free))
-    A = (Jf * d) @ Z
     # pseudo-inverse via SVD: exact for full rank, and never explodes on a near-null direction
-    R = np.linalg.qr(A, mode="r") if A.shape[0] > A.shape[1] else A
+    from volcal.analysis.identifiability import _r_factor
+    R = _r_factor(Jf * d) @ Z
     _, s, Vt = np.linalg.svd(R, full_matrices=False)
-    keep = s > max(A.shape) * np.finfo(float).eps * (s[0] if len(s) else 0)
+    keep = s > max(Jf.shape) * np.finfo(float).eps * (s[0] if len(s) else 0)
     Minv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
     cov_s = Z @ Minv @ Z.T
     cov = np.full((n, n), np.nan)

@@ -76,6 +76,15 @@ def _describe(v: np.ndarray, names: list[str], lead: int, rel: float = 1e-3) -> 
     return " ".join(parts)
 
 
+def _r_factor(A: np.ndarray) -> np.ndarray:
+    """R of a QR factorisation (square, n x n); LAPACK geqrf through SciPy, which is much
+    faster than numpy's mode='r' on tall matrices."""
+    m, n = A.shape
+    if m <= n:
+        return np.vstack([A, np.zeros((n - m, n))]) if m < n else A.copy()
+    return sla.qr(A, mode="r", check_finite=False)[0][:n]
+
+
 def analyse_jacobian(J: np.ndarray, names: list[str], C: np.ndarray | None = None, *,
                      fixed: np.ndarray | None = None, prefer: np.ndarray | None = None,
                      weak_ratio: float = 1e-4) -> Identifiability:
@@ -101,10 +110,10 @@ def analyse_jacobian(J: np.ndarray, names: list[str], C: np.ndarray | None = Non
         Z = sla.null_space(Cs) if Cs.shape[0] else np.eye(len(free))
     else:
         Z = np.eye(len(free))
-    JZ = Js @ Z
-    # the SVD of the small triangular factor gives the same s and V as that of the tall J
-    R = np.linalg.qr(JZ, mode="r") if JZ.shape[0] > JZ.shape[1] else JZ
-    _, s, Vt = np.linalg.svd(R, full_matrices=True)
+    # One QR of the tall scaled Jacobian; everything else works on its small R factor
+    # (J Z and J diag(norms) Z have the singular values of R Z and R diag(norms) Z).
+    R = _r_factor(Js)
+    _, s, Vt = np.linalg.svd(R @ Z, full_matrices=True)
     s_full = np.zeros(Z.shape[1])
     s_full[:len(s)] = s
     s0 = s_full[0] if len(s_full) else 0.0
@@ -113,9 +122,8 @@ def analyse_jacobian(J: np.ndarray, names: list[str], C: np.ndarray | None = Non
     N_y = Z @ Vt[rank:].T  # null directions in scaled free variables, orthonormal
     # condition numbers of the identifiable part
     cond = s_full[0] / s_full[rank - 1] if rank else np.inf
-    JfZ = Jf @ Z
-    Ru = np.linalg.qr(JfZ, mode="r") if JfZ.shape[0] > JfZ.shape[1] else JfZ
-    su = np.linalg.svd(Ru, compute_uv=False) if rank else np.array([0.0])
+    su = np.linalg.svd((R * np.where(zero_col, 0.0, norms)) @ Z, compute_uv=False) \
+        if rank else np.array([0.0])
     cond_u = su[0] / su[rank - 1] if rank and su[rank - 1] > 0 else np.inf
 
     k = N_y.shape[1]
