@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from volcal.errors import ErrorModel
+from volcal.errors import ErrorForm, ErrorModel
 from volcal.exceptions import SolverError
 from volcal.identify import identify, rigid_fit
 from volcal.machine import Machine
@@ -187,3 +187,22 @@ def test_five_axis_identification_runs_and_is_close(model):
     print(f"{model}: field error {rms:.3f} um RMS of {vmax:.1f} um max;"
           f" unidentifiable {int((~res.identifiable).sum())}")
     assert rms < 0.1 * vmax
+
+
+def test_exact_hessian_and_exact_model_options_agree():
+    # the exact Hessian is built by AD through the whole chain: keep the model small
+    machine = Machine.from_model("xfyz")
+    em = ErrorModel(machine.spec, default=ErrorForm("poly", 2))
+    theta = draw_true_parameters(machine, em, np.random.default_rng(7), 40.0)
+    sim = simulate(machine, em, theta, default_stations(machine.spec, 6, seed=7, tools=TOOLS),
+                   grid_plan(machine.spec, 3), TOOLS, "paper002", 7)
+    gn = identify(machine, sim.measurements, error_model=em)
+    ex_h = identify(machine, sim.measurements, error_model=em, hessian="exact")
+    ex_m = identify(machine, sim.measurements, error_model=em, exact=True)
+    f = np.array([1e3 if u == "mm" else 1e6 for u in em.param_units])
+    # same minimiser whatever the Hessian (um / urad)
+    assert np.max(np.abs(gn.theta - ex_h.theta) * f) < 1e-5
+    # the exact model differs from the first-order one at second order only
+    assert np.max(np.abs(gn.theta - ex_m.theta) * f) < 0.05
+    rms, _ = field_error_um(ex_m, machine, em, theta, n=3)
+    assert rms < 0.5
