@@ -21,6 +21,7 @@ _COMMANDS = [
     "volcal.commands.demo",
     "volcal.commands.identify",
     "volcal.commands.predict",
+    "volcal.commands.codegen",
 ]
 
 
