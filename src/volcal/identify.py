@@ -306,7 +306,15 @@ def build_error_model(spec: MachineSpec, *, degree: int = 3, datum: Datum = "iso
     return ErrorModel(spec, forms, default=ErrorForm("poly", degree), datum=datum)
 
 
-def identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.DataFrame | Measurements,
+def identify(*args, **kwargs) -> IdentificationResult:
+    """Identify the geometric errors of a machine (see :func:`_identify` for the
+    arguments); runs with one BLAS thread (see :mod:`volcal.threads`)."""
+    from volcal.threads import blas_threads
+    with blas_threads(1):
+        return _identify(*args, **kwargs)
+
+
+def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.DataFrame | Measurements,
              stations: str | Path | pd.DataFrame | None = None, *, strategy: str = "joint",
              degree: int = 3, datum: Datum = "iso230", error_model: ErrorModel | None = None,
              budget: str | Path | Budget = "paper002", robust: bool = False,
