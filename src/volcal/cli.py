@@ -22,6 +22,8 @@ _COMMANDS = [
     "volcal.commands.identify",
     "volcal.commands.predict",
     "volcal.commands.codegen",
+    "volcal.commands.analyze",
+    "volcal.commands.mc",
 ]
 
 
@@ -57,6 +59,9 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    # small dense problems: one BLAS thread is much faster than a contended pool
+    from volcal.threads import set_blas_threads
+    set_blas_threads(1)
     try:
         return int(args.func(args) or 0)
     except (UserError, InputError, FileNotFoundError) as exc:
