@@ -237,7 +237,7 @@ def test_a_previous_result_is_replaced_and_other_folders_are_refused(case, tmp_p
     other = tmp_path / "other"
     other.mkdir()
     (other / "data.csv").write_text("x")
-    with pytest.raises(InputError, match="choose a new folder"):
+    with pytest.raises(InputError, match="choose a new or empty folder"):
         save_result(case["res"], other, plots=False)
     assert [p.name for p in other.iterdir()] == ["data.csv"]
 

@@ -121,9 +121,9 @@ def predict_volumetric(machine: Machine, em: ErrorModel, theta: np.ndarray,
     return out
 
 
-def rigid_fit(points: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Best-fit small rigid motion (a, w) with d ~ a + w x points, least squares.
-    Returns (params (6,), residual d - fit). Multilateration cannot see this motion."""
+def rigid_columns(points: np.ndarray) -> np.ndarray:
+    """(3N, 6) design matrix of a small rigid motion a + w x p at points (N, 3): columns
+    a_x, a_y, a_z (mm) and w_x, w_y, w_z (rad), rows x, y, z of each point."""
     points = np.asarray(points, float)
     n = len(points)
     A = np.zeros((3 * n, 6))
@@ -133,8 +133,16 @@ def rigid_fit(points: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray
     A[0::3, 4], A[0::3, 5] = z, -y
     A[1::3, 3], A[1::3, 5] = -z, x
     A[2::3, 3], A[2::3, 4] = y, -x
-    sol = np.linalg.lstsq(A, np.asarray(d, float).ravel(), rcond=None)[0]
-    return sol, (np.asarray(d, float).ravel() - A @ sol).reshape(n, 3)
+    return A
+
+
+def rigid_fit(points: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Best-fit small rigid motion (a, w) with d ~ a + w x points, least squares.
+    Returns (params (6,), residual d - fit). Multilateration cannot see this motion."""
+    A = rigid_columns(points)
+    d = np.asarray(d, float).ravel()
+    sol = np.linalg.lstsq(A, d, rcond=None)[0]
+    return sol, (d - A @ sol).reshape(-1, 3)
 
 
 # ---------------------------------------------------------------------------------------

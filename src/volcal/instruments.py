@@ -17,18 +17,12 @@ from dataclasses import dataclass
 import casadi as ca
 
 
-@dataclass(frozen=True)
-class SequentialMultilateration:
-    """Sequential multilateration with one tracker: per station ``x, y, z`` (mm) and a dead
-    length (mm); no global parameters."""
+class InstrumentBase:
+    """What every observation model offers the NLP: its parameter names (per station or
+    laser, and global), their units, and ``reading(point, station, glob)``."""
 
-    name: str = "sequential"
-    station_param_names: tuple[str, ...] = ("x_mm", "y_mm", "z_mm", "dead_length_mm")
-    # A rigid motion of the whole station set (first order): redundant with the stations
-    # while they are free (the identification then fixes it), but it is what lets a
-    # two-phase or points-only solve absorb the frame mismatch once stations are fixed.
-    global_param_names: tuple[str, ...] = ("frame_tx_mm", "frame_ty_mm", "frame_tz_mm",
-                                           "frame_rx_rad", "frame_ry_rad", "frame_rz_rad")
+    station_param_names: tuple[str, ...] = ()
+    global_param_names: tuple[str, ...] = ()
 
     @property
     def global_param_units(self) -> tuple[str, ...]:
@@ -41,6 +35,20 @@ class SequentialMultilateration:
     @property
     def n_global_params(self) -> int:
         return len(self.global_param_names)
+
+
+@dataclass(frozen=True)
+class SequentialMultilateration(InstrumentBase):
+    """Sequential multilateration with one tracker: per station ``x, y, z`` (mm) and a dead
+    length (mm); no global parameters."""
+
+    name: str = "sequential"
+    station_param_names: tuple[str, ...] = ("x_mm", "y_mm", "z_mm", "dead_length_mm")
+    # A rigid motion of the whole station set (first order): redundant with the stations
+    # while they are free (the identification then fixes it), but it is what lets a
+    # two-phase or points-only solve absorb the frame mismatch once stations are fixed.
+    global_param_names: tuple[str, ...] = ("frame_tx_mm", "frame_ty_mm", "frame_tz_mm",
+                                           "frame_rx_rad", "frame_ry_rad", "frame_rz_rad")
 
     def reading(self, point: ca.SX, station: ca.SX, glob: ca.SX) -> ca.SX:
         """Model of one reading (mm) for the actual tool point ``point`` (3, mm)."""

@@ -114,6 +114,7 @@ import casadi as ca
 import numpy as np
 
 from volcal.analysis import analyse_jacobian
+from volcal.instruments import InstrumentBase
 from volcal.multilateration import multilaterate
 from volcal.uncertainty.budget import PAPER001_DRIFT, DriftModel
 
@@ -195,7 +196,7 @@ def distances_from_geometry(geometry: Sequence[float]) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class MultiLaserInstrument:
+class MultiLaserInstrument(InstrumentBase):
     """The HPTI as a volcal observation model (same protocol as
     :class:`volcal.instruments.SequentialMultilateration`).
 
@@ -209,18 +210,6 @@ class MultiLaserInstrument:
     name: str = "multilaser"
     station_param_names: tuple[str, ...] = ("x_mm", "y_mm", "z_mm", "offset_mm")
     global_param_names: tuple[str, ...] = FRAME_NAMES
-
-    @property
-    def global_param_units(self) -> tuple[str, ...]:
-        return tuple("rad" if n.endswith("_rad") else "mm" for n in self.global_param_names)
-
-    @property
-    def n_station_params(self) -> int:
-        return len(self.station_param_names)
-
-    @property
-    def n_global_params(self) -> int:
-        return len(self.global_param_names)
 
     @staticmethod
     def to_instrument(point, glob):

@@ -47,12 +47,8 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import platform
-import shutil
-import tempfile
 import time
-import uuid
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -800,26 +796,11 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
 # writing
 
 
-def _is_previous_result(path: Path) -> bool:
-    """An empty folder, or one holding only files of a result folder, result.json among them."""
-    if not path.is_dir():
-        return False
-    items = list(path.iterdir())
-    if not items:
-        return True
-    return ((path / "result.json").is_file()
-            and all(p.is_file() and p.name in RESULT_FILES for p in items))
-
-
 def check_out_dir(out_dir: str | Path) -> Path:
     """Raise :class:`InputError` unless ``out_dir`` can be written: it must not exist, or
     be an empty folder or a previous result folder (which is then replaced)."""
-    out = Path(out_dir)
-    if out.exists() and not _is_previous_result(out):
-        what = "a file" if not out.is_dir() else "a folder holding other files"
-        raise InputError(f"the output path exists and is {what}; choose a new folder (volcal "
-                         "replaces only a previous result folder)", source=str(out))
-    return out
+    from volcal.outputs import check_out_dir as _check
+    return _check(out_dir, RESULT_FILES, "an identification", marker="result.json")
 
 
 def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name: str = "",
@@ -838,15 +819,14 @@ def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name:
     ``out_dir`` that is neither empty nor a previous result raises :class:`InputError`.
     """
     t0 = time.perf_counter()
-    out = check_out_dir(out_dir)
+    from volcal.outputs import write_folder
+
     if grid_points < 1 or component_points < 2:
         raise InputError(f"expected grid_points >= 1 and component_points >= 2, got "
                          f"{grid_points} and {component_points}")
     options = dict(options or {})
-    parent = out.resolve().parent
-    parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=parent))
-    try:
+
+    def writer(tmp: Path) -> None:
         em, machine = result.error_model, result.machine
         created = datetime.now(timezone.utc).isoformat(timespec="seconds")
         log.info("writing the result tables (temporary folder %s)", tmp)
@@ -872,23 +852,8 @@ def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name:
             _report(result, data_name=data_name, created=created, options=options, grid=grid,
                     n_grid=grid_points, n_comp=component_points, plots=plots),
             encoding="utf-8")
-        for p in tmp.iterdir():
-            os.chmod(p, 0o644)
-        os.chmod(tmp, 0o755)
-        check_out_dir(out)  # again: the folder may have appeared meanwhile
-        if out.exists():
-            old = parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
-            os.replace(out, old)
-            try:
-                os.replace(tmp, out)
-            except BaseException:
-                os.replace(old, out)
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+
+    out = write_folder(out_dir, RESULT_FILES, "an identification", writer,
+                       marker="result.json")
     log.info("wrote %s in %.2f s", out, time.perf_counter() - t0)
     return out

@@ -43,9 +43,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
-import shutil
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from importlib import resources
@@ -569,12 +566,6 @@ def simulate(machine: Machine | str, error_model: ErrorModel | None, theta_true:
 # files
 
 
-def _is_previous_output(path: Path) -> bool:
-    """True for an empty folder or one holding only files save_simulation writes."""
-    return path.is_dir() and all(p.is_file() and p.name in SIMULATION_FILES
-                                 for p in path.iterdir())
-
-
 def save_simulation(sim: Simulation, out_dir: str | Path) -> Path:
     """Write a simulation to ``out_dir``: ``measurements.csv`` (the measurement table),
     ``stations.csv`` (true stations: ``station, x_mm, y_mm, z_mm, dead_length_mm``),
@@ -586,15 +577,9 @@ def save_simulation(sim: Simulation, out_dir: str | Path) -> Path:
     when it is empty or holds nothing but these files (a previous simulation); otherwise
     :class:`InputError`.  Returns the output folder.
     """
-    out = Path(out_dir)
-    if out.exists() and not _is_previous_output(out):
-        raise InputError("the output folder exists and holds other files; choose a new "
-                         "folder (volcal replaces only a previous simulation output)",
-                         source=str(out))
-    parent = out.resolve().parent
-    parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=parent))
-    try:
+    from volcal.outputs import write_folder
+
+    def writer(tmp: Path) -> None:
         sim.measurements.to_csv(tmp / "measurements.csv", index=False)
         sim.stations[["station", "x_mm", "y_mm", "z_mm", "dead_length_mm"]].to_csv(
             tmp / "stations.csv", index=False)
@@ -608,21 +593,8 @@ def save_simulation(sim: Simulation, out_dir: str | Path) -> Path:
                 "reading_interval_s": READING_INTERVAL_S, "tool_change_s": TOOL_CHANGE_S,
                 "station_setup_s": STATION_SETUP_S}
         (tmp / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
-        for p in tmp.iterdir():
-            os.chmod(p, 0o644)
-        os.chmod(tmp, 0o755)
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=parent))
-            os.rmdir(old)
-            os.replace(out, old)
-            os.replace(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out
+
+    return write_folder(out_dir, SIMULATION_FILES, "a simulation", writer)
 
 
 # --------------------------------------------------------------------------------------

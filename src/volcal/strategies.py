@@ -21,21 +21,10 @@ from volcal.analysis import analyse_jacobian
 from volcal.data import Measurements
 from volcal.errors import ErrorModel
 from volcal.exceptions import SolverError
+from volcal.identify import rigid_columns
 from volcal.machine import Machine
 from volcal.multilateration import calibrate_stations, multilaterate
 from volcal.solve import SolveOutcome
-
-
-def _rigid_columns(points: np.ndarray) -> np.ndarray:
-    """(3N, 6) design columns of a small rigid motion a + w x p."""
-    n = len(points)
-    A = np.zeros((3 * n, 6))
-    A[0::3, 0] = A[1::3, 1] = A[2::3, 2] = 1.0
-    x, y, z = points.T
-    A[0::3, 4], A[0::3, 5] = z, -y
-    A[1::3, 3], A[1::3, 5] = -z, x
-    A[2::3, 3], A[2::3, 4] = y, -x
-    return A
 
 
 def classic_pipeline(machine: Machine, em: ErrorModel, meas: Measurements, st0: np.ndarray,
@@ -90,7 +79,7 @@ def classic_pipeline(machine: Machine, em: ErrorModel, meas: Measurements, st0: 
     dev = (ml.points[ok] - p0_pts).ravel()
     _, _, Je = machine.evaluate(q_pts, t_pts, zeros)
     G = np.einsum("nik,nkp->nip", Je, em.basis(q_pts)).reshape(-1, em.n_params)
-    A = np.hstack([G, _rigid_columns(p0_pts)])
+    A = np.hstack([G, rigid_columns(p0_pts)])
     scale = np.r_[[1e-3 if u == "mm" else 1e-6 for u in em.param_units], [1e-3] * 3, [1e-6] * 3]
     As = A * scale
     Cs = np.hstack([em.constraints()[0] * scale[:em.n_params], np.zeros((em.constraints()[0].shape[0], 6))])

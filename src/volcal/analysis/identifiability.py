@@ -85,6 +85,52 @@ def _r_factor(A: np.ndarray) -> np.ndarray:
     return sla.qr(A, mode="r", check_finite=False)[0][:n]
 
 
+@dataclass
+class ScaledSVD:
+    """SVD of the column-scaled Jacobian restricted to the free variables and to null(C).
+
+    free: indices of the free variables; norms: their column norms; d = 1 / norms (1 for
+    zero columns); Z: orthonormal basis of null(C d) in scaled free variables; R: the R
+    factor of the scaled J; s, Vt: singular values (descending, padded with zeros) and right
+    singular vectors of R Z; tol, rank: the rank tolerance max(m, n) eps s_max and the rank.
+    A direction j in the free physical variables is ``d * (Z @ Vt[j])``.
+    """
+
+    free: np.ndarray
+    norms: np.ndarray
+    d: np.ndarray
+    Z: np.ndarray
+    R: np.ndarray
+    s: np.ndarray
+    Vt: np.ndarray
+    tol: float
+    rank: int
+
+
+def scaled_constrained_svd(J: np.ndarray, C: np.ndarray | None = None,
+                           fixed: np.ndarray | None = None) -> ScaledSVD:
+    """The factorisation behind :func:`analyse_jacobian` (see :class:`ScaledSVD`)."""
+    J = np.asarray(J, float)
+    m, n = J.shape
+    fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
+    free = np.flatnonzero(~fixed)
+    Jf = J[:, free]
+    norms = np.linalg.norm(Jf, axis=0)
+    d = 1.0 / np.where(norms == 0, 1.0, norms)
+    Cf = np.zeros((0, len(free))) if C is None or len(C) == 0 else np.asarray(C, float)[:, free]
+    Cs = Cf * d
+    Cs = Cs[np.linalg.norm(Cs, axis=1) > 0] if Cs.shape[0] else Cs
+    Z = sla.null_space(Cs) if Cs.shape[0] else np.eye(len(free))
+    # One QR of the tall scaled Jacobian; everything else works on its small R factor
+    # (J Z and J diag(norms) Z have the singular values of R Z and R diag(norms) Z).
+    R = _r_factor(Jf * d)
+    _, s, Vt = np.linalg.svd(R @ Z, full_matrices=True)
+    s_full = np.zeros(Z.shape[1])
+    s_full[:len(s)] = s
+    tol = max(m, n) * np.finfo(float).eps * (s_full[0] if len(s_full) else 0.0)
+    return ScaledSVD(free, norms, d, Z, R, s_full, Vt, float(tol), int(np.sum(s_full > tol)))
+
+
 def analyse_jacobian(J: np.ndarray, names: list[str], C: np.ndarray | None = None, *,
                      fixed: np.ndarray | None = None, prefer: np.ndarray | None = None,
                      weak_ratio: float = 1e-4) -> Identifiability:
@@ -96,29 +142,11 @@ def analyse_jacobian(J: np.ndarray, names: list[str], C: np.ndarray | None = Non
     """
     J = np.asarray(J, float)
     m, n = J.shape
-    fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
-    free = np.flatnonzero(~fixed)
-    Jf = J[:, free]
-    norms = np.linalg.norm(Jf, axis=0)
-    zero_col = norms == 0
-    d = np.where(zero_col, 1.0, 1.0 / np.where(zero_col, 1.0, norms))
-    Js = Jf * d
-    Cf = np.zeros((0, len(free))) if C is None or len(C) == 0 else np.asarray(C, float)[:, free]
-    if Cf.shape[0]:
-        Cs = Cf * d
-        Cs = Cs[np.linalg.norm(Cs, axis=1) > 0]
-        Z = sla.null_space(Cs) if Cs.shape[0] else np.eye(len(free))
-    else:
-        Z = np.eye(len(free))
-    # One QR of the tall scaled Jacobian; everything else works on its small R factor
-    # (J Z and J diag(norms) Z have the singular values of R Z and R diag(norms) Z).
-    R = _r_factor(Js)
-    _, s, Vt = np.linalg.svd(R @ Z, full_matrices=True)
-    s_full = np.zeros(Z.shape[1])
-    s_full[:len(s)] = s
+    sv = scaled_constrained_svd(J, C, fixed)
+    free, d, Z, R, s_full, Vt, tol, rank = (sv.free, sv.d, sv.Z, sv.R, sv.s, sv.Vt, sv.tol,
+                                            sv.rank)
+    norms, zero_col = sv.norms, sv.norms == 0
     s0 = s_full[0] if len(s_full) else 0.0
-    tol = max(m, n) * np.finfo(float).eps * s0
-    rank = int(np.sum(s_full > tol))
     N_y = Z @ Vt[rank:].T  # null directions in scaled free variables, orthonormal
     # condition numbers of the identifiable part
     cond = s_full[0] / s_full[rank - 1] if rank else np.inf

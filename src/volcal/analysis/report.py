@@ -30,9 +30,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,7 +38,7 @@ import numpy as np
 import pandas as pd
 import scipy.linalg as sla
 
-from volcal.analysis.identifiability import Identifiability, _describe
+from volcal.analysis.identifiability import Identifiability, _describe, scaled_constrained_svd
 
 log = logging.getLogger(__name__)
 
@@ -269,33 +266,9 @@ class AnalysisReport:
         """Write the report files (:data:`ANALYSIS_FILES`) into ``out_dir`` (atomically:
         a temporary folder renamed into place; an existing folder is replaced only if it
         holds nothing but these files)."""
-        out = Path(out_dir)
-        if out.exists() and not (out.is_dir() and all(p.name in ANALYSIS_FILES
-                                                      for p in out.iterdir())):
-            from volcal.exceptions import InputError
-            raise InputError("the output folder exists and holds other files; choose a new "
-                             "folder (volcal replaces only a previous analysis)",
-                             source=str(out))
-        parent = out.resolve().parent
-        parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=parent))
-        try:
-            self._write(tmp, plots)
-            for p in tmp.iterdir():
-                os.chmod(p, 0o644)
-            os.chmod(tmp, 0o755)
-            if out.exists():
-                old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=parent))
-                os.rmdir(old)
-                os.replace(out, old)
-                os.replace(tmp, out)
-                shutil.rmtree(old, ignore_errors=True)
-            else:
-                os.replace(tmp, out)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        return out
+        from volcal.outputs import write_folder
+        return write_folder(out_dir, ANALYSIS_FILES, "an analysis",
+                            lambda d: self._write(d, plots))
 
     def _write(self, d: Path, plots: bool) -> None:
         idn = self.identifiability
@@ -433,21 +406,9 @@ def _theta_null(J: np.ndarray, Cs: np.ndarray, nt: int, fixed: np.ndarray
     """Orthonormal basis (nt, k) of the theta parts of the null space of J on the free
     variables under C x = 0 (column-scaled as analyse_jacobian), and the rank tolerance
     relative to the largest singular value."""
-    free = np.flatnonzero(~fixed)
-    Jf = J[:, free]
-    norms = np.linalg.norm(Jf, axis=0)
-    d = 1.0 / np.where(norms > 0, norms, 1.0)
-    Cf = Cs[:, free] * d if Cs.shape[0] else np.zeros((0, len(free)))
-    Cf = Cf[np.linalg.norm(Cf, axis=1) > 0] if Cf.shape[0] else Cf
-    Z = sla.null_space(Cf) if Cf.shape[0] else np.eye(len(free))
-    A = (Jf * d) @ Z
-    R = np.linalg.qr(A, mode="r") if A.shape[0] > A.shape[1] else A
-    _, s, Vt = np.linalg.svd(R)
-    s_full = np.zeros(Z.shape[1])
-    s_full[:len(s)] = s
-    tol = max(J.shape) * np.finfo(float).eps * (s_full[0] if len(s_full) else 0.0)
-    rank = int(np.sum(s_full > tol))
-    Ny = Z @ Vt[rank:].T * d[:, None]            # problem-scaled free variables
+    sv = scaled_constrained_svd(J, Cs, fixed)
+    free, tol = sv.free, sv.tol
+    Ny = sv.Z @ sv.Vt[sv.rank:].T * sv.d[:, None]  # problem-scaled free variables
     full = np.zeros((J.shape[1], Ny.shape[1]))
     full[free] = Ny
     return _orth(full[:nt]), tol
@@ -594,16 +555,8 @@ def _null_directions(ider, J: np.ndarray, x: np.ndarray, ident: Identifiability,
 def _weak_directions(J: np.ndarray, Cs: np.ndarray, fixed: np.ndarray, names: list[str],
                      rank_tol: float, k: int = 8) -> list[tuple[float, str]]:
     """The k weakest identifiable directions: (scaled singular value, description)."""
-    free = np.flatnonzero(~fixed)
-    Jf = J[:, free]
-    norms = np.linalg.norm(Jf, axis=0)
-    d = 1.0 / np.where(norms > 0, norms, 1.0)
-    Cf = Cs[:, free] * d if Cs.shape[0] else np.zeros((0, len(free)))
-    Cf = Cf[np.linalg.norm(Cf, axis=1) > 0] if Cf.shape[0] else Cf
-    Z = sla.null_space(Cf) if Cf.shape[0] else np.eye(len(free))
-    A = (Jf * d) @ Z
-    R = np.linalg.qr(A, mode="r") if A.shape[0] > A.shape[1] else A
-    _, s, Vt = np.linalg.svd(R)
+    sv = scaled_constrained_svd(J, Cs, fixed)
+    free, Z, s, Vt = sv.free, sv.Z, sv.s, sv.Vt
     ok = np.flatnonzero(s > rank_tol)
     out = []
     fnames = [names[i] for i in free]

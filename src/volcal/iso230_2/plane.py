@@ -23,7 +23,7 @@ import pandas as pd
 
 from volcal.exceptions import InputError
 
-from .output import check_out_dir, write_folder
+from volcal.outputs import check_out_dir, write_folder
 from .model import TYPE_A_METHODS, gls, to_raw_matrix, type_a_uncertainty
 
 __all__ = ["PlaneModel", "fit_plane", "PlaneReadings", "load_plane", "PlaneResult",

@@ -7,7 +7,7 @@ import numpy as np
 
 from volcal.exceptions import InputError
 
-from .output import check_out_dir, write_folder
+from volcal.outputs import check_out_dir, write_folder
 from .parameters import SCALAR_PARAMETERS
 
 __all__ = ["OUTPUT_FILES", "write_report", "markdown_report", "plot"]
