@@ -52,7 +52,7 @@ def make_data(n_points: int, seed: int = 0):
 def setup(ex, sim):
     meas = load_measurements(sim.measurements, ex.machine.spec)
     ider = Identifier(ex.machine, ex.error_model,
-                      Layout(meas.station_index, len(meas.station_ids), tuple(meas.station_ids)))
+                      Layout.from_measurements(meas))
     st0, _, _ = _initial_stations(ex.machine, meas, None)
     pr = ider.problem
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, 1.0 / meas.sigma)
@@ -141,6 +141,10 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--no-process", action="store_true", help="skip the whole-process timing")
     args = ap.parse_args(argv)
+    # both sides on one BLAS thread, as the volcal command line runs (volcal.threads):
+    # threaded OpenBLAS is slower for these sizes on 2 cores, for scipy as for volcal
+    from volcal.threads import set_blas_threads
+    set_blas_threads(1)
     rows = []
     for n in args.sizes:
         ex, sim = make_data(n)
@@ -169,7 +173,8 @@ def main(argv=None) -> int:
              "the null space of the datum constraints, analytic sparse Jacobian from "
              "volcal's CasADi functions. max diff: largest parameter difference in units "
              "of 1 um / 1 urad. Process: whole command / script wall time including "
-             "imports, model build from cache, data loading, analysis and output.", "",
+             "imports, model build from cache, data loading, analysis and output. "
+             "One BLAS thread on both sides.", "",
              "| points | readings | unknowns | volcal solve (s) | iter | scipy solve (s) | "
              "nfev | ratio | max diff | volcal process (s) | scipy process (s) |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]

@@ -366,7 +366,7 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
                                 point_method=point_method, t_start=t_start,
                                 sigma_source=sigma_source, notes=notes)
 
-    layout = Layout(meas.station_index, len(meas.station_ids), tuple(meas.station_ids))
+    layout = Layout.from_measurements(meas)
     ider = Identifier(machine, em, layout, exact=exact, hessian=hessian, verbose=verbose)
     pr = ider.problem
     weights = 1.0 / sigma

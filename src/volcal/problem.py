@@ -25,17 +25,91 @@ from volcal.instruments import Instrument
 from volcal.machine import Machine
 
 
+class _Gram(ca.Callback):
+    """G = J^T J of a sparse J, on numpy's BLAS (a CasADi function with no derivatives:
+    only the Gauss-Newton Hessian uses it).  CasADi's own sparse product was 20-30x slower
+    here, and converting a DM to numpy costs more than the product, so the callback works
+    on CasADi's raw buffers (``eval_buffer``) without copies through Python objects."""
+
+    def __init__(self, sparsity: ca.Sparsity):
+        ca.Callback.__init__(self)
+        self._sp = sparsity
+        self._shape = (sparsity.size1(), sparsity.size2())
+        rows = np.asarray(sparsity.row(), int)
+        colind = np.asarray(sparsity.colind(), int)
+        cols = np.repeat(np.arange(self._shape[1]), np.diff(colind))
+        self._flat = rows * self._shape[1] + cols  # nonzero k -> row-major dense position
+        self.construct("gram", {"enable_fd": False})
+
+    def get_n_in(self):
+        return 1
+
+    def get_n_out(self):
+        return 1
+
+    def get_sparsity_in(self, i):
+        return self._sp
+
+    def get_sparsity_out(self, i):
+        return ca.Sparsity.dense(self._shape[1], self._shape[1])
+
+    def has_eval_buffer(self):
+        return True
+
+    def eval_buffer(self, arg, res):
+        nz = np.frombuffer(arg[0], dtype=np.float64)
+        J = np.zeros(self._shape)
+        J.ravel()[self._flat] = nz
+        out = np.frombuffer(res[0], dtype=np.float64)
+        out[:] = (J.T @ J).ravel()  # symmetric: row- and column-major agree
+        return 0
+
+    def eval(self, arg):  # the slow path, for CasADi versions without buffers
+        J = arg[0].full()
+        return [J.T @ J]
+
+
 @dataclass(frozen=True)
 class Layout:
-    """Structure of a data set: the station (0..n_stations-1) of every reading."""
+    """Structure of a data set: the station (0..n_stations-1) of every reading and, where
+    several readings share one commanded pose and tool offset (every station of a
+    sequential measurement sees the same poses), the pose (0..n_poses-1) of every reading.
+    Without ``pose_index`` every reading is its own pose."""
 
     station_index: np.ndarray
     n_stations: int
     station_ids: tuple[str, ...] | None = None
+    pose_index: np.ndarray | None = None
 
     @property
     def n_readings(self) -> int:
         return int(len(self.station_index))
+
+    @property
+    def poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """(pose of every reading, first reading of every pose)."""
+        if self.pose_index is None:
+            idx = np.arange(self.n_readings)
+            return idx, idx
+        idx = np.asarray(self.pose_index, int)
+        first = np.full(idx.max() + 1, -1)
+        first[idx[::-1]] = np.arange(len(idx))[::-1]
+        return idx, first
+
+    @classmethod
+    def from_measurements(cls, meas) -> "Layout":
+        """The layout of validated measurements (:class:`volcal.data.Measurements`), with
+        readings of identical commanded pose and tool offset grouped."""
+        return cls(np.asarray(meas.station_index, int), len(meas.station_ids),
+                   tuple(meas.station_ids), cls.group_poses(meas.q_internal, meas.tool))
+
+    @staticmethod
+    def group_poses(q: np.ndarray, tool: np.ndarray) -> np.ndarray:
+        """Pose index of every reading: readings with identical axis positions and tool
+        offset share a pose."""
+        _, inv = np.unique(np.hstack([np.asarray(q, float), np.asarray(tool, float)]), axis=0,
+                           return_inverse=True)
+        return inv.ravel()
 
 
 @dataclass
@@ -74,27 +148,27 @@ class IdentificationProblem:
             np.full(n_ps * n_st, 1e-3),
             [1e-3 if u == "mm" else 1e-6 for u in ins.global_param_units]])
 
-        # One reading as SX functions of the *scaled* variables, weight included: the value
-        # (all IPOPT needs for f and its gradient) and, separately, its Jacobian row (for
-        # the Gauss-Newton Hessian and the analysis).  The Jacobian is then assembled
-        # explicitly instead of by AD through the map.
+        # Two SX functions of the *scaled* variables.  Per pose: the actual tool point and
+        # its derivative wrt theta (the chain and the error functions, the expensive part,
+        # evaluated once per pose whatever the number of stations).  Per reading: the
+        # weighted residual of the instrument for that point, with its derivatives.  The
+        # Jacobian is then assembled explicitly instead of by AD through the maps.
         nt = em.n_params
-        qs, ts = ca.SX.sym("q", n_ax), ca.SX.sym("t", 3)
-        ths, ss, gs = ca.SX.sym("theta", nt), ca.SX.sym("s", n_ps), ca.SX.sym("g", n_g)
-        ms, ws = ca.SX.sym("m"), ca.SX.sym("w")
         sc = self.scale
-        th_phys = ths * ca.DM(sc[:nt])
+        qs, ts, ths = ca.SX.sym("q", n_ax), ca.SX.sym("t", 3), ca.SX.sym("theta", nt)
+        e = em.values_function()(qs, ths * ca.DM(sc[:nt]))
+        point = m["tool_point_exact" if self.exact else "tool_point"](qs, ts, e)[0]
+        f_pose = ca.Function("pose", [qs, ts, ths], [point, ca.jacobian(point, ths)],
+                             ["q", "t", "theta"], ["p", "dp_dtheta"], {"cse": True})
+        ps, ss, gs = ca.SX.sym("p", 3), ca.SX.sym("s", n_ps), ca.SX.sym("g", n_g)
+        ms, ws = ca.SX.sym("m"), ca.SX.sym("w")
         s_phys = ss * ca.DM(sc[nt:nt + n_ps])
         g_phys = gs * ca.DM(sc[nt + n_ps * n_st:]) if n_g else gs
-        e = em.values_function()(qs, th_phys)
-        point = m["tool_point_exact" if self.exact else "tool_point"](qs, ts, e)[0]
-        val = ins.reading(point, s_phys, g_phys)
-        res = ws * (val - ms)
-        row = ca.jacobian(res, ca.vertcat(ths, ss, gs)).T
-        ins_ = [qs, ts, ths, ss, gs, ms, ws]
-        names_ = ["q", "t", "theta", "s", "g", "m", "w"]
-        f_res = ca.Function("residual1", ins_, [res], names_, ["r"], {"cse": True})
-        f_row = ca.Function("jacobian1", ins_, [row], names_, ["dr_dx"], {"cse": True})
+        res = ws * (ins.reading(ps, s_phys, g_phys) - ms)
+        row = ca.jacobian(res, ca.vertcat(ps, ss, gs)).T
+        f_read = ca.Function("reading", [ps, ss, gs, ms, ws], [res, row],
+                             ["p", "s", "g", "m", "w"], ["r", "dr_dpsg"], {"cse": True})
+        self.pose_function, self.reading_function = f_pose, f_read
 
         # all readings in MX (x is the scaled variable vector)
         xs = ca.MX.sym("x", self.n_x)
@@ -105,29 +179,32 @@ class IdentificationProblem:
         meas, w = ca.MX.sym("m", N), ca.MX.sym("w", N)
         p = ca.vertcat(ca.vec(Q), ca.vec(T), meas, w)
         st_idx = np.asarray(lay.station_index, int)
+        pose_idx, first = lay.poses
+        Np = len(first)
         sel = ca.DM(ca.Sparsity.triplet(n_st, N, [int(i) for i in st_idx], list(range(N))), 1.0)
         S = ca.mtimes(ca.reshape(sp, n_ps, n_st), sel)
-        args = (Q, T, th, S, g, meas.T, w.T)
-        r = f_res.map(N)(*args).T
-        rows = f_row.map(N)(*args)  # (n_vars_per_reading, N)
+        P, G = f_pose.map(Np)(Q[:, first.tolist()], T[:, first.tolist()], th)
+        Pr = P[:, pose_idx.tolist()]  # the point of every reading
+        r_row, rows = f_read.map(N)(Pr, S, g, meas.T, w.T)
+        r = r_row.T
 
-        # J: dense columns for theta and the globals, one nonzero per row in the columns of
-        # the reading's own station.  Built from its sparsity pattern and nonzeros.
-        rr, cc = [], []
-        for j in range(nt):
-            rr.append(np.arange(N)); cc.append(np.full(N, j))
-        for k in range(n_ps):
-            rr.append(np.arange(N)); cc.append(nt + n_ps * st_idx + k)
-        for j in range(n_g):
-            rr.append(np.arange(N)); cc.append(np.full(N, nt + n_ps * n_st + j))
-        rr, cc = np.concatenate(rr), np.concatenate(cc)
-        # nonzeros of rows stacked reading-major per variable: index v * N + i
-        src = np.concatenate([np.arange(N) + v * N for v in range(nt + n_ps + n_g)])
-        order = np.lexsort((rr, cc))  # column-major order of the sparsity
-        colind = np.concatenate([[0], np.cumsum(np.bincount(cc, minlength=self.n_x))])
-        sp_J = ca.Sparsity(N, self.n_x, colind.tolist(), rr[order].tolist())
-        nz = ca.vec(rows.T)[src[order].tolist()]
-        J = ca.MX(sp_J, nz)
+        # J = [D G_stack | station columns | global columns]: D (N x 3 Np) holds each
+        # reading's d(r)/d(point) in the columns of its pose, G_stack (3 Np x nt) the
+        # poses' d(point)/d(theta).
+        ar = np.arange(N)
+        cols = (3 * pose_idx[:, None] + np.arange(3)[None, :]).ravel()
+        D = ca.MX(ca.Sparsity.triplet(N, 3 * Np, np.repeat(ar, 3).tolist(), cols.tolist()),
+                  ca.vec(rows[:3, :])[self._csc_order(N, 3 * Np, np.repeat(ar, 3), cols,
+                                                      np.arange(3 * N))])
+        J_th = ca.mtimes(D, self._stack_poses(G, Np, nt))
+        # station and global columns: one nonzero per row per variable
+        rr = np.concatenate([ar] * (n_ps + n_g))
+        cc = np.concatenate([nt + n_ps * st_idx + k for k in range(n_ps)]
+                            + [np.full(N, nt + n_ps * n_st + j) for j in range(n_g)])
+        src = np.concatenate([(3 + v) + ar * (3 + n_ps + n_g) for v in range(n_ps + n_g)])
+        J_rest = ca.MX(ca.Sparsity.triplet(N, self.n_x, rr.tolist(), cc.tolist()),
+                       ca.vec(rows)[self._csc_order(N, self.n_x, rr, cc, src)])
+        J = ca.horzcat(J_th, J_rest[:, nt:])
         self.residual = ca.Function("residual", [xs, p], [r], ["x", "p"], ["r"])
         self.jacobian = ca.Function("jacobian", [xs, p], [r, J], ["x", "p"], ["r", "J"])
 
@@ -135,9 +212,15 @@ class IdentificationProblem:
         Cs = self.C * self.scale[None, :nt]
         gvec = ca.mtimes(ca.DM(Cs), xs[:em.n_params]) if self.C.shape[0] else ca.MX(0, 1)
         self.nlp = {"x": xs, "p": p, "f": 0.5 * ca.sumsqr(r), "g": gvec}
+        # gradient of 0.5 ||r||^2 from the explicit Jacobian: J^T r, instead of reverse AD
+        # through the map (which cost half of a small solve)
+        self.grad_f = ca.Function("nlp_grad_f", [xs, p], [0.5 * ca.sumsqr(r), ca.mtimes(J.T, r)],
+                                  ["x", "p"], ["f", "grad_f_x"])
         lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", gvec.shape[0])
-        # Gauss-Newton Hessian of the Lagrangian (constraints are linear: no curvature)
-        H = lam_f * ca.mtimes(J.T, J)
+        # Gauss-Newton Hessian of the Lagrangian (constraints are linear: no curvature).
+        # J^T J through BLAS: CasADi's own sparse product was 20-30x slower here.
+        self._gram = _Gram(J.sparsity())
+        H = lam_f * self._gram(J)
         self.hess_lag = ca.Function("nlp_hess_l", [xs, p, lam_f, lam_g], [ca.triu(H)],
                                     ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
 
@@ -149,6 +232,25 @@ class IdentificationProblem:
             self.units += ["mm"] * n_ps
         self.names += list(ins.global_param_names)
         self.units += list(ins.global_param_units)
+
+    # ---- graph helpers ----------------------------------------------------------------
+    @staticmethod
+    def _csc_order(nrow: int, ncol: int, rr: np.ndarray, cc: np.ndarray,
+                   src: np.ndarray) -> list[int]:
+        """Indices into a nonzero source vector, in the column-major order CasADi stores a
+        matrix built from triplets (rr, cc) whose values sit at positions src."""
+        order = np.lexsort((rr, cc))
+        return np.asarray(src)[order].tolist()
+
+    @staticmethod
+    def _stack_poses(G: ca.MX, n_poses: int, nt: int) -> ca.MX:
+        """(3, n_poses * nt) [G_0 | G_1 | ...] -> (3 n_poses, nt) [G_0; G_1; ...]."""
+        # column-major: vec(G) runs G_0 col 0, G_0 col 1, ...; reshape to (3, nt, n_poses)
+        # then bring the pose index in front of the component index
+        idx = (np.arange(3)[None, :, None] + 3 * np.arange(nt)[None, None, :]
+               + 3 * nt * np.arange(n_poses)[:, None, None])  # (n_poses, 3, nt)
+        flat = idx.transpose(2, 0, 1).reshape(-1)  # column-major order of the result
+        return ca.reshape(ca.vec(G)[flat.tolist()], 3 * n_poses, nt)
 
     # ---- packing ------------------------------------------------------------------------
     def pack_data(self, q: np.ndarray, t: np.ndarray, m: np.ndarray, w: np.ndarray) -> np.ndarray:

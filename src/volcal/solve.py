@@ -49,6 +49,7 @@ class NLPSolver:
             "ipopt.nlp_scaling_method": "none",
             "error_on_fail": False,
         }
+        opts["grad_f"] = problem.grad_f
         if hessian == "gauss-newton":
             opts["hess_lag"] = problem.hess_lag
         elif hessian != "exact":

@@ -674,7 +674,7 @@ def analyze_plan(model, plan: pd.DataFrame, stations, tools=None, budget="paper0
         warnings.simplefilter("ignore")
         sim = simulate(machine, em, th, stations, plan, tools, bud, 0, noise=False)
         meas = load_measurements(sim.measurements, machine.spec)
-    layout = Layout(meas.station_index, len(meas.station_ids), tuple(meas.station_ids))
+    layout = Layout.from_measurements(meas)
     ider = Identifier(machine, em, layout)
     pr = ider.problem
     st = sim.stations[["x_mm", "y_mm", "z_mm", "dead_length_mm"]].to_numpy(float)
@@ -704,7 +704,7 @@ def analyze_result(result, measurements, *, budget=None, scale_covariance: bool 
     from volcal.uncertainty.montecarlo import fixed_mask, identification_data
 
     meas = measurements
-    layout = Layout(meas.station_index, len(meas.station_ids), tuple(meas.station_ids))
+    layout = Layout.from_measurements(meas)
     ider = Identifier(result.machine, result.error_model, layout)
     pr = ider.problem
     x, w = identification_data(result, meas, budget)

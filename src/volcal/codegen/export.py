@@ -375,7 +375,7 @@ def _define(machine: Machine, meas, has_lengths: bool, st_table: pd.DataFrame | 
         notes.append("analysis at the approximate stations of the stations table")
     em = build_error_model(spec, degree=degree, datum=datum)
     bud = load_budget(budget)
-    layout = Layout(meas.station_index, K, tuple(meas.station_ids))
+    layout = Layout.from_measurements(meas)
     ider = Identifier(machine, em, layout, exact=exact)
     pr = ider.problem
     if has_lengths:

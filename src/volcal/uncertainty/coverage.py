@@ -110,7 +110,7 @@ def coverage_experiment(setup: CoverageSetup, k: int, *, seed: int = 0,
            "z_parameters": zpar, "status": res.status, "success": res.success,
            "chi2": res.conditions.get("chi2_per_dof")}
     if mc:
-        layout = Layout(meas.station_index, len(meas.station_ids), tuple(meas.station_ids))
+        layout = Layout.from_measurements(meas)
         ider = Identifier(m, em, layout)
         x_hat, w = identification_data(res, meas, setup.budget)
         p = ider.problem.pack_data(meas.q_internal, meas.tool, meas.length, w)

@@ -626,7 +626,7 @@ def monte_carlo(model, data, stations=None, *, budget="paper002", trials: int = 
     res = identify(machine, meas, st_table, strategy=strategy, degree=degree, datum=datum,
                    error_model=error_model, budget=bud)
     em = res.error_model
-    layout = Layout(meas.station_index, len(meas.station_ids), tuple(meas.station_ids))
+    layout = Layout.from_measurements(meas)
     ider = Identifier(machine, em, layout)
     x_hat, w = identification_data(res, meas, bud)
     p = ider.problem.pack_data(meas.q_internal, meas.tool, meas.length, w)
