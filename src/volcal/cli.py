@@ -47,6 +47,13 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for modname in _COMMANDS:
         importlib.import_module(modname).add_parser(sub)
+    # -q / -v also after the command name (`volcal identify ... -q`); SUPPRESS keeps a
+    # value given before the command when the command line does not repeat it
+    for cmd in sub.choices.values():
+        cmd.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                         help="print only errors")
+        cmd.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS,
+                         help="more output (repeat for debug output)")
     return parser
 
 

@@ -217,6 +217,7 @@ class Identifier:
         n = self.problem.n_x
         user_fixed = np.zeros(n, bool) if user_fixed is None else user_fixed
         outcomes: list[SolveOutcome] = []
+        self.phase_conditions: dict[str, float] = {}
         if strategy == "joint":
             ident = self.analyse(x0, p, user_fixed)
             # hold one variable per null direction (the pivot); the others involved stay
@@ -235,6 +236,10 @@ class Identifier:
                 out1 = self._solve(x, p, f1)
                 outcomes.append(out1)
                 x = out1.x
+                # the conditioning of the system phase one solved (stations alone)
+                ident1 = self.analyse(x, p, f1, constrained=False)
+                self.phase_conditions = {"phase1_jacobian_scaled": ident1.condition,
+                                         "phase1_jacobian_unscaled": ident1.condition_unscaled}
             f2 = user_fixed | self.is_station
             ident = self.analyse(x, p, f2)
             f2 = f2.copy()
@@ -435,7 +440,8 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
     residuals["normalised_residual"] = resid_w
     residuals["rejected"] = rejected
     rej = residuals.loc[rejected].assign(row=meas.rows[rejected])
-    conditions = {"jacobian_scaled": ident.condition,
+    conditions = {**ider.phase_conditions,
+                  "jacobian_scaled": ident.condition,
                   "jacobian_unscaled": ident.condition_unscaled,
                   "chi2_per_dof": chi2}
     return IdentificationResult(machine, em, strategy, theta, cov_theta, identifiable,

@@ -57,6 +57,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "standard deviations and re-solve")
     p.add_argument("--reject-k", type=float, default=None, metavar="K",
                    help="rejection threshold of --robust (default 4)")
+    p.add_argument("--station-method", default="sqrt",
+                   choices=["sqrt", "squared", "linear", "linear_taylor", "paper002"],
+                   help="classic strategy: station self-calibration (paper 000 Case A sqrt, "
+                        "squared, Case B linear, Case B + Taylor; paper 002 linear)")
+    p.add_argument("--point-method", default="sqrt",
+                   choices=["sqrt", "squared", "linear", "linear_taylor"],
+                   help="classic strategy: point multilateration method")
     p.add_argument("--exact", action="store_true",
                    help="exact rotations in the model instead of the first-order one")
     p.add_argument("--scale-covariance", action="store_true",
@@ -102,12 +109,14 @@ def run(args: argparse.Namespace) -> int:
                    degree=args.degree, datum=args.datum, budget=args.budget,
                    robust=args.robust, reject_k=reject_k, exact=args.exact,
                    scale_covariance=args.scale_covariance,
+                   station_method=args.station_method, point_method=args.point_method,
                    verbose=getattr(args, "verbose", 0) > 1)
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
     options = {"model": args.model, "strategy": args.strategy, "degree": args.degree,
                "datum": args.datum, "budget": args.budget, "robust": args.robust,
                "reject_k": reject_k, "exact": args.exact,
                "scale_covariance": args.scale_covariance,
+               "station_method": args.station_method, "point_method": args.point_method,
                "stations": str(args.stations) if args.stations else None}
     path = save_result(res, out, data_name=str(args.data), plots=not args.no_plots,
                        options=options)
