@@ -39,7 +39,7 @@ import pandas as pd
 from volcal.codegen import export_solver, load
 from volcal.data import load_measurements
 from volcal.errors import ErrorModel
-from volcal.identify import _initial_stations, identify
+from volcal.identify import initial_stations, identify
 from volcal.machine import Machine
 from volcal.plans import default_stations, grid_plan
 from volcal.simulate import draw_true_parameters, example, simulate
@@ -90,7 +90,7 @@ def bench(label, machine, df, repeat, workdir):
     dfn = define_solver(machine, df)
     ider, pr = dfn.identifier, dfn.problem
     meas = load_measurements(df, machine.spec)
-    st0, _, _ = _initial_stations(machine, meas, None)
+    st0, _, _ = initial_stations(machine, meas, None)
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, 1.0 / meas.sigma)
     ph = dfn.phases[-1]
     x0 = np.where(ph.zero, 0.0, pr.pack_x(np.zeros(pr.n_theta), st0))

@@ -26,7 +26,7 @@ import scipy.sparse as sps
 
 from volcal.data import load_measurements
 from volcal.errors import ErrorModel
-from volcal.identify import Identifier, _initial_stations
+from volcal.identify import Identifier, initial_stations
 from volcal.machine import Machine
 from volcal.plans import grid_plan
 from volcal.problem import Layout
@@ -53,7 +53,7 @@ def setup(ex, sim):
     meas = load_measurements(sim.measurements, ex.machine.spec)
     ider = Identifier(ex.machine, ex.error_model,
                       Layout.from_measurements(meas))
-    st0, _, _ = _initial_stations(ex.machine, meas, None)
+    st0, _, _ = initial_stations(ex.machine, meas, None)
     pr = ider.problem
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, 1.0 / meas.sigma)
     x0 = pr.pack_x(np.zeros(pr.n_theta), st0)

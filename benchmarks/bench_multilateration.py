@@ -16,20 +16,18 @@ import platform
 import time
 from pathlib import Path
 
+from importlib import resources
+
 import numpy as np
 import scipy
 from scipy.optimize import least_squares
 
+from volcal.data import load_stations
 from volcal.multilateration import multilaterate
 
-STATIONS = np.array([
-    [-154.799406, 125.978808, -471.460113],
-    [-143.324882, 328.559001, -471.386505],
-    [862.105512, 291.242899, -340.459834],
-    [833.3820, 103.1588, -340.4466],
-    [891.307748, 152.634701, -507.868235],
-    [885.579601, 154.917244, -507.865002],
-])
+# paper 000 Table 5 (the stations of the bundled example), mm
+STATIONS = load_stations(resources.files("volcal").joinpath("data", "mcv754_stations.csv")
+                         )[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
 DEAD = np.array([3.1, -2.4, 5.0, 1.2, -4.4, 2.2])  # mm
 N_POINTS = 10_000
 N_LOOP = 300

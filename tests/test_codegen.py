@@ -276,7 +276,7 @@ def test_model_only_export(ex, tmp_path, python_result):
 def test_two_phase_strategy_agrees_with_tight_python(ex, data, tmp_path):
     from volcal.codegen import define_solver
     from volcal.data import load_measurements
-    from volcal.identify import _initial_stations
+    from volcal.identify import initial_stations
     from volcal.solve import NLPSolver
 
     df = data[0]
@@ -288,7 +288,7 @@ def test_two_phase_strategy_agrees_with_tight_python(ex, data, tmp_path):
     d = define_solver(ex.model, df, strategy="two-phase")
     pr, ider = d.problem, d.identifier
     meas = load_measurements(df, ex.machine.spec)
-    st0, _, _ = _initial_stations(ex.machine, meas, None)
+    st0, _, _ = initial_stations(ex.machine, meas, None)
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, 1 / meas.sigma)
     ider.solver = NLPSolver(pr, tol=1e-10)
     x, outs, fixed, _ = ider.run("two-phase", pr.pack_x(np.zeros(pr.n_theta), st0), p)

@@ -5,9 +5,12 @@ mm; points: a grid in the 754 x 500 x 550 mm working space with z in [-550, 0].
 """
 from __future__ import annotations
 
+from importlib import resources
+
 import numpy as np
 import pytest
 
+from volcal.data import load_stations
 from volcal.exceptions import InputError
 from volcal.multilateration import (
     calibrate_station,
@@ -20,15 +23,10 @@ EPS = np.finfo(float).eps
 SIGMA = 0.5e-3  # mm (0.5 um)
 SEEDS = range(10)
 
-# paper 000 Table 5, Case A with function (7), mm
-STATIONS = np.array([
-    [-154.799406, 125.978808, -471.460113],
-    [-143.324882, 328.559001, -471.386505],
-    [862.105512, 291.242899, -340.459834],
-    [833.3820, 103.1588, -340.4466],
-    [891.307748, 152.634701, -507.868235],
-    [885.579601, 154.917244, -507.865002],
-])
+# paper 000 Table 5, Case A with function (7), mm: the stations volcal ships
+# (tests/test_simulate.py checks them against the paper's numbers)
+STATIONS = load_stations(resources.files("volcal").joinpath("data", "mcv754_stations.csv")
+                         )[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
 DEAD = np.array([3.1, -2.4, 5.0, 1.2, -4.4, 2.2])  # mm
 
 

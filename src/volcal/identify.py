@@ -196,27 +196,31 @@ class Identifier:
         C[:, :pr.n_theta] = pr.C * pr.scale[None, :pr.n_theta]
         return C
 
-    def covariance(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray,
-                   constrained: bool = True) -> np.ndarray:
-        """Linearised covariance of x (physical units) with fixed variables NaN."""
+    def covariance(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+        """Linearised covariance of x (physical units) under the datum constraints, with
+        fixed variables NaN."""
         _, J = self.jacobian(x, p)
-        C = self._scaled_constraints() if constrained else None
-        cov_s = constrained_covariance(J, C, fixed=fixed)
+        cov_s = constrained_covariance(J, self._scaled_constraints(), fixed=fixed)
         s = self.problem.scale
         return cov_s * s[:, None] * s[None, :]
 
-    def _solve(self, x0, p, fixed, constrained=True) -> SolveOutcome:
-        return self.solver.solve(x0, p, fixed=fixed, constrained=constrained)
 
     # ---- strategies -----------------------------------------------------------------
     def run(self, strategy: str, x0: np.ndarray, p: np.ndarray, *,
-            user_fixed: np.ndarray | None = None) -> tuple[np.ndarray, list[SolveOutcome],
-                                                           np.ndarray, Identifiability]:
+            user_fixed: np.ndarray | None = None, solve: bool = True
+            ) -> tuple[np.ndarray, list[SolveOutcome], np.ndarray, Identifiability]:
         """Solve with a strategy from x0 (physical). Returns (x, outcomes, fixed mask,
         identifiability of the final phase)."""
         n = self.problem.n_x
         user_fixed = np.zeros(n, bool) if user_fixed is None else user_fixed
         outcomes: list[SolveOutcome] = []
+
+        def step(x, fixed) -> SolveOutcome:
+            if solve:
+                return self.solver.solve(x, p, fixed=fixed)
+            # a plan without data (export-time analysis): keep the start point
+            return SolveOutcome(np.array(x, float), float("nan"), "not solved", True, 0, 0.0)
+
         self.phase_conditions: dict[str, float] = {}
         if strategy == "joint":
             ident = self.analyse(x0, p, user_fixed)
@@ -225,7 +229,7 @@ class Identifier:
             fixed = user_fixed.copy()
             fixed[ident.pivots] = True
             x0 = np.where(fixed & ~user_fixed & ~self.is_station, 0.0, x0)
-            out = self._solve(x0, p, fixed)
+            out = step(x0, fixed)
             outcomes.append(out)
             return out.x, outcomes, fixed, ident
         if strategy in ("two-phase", "points-only"):
@@ -233,7 +237,7 @@ class Identifier:
             if strategy == "two-phase":
                 f1 = user_fixed | self.is_theta | self.is_frame
                 x[self.is_theta | self.is_frame] = 0.0
-                out1 = self._solve(x, p, f1)
+                out1 = step(x, f1)
                 outcomes.append(out1)
                 x = out1.x
                 # the conditioning of the system phase one solved (stations alone)
@@ -245,7 +249,7 @@ class Identifier:
             f2 = f2.copy()
             f2[ident.pivots] = True
             x = np.where(f2 & ~self.is_station & ~user_fixed, 0.0, x)
-            out2 = self._solve(x, p, f2)
+            out2 = step(x, f2)
             outcomes.append(out2)
             return out2.x, outcomes, f2, ident
         raise InputError(f"unknown strategy {strategy!r}; expected one of {STRATEGIES}")
@@ -279,9 +283,12 @@ def reading_sigma(machine: Machine, budget: Budget, meas: Measurements,
     return np.sqrt(var)
 
 
-def _initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFrame | None
-                      ) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """(K, 4) station start values (x, y, z, dead length), fixed mask (K,), notes."""
+def initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFrame | None
+                     ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Start values of the stations: (K, 4) x, y, z, dead length (mm) in the order of
+    ``meas.station_ids``, the mask of stations held fixed (K,), and notes.  From the
+    stations table where given, else paper 002's linear solution refined by the sqrt
+    residual (paper 000 Case A) on the nominal points."""
     from volcal.multilateration import calibrate_stations
 
     notes = []
@@ -357,7 +364,7 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
     if strategy not in STRATEGIES:
         raise InputError(f"unknown strategy {strategy!r}; expected one of {list(STRATEGIES)}")
 
-    st0, st_fixed, notes = _initial_stations(machine, meas, st_table)
+    st0, st_fixed, notes = initial_stations(machine, meas, st_table)
     sigma = meas.sigma.copy()
     budget_sigma = reading_sigma(machine, bud, meas, st0[:, :3])
     no_sigma = ~np.isfinite(sigma)

@@ -57,8 +57,8 @@ class NLPSolver:
         self.hessian = hessian
         self.solver = ca.nlpsol("identify", "ipopt", problem.nlp, opts)
 
-    def solve(self, x0: np.ndarray, p: np.ndarray, *, fixed: np.ndarray | None = None,
-              constrained: bool = True) -> SolveOutcome:
+    def solve(self, x0: np.ndarray, p: np.ndarray, *, fixed: np.ndarray | None = None
+              ) -> SolveOutcome:
         """Solve from x0 (physical units) with data p; variables where ``fixed`` is True
         stay at x0.  Returns x in physical units."""
         n = self.problem.n_x
@@ -68,9 +68,7 @@ class NLPSolver:
             lbx[fixed] = ubx[fixed] = x0[fixed]
         ng = self.problem.C.shape[0]
         t0 = time.perf_counter()
-        lbg, ubg = (np.zeros(ng), np.zeros(ng)) if constrained else \
-            (np.full(ng, -np.inf), np.full(ng, np.inf))
-        sol = self.solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+        sol = self.solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=np.zeros(ng), ubg=np.zeros(ng))
         dt = time.perf_counter() - t0
         st = self.solver.stats()
         status = st.get("return_status", "unknown")

@@ -34,7 +34,7 @@ from volcal.codegen import templates as T
 from volcal.data import DataWarning, load_measurements, load_stations
 from volcal.errors import ErrorModel
 from volcal.exceptions import InputError
-from volcal.identify import Identifier, _initial_stations, build_error_model
+from volcal.identify import Identifier, initial_stations, build_error_model
 from volcal.machine import Machine
 from volcal.problem import Layout
 from volcal.spec import MachineSpec
@@ -364,7 +364,7 @@ def _define(machine: Machine, meas, has_lengths: bool, st_table: pd.DataFrame | 
                 st_fixed[k] = bool(row["fixed"])
     notes: list[str] = []
     if has_lengths:
-        st0, _, n0 = _initial_stations(machine, meas, st_table)
+        st0, _, n0 = initial_stations(machine, meas, st_table)
         notes += n0
     else:
         if not st_given.all():

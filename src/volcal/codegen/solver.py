@@ -151,23 +151,13 @@ def plan_phases(ider: Identifier, strategy: str, x0: np.ndarray, p: np.ndarray,
                 user_fixed: np.ndarray, *, solve: bool) -> list[Phase]:
     """The phases of a strategy with the fixed sets :meth:`Identifier.run` uses: it is run
     here as is (with IPOPT when ``solve``, so that a two-phase analysis happens at the
-    phase-1 solution exactly as in Python; with a stand-in that returns the start point
-    when the plan has no data)."""
+    phase-1 solution exactly as in Python; without solving, at the start point, when the
+    plan has no data)."""
     if strategy not in ("joint", "two-phase", "points-only"):
         raise InputError(f"strategy {strategy!r} cannot be exported; exportable strategies: "
                          "joint, two-phase, points-only")
     is_st, is_th, is_fr = ider.is_station, ider.is_theta, ider.is_frame
-    if not solve:
-        from volcal.solve import SolveOutcome
-
-        def _stand_in(x, p_, fixed, constrained=True):
-            return SolveOutcome(np.array(x, float), float("nan"), "not solved", True, 0, 0.0)
-        ider._solve = _stand_in
-    try:
-        _, _, fixed, _ = ider.run(strategy, x0, p, user_fixed=user_fixed)
-    finally:
-        if not solve:
-            del ider._solve
+    _, _, fixed, _ = ider.run(strategy, x0, p, user_fixed=user_fixed, solve=solve)
     phases: list[Phase] = []
     if strategy == "two-phase":
         # phase 1: stations only, error parameters and frame held at zero
