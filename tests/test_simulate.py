@@ -91,6 +91,10 @@ def fk(spec, q: np.ndarray, t: np.ndarray, err: dict[str, float]) -> np.ndarray:
         if axis.branch == "workpiece":
             A = np.linalg.inv(A)
         T = T @ A
+    # the tool's zero position and orientation relative to the last axis
+    g = lambda name: err.get(name, 0.0)  # noqa: E731
+    T = T @ _H(t=np.array([g("EX0T"), g("EY0T"), g("EZ0T")])) \
+        @ _small(np.array([g("EA0T"), g("EB0T"), g("EC0T")]))
     return (T @ np.append(t, 1.0))[:3]
 
 

@@ -1,13 +1,27 @@
 """Error motions as functions of axis position, and the datum conventions that fix them.
 
-Every error quantity of a machine (see :func:`volcal.spec.error_symbols`) gets a form:
+Every error quantity of a machine (see :func:`volcal.spec.error_symbols`) gets a form
+(:class:`ErrorForm`, docs/error_bases.md):
 
 * ``poly``: a Legendre series of a chosen degree in the normalised axis position
   s = 2 (q - q_min) / (q_max - q_min) - 1 in [-1, 1].  Legendre rather than monomials:
   the columns stay nearly orthogonal, so the identification stays well conditioned.
+  The default for linear axes and for rotary axes that turn less than a full turn.
+* ``fourier``: 1, cos(k x), sin(k x) for k = 1 .. n, x the angle in rad (rotary axes).
+  The error motions of a table that turns a full turn are periodic (ISO 230-7), which
+  no polynomial follows: the default for a rotary axis whose travel spans >= 360 deg,
+  with n the default degree.
+* ``bspline``: a clamped uniform cubic B-spline with a given number of segments over the
+  travel (segments + 3 functions; local, C2, reproduces cubics); beyond the travel the
+  end segments' cubics continue.
 * ``table``: piecewise-linear interpolation between values at a grid of axis positions
   (what a controller's compensation table holds);
-* ``constant``: one value, the only form location errors take.
+* ``constant``: one value, the only form location and tool errors take.
+
+Which form an error motion gets, first match wins: ``forms[error name]``,
+``forms[axis name]`` (the Python API, ``volcal identify --basis``), the model file's
+``error_basis`` then ``basis`` of its axis, then ``default`` (a Legendre ``default`` means
+Fourier of the same degree on a full-turn rotary axis).
 
 The error value at a pose is linear in the parameters: e(q) = B(q) theta.  Datum
 conventions are linear equality constraints C theta = 0:
@@ -18,33 +32,32 @@ conventions are linear equality constraints C theta = 0:
 * ``"reference"``: every component error motion is zero at its axis' reference position.
 * ``"none"``: no constraint (the identification then detects and reports the gauge).
 
-Parameters are named ``<error>_<k>`` for the k-th Legendre coefficient, ``<error>@<pos>``
-for a table value at axis position pos (file units) and ``<error>`` for a constant; units
-are those of the error (mm or rad).
+Parameters are named ``<error>_<k>`` for the k-th Legendre coefficient, ``<error>_0``,
+``<error>_c<k>``, ``<error>_s<k>`` for the Fourier coefficients of 1, cos(k x), sin(k x),
+``<error>_b<j>`` for the j-th B-spline coefficient, ``<error>@<pos>`` for a table value at
+axis position pos (file units) and ``<error>`` for a constant; units are those of the error
+(mm or rad).
 """
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from functools import lru_cache
 from typing import Literal
 
 import casadi as ca
 import numpy as np
 
 from volcal.exceptions import InputError
-from volcal.spec import ErrorSymbol, MachineSpec, error_symbols
+from volcal.spec import BASIS_KINDS, ErrorForm, ErrorSymbol, MachineSpec, error_symbols
+
+__all__ = ["ErrorForm", "ErrorModel", "Datum", "legendre", "fourier", "bspline",
+           "parse_basis", "BASIS_KINDS"]
 
 Datum = Literal["iso230", "reference", "none"]
 
 
-@dataclass(frozen=True)
-class ErrorForm:
-    """The form of one error quantity: ``poly`` (degree), ``table`` (knots in file units:
-    mm or deg) or ``constant``."""
-
-    kind: Literal["poly", "table", "constant"] = "poly"
-    degree: int = 3
-    knots: tuple[float, ...] = ()
+def _is_casadi(x) -> bool:
+    return isinstance(x, (ca.SX, ca.MX, ca.DM))
 
 
 def legendre(s: np.ndarray | ca.SX, degree: int) -> list:
@@ -55,6 +68,100 @@ def legendre(s: np.ndarray | ca.SX, degree: int) -> list:
     for n in range(1, degree):
         out.append(((2 * n + 1) * s * out[n] - n * out[n - 1]) / (n + 1))
     return out
+
+
+def fourier(x, degree: int) -> list:
+    """1, cos(x), sin(x), ..., cos(n x), sin(n x) at angle x (rad), n = degree (numpy arrays
+    or CasADi SX)."""
+    cos, sin = (ca.cos, ca.sin) if _is_casadi(x) else (np.cos, np.sin)
+    out = [x * 0 + 1.0]
+    for k in range(1, degree + 1):
+        out += [cos(k * x), sin(k * x)]
+    return out
+
+
+@lru_cache(maxsize=64)
+def _bspline_coefficients(segments: int) -> np.ndarray:
+    """(segments + 3, segments, 4): the cubic of each clamped uniform B-spline basis
+    function on each segment, coefficients of 1, u, u^2, u^3 in the local u in [0, 1]."""
+    from scipy.interpolate import BSpline
+
+    m = segments
+    t = np.r_[[0.0] * 3, np.arange(m + 1, dtype=float), [float(m)] * 3]
+    u = np.array([0.0, 1 / 3, 2 / 3, 1.0])
+    V = np.vander(u, 4, increasing=True)
+    out = np.zeros((m + 3, m, 4))
+    for j in range(m + 3):
+        c = np.zeros(m + 3)
+        c[j] = 1.0
+        b = BSpline(t, c, 3, extrapolate=True)
+        for i in range(m):
+            out[j, i] = np.linalg.solve(V, b(np.minimum(i + u, m)))
+    out[np.abs(out) < 1e-13] = 0.0
+    return out
+
+
+def bspline(x, lo: float, hi: float, segments: int) -> list:
+    """The segments + 3 clamped uniform cubic B-splines on [lo, hi] at x (numpy arrays,
+    vectorised, or CasADi SX through ``if_else``); beyond [lo, hi] the end segments'
+    cubics continue (the functions still sum to one and still reproduce cubics)."""
+    m = segments
+    C = _bspline_coefficients(m)
+    h = (hi - lo) / m
+    xs = (x - lo) / h
+
+    def cubic(c, u):
+        return ((c[3] * u + c[2]) * u + c[1]) * u + c[0]
+
+    if not _is_casadi(x):
+        xs = np.asarray(xs, float)
+        i = np.clip(np.floor(xs), 0, m - 1).astype(int)
+        u = xs - i
+        return [cubic(C[j, i].T, u) for j in range(m + 3)]
+    out = []
+    for j in range(m + 3):
+        a, b = max(0, j - 3), min(m - 1, j)  # the segments where function j is not zero
+        expr = cubic(C[j, m - 1], xs - (m - 1)) if b == m - 1 else xs * 0
+        for i in range(min(b, m - 2), a - 1, -1):
+            expr = ca.if_else(xs < i + 1, cubic(C[j, i], xs - i), expr)
+        if a > 0:
+            expr = ca.if_else(xs < a, xs * 0, expr)
+        out.append(expr)
+    return out
+
+
+def parse_basis(text: str, *, source: str = "--basis") -> tuple[str, ErrorForm]:
+    """``NAME=KIND[:N]`` (the command line's ``--basis``) -> (name, form): NAME an axis or
+    error name, N the degree (poly, fourier), the number of segments (bspline) or the knots
+    (table, comma-separated positions in mm / deg).  ``C=fourier:3``, ``X=bspline:6``,
+    ``EXX=table:0,200,400``, ``EBX=constant``."""
+    name, eq, rest = str(text).partition("=")
+    kind, _, arg = rest.partition(":")
+    name, kind, arg = name.strip(), kind.strip(), arg.strip()
+    if not eq or not name or kind not in BASIS_KINDS:
+        raise InputError(f"expected NAME=KIND[:N] with KIND one of {list(BASIS_KINDS)} "
+                         f"(e.g. C=fourier:3, X=bspline:6), got {text!r}", source=source)
+    try:
+        if kind == "table":
+            form = ErrorForm("table", knots=tuple(float(v) for v in arg.split(",")))
+        elif kind == "constant" or not arg:
+            if kind == "constant" and arg:
+                raise ValueError(arg)
+            form = ErrorForm(kind)
+        elif kind == "bspline":
+            form = ErrorForm("bspline", segments=int(arg))
+        else:
+            form = ErrorForm(kind, degree=int(arg))
+    except ValueError:
+        raise InputError(f"bad number in {text!r}: {kind} takes "
+                         + {"table": "comma-separated knot positions",
+                            "bspline": "an integer number of segments",
+                            "constant": "no number"}.get(kind, "an integer degree"),
+                         source=source) from None
+    bad = form.problem()
+    if bad:
+        raise InputError(f"{text!r}: {bad}", source=source)
+    return name, form
 
 
 def _hat(x, knots: np.ndarray, j: int):
@@ -71,12 +178,16 @@ class ErrorModel:
     """Parameterisation of every error quantity of a machine.
 
     ``forms`` maps error names (or axis names, applying to all component errors of that
-    axis) to an :class:`ErrorForm`; unspecified component errors get ``default``.
+    axis) to an :class:`ErrorForm`; component errors that neither ``forms`` nor the model's
+    declarations (``basis`` / ``error_basis`` of the axis) give a form get ``default``:
+    ``None`` is Legendre degree 3; a Legendre ``default`` becomes the Fourier series of the
+    same degree on a rotary axis whose travel spans a full turn (module docstring).
     """
 
     def __init__(self, spec: MachineSpec, forms: Mapping[str, ErrorForm] | None = None, *,
-                 default: ErrorForm = ErrorForm("poly", 3), datum: Datum = "iso230"):
+                 default: ErrorForm | None = None, datum: Datum = "iso230"):
         forms = dict(forms or {})
+        default = ErrorForm("poly", 3) if default is None else default
         self.spec = spec
         self.errors: list[ErrorSymbol] = error_symbols(spec)
         self.datum: Datum = datum
@@ -86,27 +197,49 @@ class ErrorModel:
             raise InputError(f"error forms given for unknown error/axis names {unknown}")
         self.forms: list[ErrorForm] = []
         for s in self.errors:
-            if s.kind == "location":
+            if s.kind != "component":  # location and tool errors are constants
                 self.forms.append(ErrorForm("constant"))
-            else:
-                self.forms.append(forms.get(s.name, forms.get(s.axis, default)))
+                continue
+            a = spec.axis(s.axis)
+            f = forms.get(s.name, forms.get(s.axis))
+            if f is None:
+                f = dict(a.error_basis).get(s.name, a.basis)
+            if f is None:
+                f = (ErrorForm("fourier", default.degree)
+                     if default.kind == "poly" and a.full_turn else default)
+            if not isinstance(f, ErrorForm):
+                raise InputError(f"{s.name}: expected an ErrorForm, got {f!r}")
+            bad = f.problem(a.is_rotary)
+            if bad:
+                raise InputError(f"{s.name} (axis {a.name}): {bad}")
+            self.forms.append(f)
         self._axis_index = {a.name: k for k, a in enumerate(spec.axes)}
+        # constants (location and tool errors) belong to no axis position: any column will do
+        self._axis_index.setdefault("T", 0)
         self.param_names: list[str] = []
         self.param_error: list[int] = []  # index of the error quantity each parameter belongs to
+        #: per parameter: its polynomial degree or harmonic number (0 for the other kinds)
+        self.param_order: list[int] = []
         for k, (s, f) in enumerate(zip(self.errors, self.forms)):
             if f.kind == "constant":
-                labels = [s.name]
+                labels, order = [s.name], [0]
             elif f.kind == "poly":
-                if f.degree < 0:
-                    raise InputError(f"{s.name}: polynomial degree must be >= 0")
                 labels = [f"{s.name}_{j}" for j in range(f.degree + 1)]
+                order = list(range(f.degree + 1))
+            elif f.kind == "fourier":
+                labels, order = [f"{s.name}_0"], [0]
+                for j in range(1, f.degree + 1):
+                    labels += [f"{s.name}_c{j}", f"{s.name}_s{j}"]
+                    order += [j, j]
+            elif f.kind == "bspline":
+                labels = [f"{s.name}_b{j}" for j in range(f.n_params)]
+                order = [0] * len(labels)
             else:
-                if len(f.knots) < 2 or np.any(np.diff(f.knots) <= 0):
-                    raise InputError(f"{s.name}: table knots must be at least two increasing "
-                                     f"positions, got {f.knots}")
                 labels = [f"{s.name}@{v:g}" for v in f.knots]
+                order = [0] * len(labels)
             self.param_names += labels
             self.param_error += [k] * len(labels)
+            self.param_order += order
         self.param_error_arr = np.asarray(self.param_error, int)
         self._values_fn: ca.Function | None = None
 
@@ -137,6 +270,10 @@ class ErrorModel:
         lo, hi, rot = self._axis_range(s)
         if f.kind == "poly":
             return legendre(2 * (x - lo) / (hi - lo) - 1, f.degree)
+        if f.kind == "fourier":
+            return fourier(x, f.degree)
+        if f.kind == "bspline":
+            return bspline(x, lo, hi, f.segments)
         knots = np.deg2rad(f.knots) if rot else np.asarray(f.knots, float)
         return [_hat(x, knots, j) for j in range(len(knots))]
 
@@ -174,32 +311,52 @@ class ErrorModel:
                                           ["q", "theta"], ["e"], {"cse": True})
         return self._values_fn
 
-    # ---- datum constraints -------------------------------------------------------------
-    def constraints(self, datum: Datum | None = None) -> tuple[np.ndarray, list[str]]:
-        """Datum constraints as (C, labels) with C theta = 0; linearly dependent rows dropped."""
-        datum = self.datum if datum is None else datum
-        rows, labels = [], []
-        if datum == "none":
-            return np.zeros((0, self.n_params)), []
-        for k, s in enumerate(self.errors):
+    def describe(self) -> dict[str, list[str]]:
+        """{form label: [error names]} of the component error motions (readable summary)."""
+        out: dict[str, list[str]] = {}
+        for s, f in zip(self.errors, self.forms):
+            if s.kind == "component":
+                out.setdefault(f.describe(), []).append(s.name)
+        return out
+
+    def summary(self) -> str:
+        """One line: each basis of the component error motions and the axes (or single
+        error motions) that have it, e.g. ``Legendre polynomial, degree 3 (X, Y, Z);
+        Fourier series, harmonics 1..3 (C)``."""
+        groups: dict[str, list[str]] = {}
+        by_axis: dict[str, set[str]] = {}
+        for s, f in zip(self.errors, self.forms):
+            if s.kind == "component":
+                by_axis.setdefault(s.axis, set()).add(f.describe())
+        for s, f in zip(self.errors, self.forms):
             if s.kind != "component":
                 continue
-            a = self.spec.axis(s.axis)
-            lo, hi, rot = self._axis_range(s)
-            ref = np.deg2rad(a.reference) if rot else a.reference
-            straightness = (datum == "iso230" and not rot and s.quantity == "translation"
-                            and s.component != a.dir_index)
-            points = [(lo, "start of travel"), (hi, "end of travel")] if straightness \
-                else [(ref, "reference position")]
-            for x, where in points:
-                r = np.zeros(self.n_params)
-                idx = np.flatnonzero(self.param_error_arr == k)
-                r[idx] = [np.ravel(c)[0] for c in self._basis_columns(k, np.array([x]))]
-                rows.append(r)
-                labels.append(f"{s.name} = 0 at {where}")
-        C = np.array(rows).reshape(-1, self.n_params)
+            who = s.axis if len(by_axis[s.axis]) == 1 else s.name
+            members = groups.setdefault(f.describe(), [])
+            if who not in members:
+                members.append(who)
+        return "; ".join(f"{label} ({', '.join(m)})" for label, m in groups.items()) \
+            or "constants only"
+
+    # ---- datum constraints -------------------------------------------------------------
+    def constraints(self, datum: Datum | None = None, *, constants: bool = False
+                    ) -> tuple[np.ndarray, list[str]]:
+        """The ISO 230 datum conditions on the component error motions as (C, labels) with
+        C theta = 0, linearly dependent rows dropped; with ``constants`` also the candidate
+        conditions on location and tool errors.  These are candidates: an identification
+        imposes only those that remove a null direction of the data's Jacobian
+        (:mod:`volcal.datum`); the simulator projects drawn truths onto them."""
+        from volcal.datum import candidate_conditions
+
+        conds = candidate_conditions(self, self.datum if datum is None else datum)
+        if not constants:
+            conds = [c for c in conds if c.klass not in ("tool position", "tool orientation",
+                                                         "location")]
+        if not conds:
+            return np.zeros((0, self.n_params)), []
+        C = np.array([c.row for c in conds])
         keep = _independent_rows(C)
-        return C[keep], [labels[i] for i in keep]
+        return C[keep], [conds[i].label for i in keep]
 
     # ---- parameter vectors -------------------------------------------------------------
     def theta_from_mapping(self, values: Mapping[str, float]) -> np.ndarray:
@@ -221,7 +378,9 @@ class ErrorModel:
         for k, s in enumerate(self.errors):
             if s.name not in funcs:
                 continue
-            lo, hi, _ = self._axis_range(s)
+            # constants (location, tool errors) belong to no axis position
+            lo, hi, _ = (0.0, 1.0, False) if self.forms[k].kind == "constant" \
+                else self._axis_range(s)
             x = np.linspace(lo, hi, n_samples)
             A = np.column_stack([np.broadcast_to(c, x.shape) for c in self._basis_columns(k, x)])
             y = np.asarray(funcs[s.name](x), float)

@@ -31,14 +31,17 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 
-from volcal.analysis import Identifiability, analyse_jacobian, constrained_covariance
+from volcal.analysis import (FieldNullSpace, Identifiability, analyse_jacobian,
+                             constrained_covariance, field_null_space, split_gauge)
+from volcal.analysis.identifiability import rigid_columns
+from volcal.datum import condition_table, null_space, select_conditions
 from volcal.data import Measurements, load_measurements, load_stations
 from volcal.errors import Datum, ErrorForm, ErrorModel
 from volcal.exceptions import InputError, SolverError
 from volcal.instruments import SequentialMultilateration
 from volcal.machine import Machine
 from volcal.problem import IdentificationProblem, Layout
-from volcal.solve import NLPSolver, SolveOutcome
+from volcal.solve import NLPSolver, SolveOutcome, polish
 from volcal.spec import MachineSpec
 from volcal.uncertainty.budget import Budget, load_budget
 
@@ -68,6 +71,10 @@ class IdentificationResult:
     seconds: float
     sigma_source: str
     notes: list[str] = field(default_factory=list)
+    #: every candidate datum condition, whether it was imposed, and its value (um / urad)
+    datum: pd.DataFrame | None = None
+    #: how the null directions of the data act on the volumetric error (see ``predict``)
+    null_space: FieldNullSpace | None = None
 
     @property
     def success(self) -> bool:
@@ -100,40 +107,66 @@ class IdentificationResult:
                 with_uncertainty: bool = True) -> pd.DataFrame:
         """Volumetric error (um) at poses q (N, n_axes; mm, rad) with tool offsets (N, 3)."""
         return predict_volumetric(self.machine, self.error_model, self.theta,
-                                  self.cov_theta if with_uncertainty else None, q_internal, tool)
+                                  self.cov_theta if with_uncertainty else None, q_internal, tool,
+                                  null_space=self.null_space)
+
+
+def field_jacobian(machine: Machine, em: ErrorModel, theta: np.ndarray, q: np.ndarray,
+                   tool: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(nominal points (N, 3) mm, volumetric errors (N, 3) mm, G (N, 3, n_params) their
+    derivative wrt the error parameters) of the first-order model at poses q (N, n_axes;
+    mm, rad) and tool offsets (N, 3) mm."""
+    q = np.atleast_2d(np.asarray(q, float))
+    tool = np.zeros((len(q), 3)) if tool is None else np.broadcast_to(tool, (len(q), 3))
+    e = em.values(q, theta)
+    p0, dp, Je = machine.evaluate(q, tool, e)
+    return p0, dp, np.einsum("nik,nkp->nip", Je, em.basis(q))
 
 
 def predict_volumetric(machine: Machine, em: ErrorModel, theta: np.ndarray,
                        cov_theta: np.ndarray | None, q: np.ndarray,
-                       tool: np.ndarray | None = None) -> pd.DataFrame:
+                       tool: np.ndarray | None = None, *,
+                       null_space: FieldNullSpace | None = None) -> pd.DataFrame:
     """dx_um, dy_um, dz_um (and u_dx_um ... standard uncertainties when a covariance is
-    given) of the first-order model at poses q (N, n_axes; mm, rad) and tools (N, 3) mm."""
-    q = np.atleast_2d(np.asarray(q, float))
-    tool = np.zeros((len(q), 3)) if tool is None else np.broadcast_to(tool, (len(q), 3))
-    e = em.values(q, theta)
-    _, dp, Je = machine.evaluate(q, tool, e)
+    given) of the first-order model at poses q (N, n_axes; mm, rad) and tools (N, 3) mm.
+
+    With the fit's ``null_space``, a column ``determined`` says per pose whether its error
+    follows from the data (up to the rigid motion no multilateration sees); where it does
+    not (it depends on a combination the data cannot see, e.g. at a tool offset far from
+    those measured), the value is the datum's choice and the uncertainties are NaN."""
+    p0, dp, G = field_jacobian(machine, em, theta, q, tool)
     out = pd.DataFrame(dp * 1e3, columns=["dx_um", "dy_um", "dz_um"])
+    det = (null_space.determined(G, p0) if null_space is not None
+           else np.ones(len(out), bool))
     if cov_theta is not None:
-        G = np.einsum("nik,nkp->nip", Je, em.basis(q))
+        # held variables (NaN rows) contribute nothing where the pose is determined: their
+        # value is a convention there; elsewhere the uncertainty is unknown, never zero
         cov = np.nan_to_num(cov_theta)
         var = np.einsum("nip,pq,niq->ni", G, cov, G)
-        out[["u_dx_um", "u_dy_um", "u_dz_um"]] = np.sqrt(np.clip(var, 0, None)) * 1e3
+        u = np.sqrt(np.clip(var, 0, None)) * 1e3
+        u[~det] = np.nan
+        out[["u_dx_um", "u_dy_um", "u_dz_um"]] = u
+    if null_space is not None:
+        out["determined"] = det
     return out
 
 
-def rigid_columns(points: np.ndarray) -> np.ndarray:
-    """(3N, 6) design matrix of a small rigid motion a + w x p at points (N, 3): columns
-    a_x, a_y, a_z (mm) and w_x, w_y, w_z (rad), rows x, y, z of each point."""
-    points = np.asarray(points, float)
-    n = len(points)
-    A = np.zeros((3 * n, 6))
-    A[0::3, 0] = A[1::3, 1] = A[2::3, 2] = 1.0
-    x, y, z = points.T
-    # w x p = (wy z - wz y, wz x - wx z, wx y - wy x)
-    A[0::3, 4], A[0::3, 5] = z, -y
-    A[1::3, 3], A[1::3, 5] = -z, x
-    A[2::3, 3], A[2::3, 4] = y, -x
-    return A
+def declared_poses(spec: MachineSpec, n_poses: int = 1024) -> np.ndarray:
+    """Poses (N, n_axes; mm, rad) spanning the declared travel of every axis: the corners of
+    the travel box (up to 64) and a Halton sequence inside it.  A low-discrepancy sequence
+    rather than a grid, so that it never aliases with a regular measurement plan (a grid of
+    4 angles over a full turn sees sin(t) - sin(2t) as zero, a Halton sample does not)."""
+    from scipy.stats import qmc
+
+    n_ax = len(spec.axes)
+    lo = np.array([np.deg2rad(a.travel[0]) if a.is_rotary else a.travel[0] for a in spec.axes])
+    hi = np.array([np.deg2rad(a.travel[1]) if a.is_rotary else a.travel[1] for a in spec.axes])
+    u = qmc.Halton(d=n_ax, scramble=False).random(n_poses + 1)[1:]
+    if n_ax <= 6:
+        corners = np.array(list(np.ndindex(*([2] * n_ax))), float)
+        u = np.vstack([corners, u])
+    return lo + u * (hi - lo)
 
 
 def rigid_fit(points: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -174,8 +207,7 @@ class Identifier:
         # first (holding it keeps the identified curves smooth), stations last
         order = np.zeros(n)
         for k, name in enumerate(error_model.param_names):
-            tail = name.rsplit("_", 1)[-1]
-            order[k] = int(tail) if tail.isdigit() else 0
+            order[k] = error_model.param_order[k]  # Legendre degree / harmonic number
         self.prefer = np.where(self.is_frame, 4.0, np.where(self.is_theta, 1.0 + 0.1 * order, 0.0))
 
     # ---- pieces ---------------------------------------------------------------------
@@ -189,6 +221,39 @@ class Identifier:
         _, J = self.jacobian(x, p)
         C = self._scaled_constraints() if constrained else None
         return analyse_jacobian(J, self.problem.names, C, fixed=fixed, prefer=self.prefer)
+
+    def select_datum(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+        """Put in force the candidate datum conditions that remove a null direction of the
+        Jacobian at x (physical) with ``fixed`` held (:func:`volcal.datum.select_conditions`);
+        returns the mask over the candidates."""
+        pr = self.problem
+        Call = np.zeros((pr.C_all.shape[0], pr.n_x))
+        Call[:, :pr.n_theta] = pr.C_all * pr.scale[None, :pr.n_theta]
+        if Call.shape[0] == 0:
+            pr.set_datum(np.zeros(0, bool))
+            return pr.datum_active
+        _, J = self.jacobian(x, p)
+        pr.set_datum(select_conditions(J, Call, fixed))
+        return pr.datum_active
+
+    def field_null_space(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray,
+                         tools: np.ndarray) -> tuple[FieldNullSpace, np.ndarray, np.ndarray]:
+        """How the null directions of the full Jacobian at x (no datum; ``fixed`` held) act
+        on the volumetric error over the declared set: a grid over the travel of every axis
+        at each of ``tools`` (K, 3) mm.  Returns (that, G, nominal points) of the set."""
+        _, J = self.jacobian(x, p)
+        free, d, N = null_space(J, fixed)
+        pr = self.problem
+        nt = pr.n_theta
+        dirs = np.zeros((pr.n_x, N.shape[1]))
+        dirs[free] = N * d[:, None]
+        theta_dirs = dirs[:nt] * pr.scale[:nt, None]
+        q = declared_poses(self.machine.spec)
+        tools = np.unique(np.atleast_2d(np.asarray(tools, float)), axis=0)
+        Q = np.repeat(q, len(tools), axis=0)
+        T = np.tile(tools, (len(q), 1))
+        p0, _, G = field_jacobian(self.machine, self.error_model, x[:nt], Q, T)
+        return field_null_space(theta_dirs, G, p0), G, p0
 
     def _scaled_constraints(self) -> np.ndarray:
         pr = self.problem
@@ -217,12 +282,16 @@ class Identifier:
 
         def step(x, fixed) -> SolveOutcome:
             if solve:
-                return self.solver.solve(x, p, fixed=fixed)
+                out = self.solver.solve(x, p, fixed=fixed)
+                if out.success:
+                    out.x = polish(self.problem, out.x, p, fixed)
+                return out
             # a plan without data (export-time analysis): keep the start point
             return SolveOutcome(np.array(x, float), float("nan"), "not solved", True, 0, 0.0)
 
         self.phase_conditions: dict[str, float] = {}
         if strategy == "joint":
+            self.select_datum(x0, p, user_fixed)
             ident = self.analyse(x0, p, user_fixed)
             # hold one variable per null direction (the pivot); the others involved stay
             # free and are reported as not individually identifiable
@@ -245,6 +314,7 @@ class Identifier:
                 self.phase_conditions = {"phase1_jacobian_scaled": ident1.condition,
                                          "phase1_jacobian_unscaled": ident1.condition_unscaled}
             f2 = user_fixed | self.is_station
+            self.select_datum(x, p, f2)
             ident = self.analyse(x, p, f2)
             f2 = f2.copy()
             f2[ident.pivots] = True
@@ -323,6 +393,9 @@ def initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFram
 
 def build_error_model(spec: MachineSpec, *, degree: int = 3, datum: Datum = "iso230",
                       forms: dict[str, ErrorForm] | None = None) -> ErrorModel:
+    """The error model of ``spec``: ``forms`` ({error or axis name: ErrorForm}), then the
+    model file's bases, then Legendre of ``degree`` (Fourier of ``degree`` on full-turn
+    rotary axes); see :class:`volcal.errors.ErrorModel`."""
     return ErrorModel(spec, forms, default=ErrorForm("poly", degree), datum=datum)
 
 
@@ -340,7 +413,9 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
              budget: str | Path | Budget = "paper002", robust: bool = False,
              reject_k: float = 4.0, exact: bool = False, hessian: str = "gauss-newton",
              scale_covariance: bool = False, station_method: str = "sqrt",
-             point_method: str = "sqrt", verbose: bool = False) -> IdentificationResult:
+             point_method: str = "sqrt", verbose: bool = False,
+             forms: dict[str, ErrorForm] | None = None, order_criterion: str = "bic",
+             cv_folds: int = 5) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
     model: bundled model name, model file, spec or Machine; data: measurement table (CSV,
@@ -349,7 +424,17 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
     budget. ``robust`` rejects readings whose normalised residual exceeds ``reject_k``
     robust standard deviations and re-solves (the rejected readings are listed).
     Raises SolverError when IPOPT does not succeed.
+
+    forms: error bases {error or axis name: ErrorForm} (:mod:`volcal.errors`);
+    ``degree="auto"``: per-axis orders chosen by ``order_criterion`` (``"bic"`` or ``"cv"``
+    with ``cv_folds`` folds), see :mod:`volcal.order_selection`.
     """
+    if degree == "auto":  # every other argument goes to each candidate fit
+        opts = {k: v for k, v in locals().items() if k not in (
+            "model", "data", "stations", "degree", "order_criterion", "cv_folds")}
+        from volcal.order_selection import select_orders
+        return select_orders(model, data, stations, criterion=order_criterion, folds=cv_folds,
+                             **opts)
     t_start = time.perf_counter()
     machine = model if isinstance(model, Machine) else Machine.from_model(model)
     spec = machine.spec
@@ -359,7 +444,7 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
             and "dead_length_given" in stations else load_stations(stations)
     meas = data if isinstance(data, Measurements) else load_measurements(
         data, spec, stations=st_table)
-    em = error_model or build_error_model(spec, degree=degree, datum=datum)
+    em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
     bud = budget if isinstance(budget, Budget) else load_budget(budget)
     if strategy not in STRATEGIES:
         raise InputError(f"unknown strategy {strategy!r}; expected one of {list(STRATEGIES)}")
@@ -430,9 +515,23 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
     theta, st, frame = pr.unpack_x(x)
     nt = pr.n_theta
     cov_theta = cov[:nt, :nt]
+    # The null space of the final phase without datum or pivots: which directions only move
+    # the field rigidly (gauge) and which change it (unidentifiable), over the declared
+    # travel at the measured tool offsets.
+    base_fixed = fixed.copy()
+    base_fixed[list(ident.pivots)] = False
+    null_field, G_decl, p_decl = ider.field_null_space(x, p, base_fixed, meas.tool)
+    split_gauge(ident, nt, G_decl, p_decl, pr.scale[:nt])
     # a parameter taking part in an unidentifiable direction has no value of its own: its
     # value depends on which variable was held (reported), so it gets no uncertainty
     identifiable = ~ident.unidentifiable[:nt]
+    datum_table = condition_table(pr.conditions, pr.datum_active, theta)
+    n_not = int((~datum_table["imposed"]).sum())
+    if n_not:
+        notes.append(f"datum `{em.datum}`: {int(datum_table['imposed'].sum())} of "
+                     f"{len(datum_table)} conditions imposed; the other {n_not} would have "
+                     "constrained what the data determine and take the values the data give "
+                     "(datum.csv)")
     stations_out = pd.DataFrame({
         "station": meas.station_ids, "x_mm": st[:, 0], "y_mm": st[:, 1], "z_mm": st[:, 2],
         "dead_length_mm": st[:, 3],
@@ -453,4 +552,5 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
                   "chi2_per_dof": chi2}
     return IdentificationResult(machine, em, strategy, theta, cov_theta, identifiable,
                                 stations_out, frame, residuals, ident, outcomes, conditions,
-                                rej, time.perf_counter() - t_start, sigma_source, notes)
+                                rej, time.perf_counter() - t_start, sigma_source, notes,
+                                datum_table, null_field)

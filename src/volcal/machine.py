@@ -32,6 +32,11 @@ log = logging.getLogger(__name__)
 _FUNCTIONS = ("tool_point", "tool_point_exact", "nominal")
 
 
+# Bumped whenever the symbolic chain changes what a built function computes, so that a
+# cache entry of an older chain is never loaded (2: tool zero position and orientation).
+CHAIN_SCHEMA = 2
+
+
 def cache_dir() -> Path:
     """Folder of the build cache: ``$VOLCAL_CACHE_DIR`` or ``$XDG_CACHE_HOME/volcal``."""
     env = os.environ.get("VOLCAL_CACHE_DIR")
@@ -86,7 +91,8 @@ class Machine:
         t0 = time.perf_counter()
         # the name only makes the entry readable; the content hash is the key
         safe = "".join(c if c.isalnum() or c in "_-" else "_" for c in spec.name)[:40]
-        key = f"{safe}-{spec.fingerprint()}-v{__version__}-ca{ca.__version__}"
+        key = (f"{safe}-{spec.fingerprint()}-v{__version__}-s{CHAIN_SCHEMA}"
+               f"-ca{ca.__version__}")
         path = cache_dir() / f"{key}.casadi"
         funcs = None
         if use_cache and path.exists():

@@ -6,7 +6,9 @@ Parameters p = the data: axis positions q (n_axes x N), tool offsets t (3 x N), 
                (N), weights w = 1/sigma (N; 0 drops a reading, used by outlier rejection).
 Residuals  r = w * (model(q, t, theta, station) - m), one per reading, from a single SX
            function replicated over the readings with ``Function.map``.
-Constraints g = C theta = 0 (datum conventions, see :mod:`volcal.errors`).
+Constraints g = C theta, one row per *candidate* datum condition (see :mod:`volcal.datum`);
+           the rows in force (``datum_active``) are bounded to 0, the others are free, so
+           choosing the datum for a data set never rebuilds the solver.
 
 The structure (how many readings, which station each belongs to) is fixed when the
 problem is built; the numbers are parameters, so the solver built from it serves every
@@ -20,6 +22,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from volcal.datum import candidate_conditions
 from volcal.errors import ErrorModel
 from volcal.instruments import Instrument
 from volcal.machine import Machine
@@ -126,8 +129,9 @@ class IdentificationProblem:
     n_x: int = field(init=False)
     names: list[str] = field(init=False)
     units: list[str] = field(init=False)
-    C: np.ndarray = field(init=False, repr=False)
-    constraint_labels: list[str] = field(init=False, repr=False)
+    conditions: list = field(init=False, repr=False)
+    C_all: np.ndarray = field(init=False, repr=False)
+    datum_active: np.ndarray = field(init=False, repr=False)
     residual: ca.Function = field(init=False, repr=False)
     jacobian: ca.Function = field(init=False, repr=False)
     nlp: dict = field(init=False, repr=False)
@@ -208,9 +212,13 @@ class IdentificationProblem:
         self.residual = ca.Function("residual", [xs, p], [r], ["x", "p"], ["r"])
         self.jacobian = ca.Function("jacobian", [xs, p], [r, J], ["x", "p"], ["r", "J"])
 
-        self.C, self.constraint_labels = em.constraints()
-        Cs = self.C * self.scale[None, :nt]
-        gvec = ca.mtimes(ca.DM(Cs), xs[:em.n_params]) if self.C.shape[0] else ca.MX(0, 1)
+        self.conditions = candidate_conditions(em, em.datum)
+        self.C_all = (np.array([c.row for c in self.conditions]) if self.conditions
+                      else np.zeros((0, nt)))
+        # until a datum is selected for the data at hand, every candidate is in force
+        self.datum_active = np.ones(len(self.conditions), bool)
+        Cs = self.C_all * self.scale[None, :nt]
+        gvec = ca.mtimes(ca.DM(Cs), xs[:em.n_params]) if self.C_all.shape[0] else ca.MX(0, 1)
         self.nlp = {"x": xs, "p": p, "f": 0.5 * ca.sumsqr(r), "g": gvec}
         # gradient of 0.5 ||r||^2 from the explicit Jacobian: J^T r, instead of reverse AD
         # through the map (which cost half of a small solve)
@@ -232,6 +240,29 @@ class IdentificationProblem:
             self.units += ["mm"] * n_ps
         self.names += list(ins.global_param_names)
         self.units += list(ins.global_param_units)
+
+    # ---- the datum in force ------------------------------------------------------------
+    @property
+    def C(self) -> np.ndarray:
+        """The datum conditions in force, (c, n_theta) on theta (mm, rad)."""
+        return self.C_all[self.datum_active]
+
+    @property
+    def constraint_labels(self) -> list[str]:
+        return [c.label for c, a in zip(self.conditions, self.datum_active) if a]
+
+    def set_datum(self, active: np.ndarray) -> None:
+        """Put the candidate conditions where ``active`` is True in force (no rebuild)."""
+        active = np.asarray(active, bool)
+        if active.shape != (len(self.conditions),):
+            raise ValueError(f"expected {len(self.conditions)} datum flags, got {active.shape}")
+        self.datum_active = active.copy()
+
+    def g_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lbg, ubg) of the NLP: 0 for conditions in force, unbounded for the others."""
+        lb = np.where(self.datum_active, 0.0, -np.inf)
+        ub = np.where(self.datum_active, 0.0, np.inf)
+        return lb, ub
 
     # ---- graph helpers ----------------------------------------------------------------
     @staticmethod

@@ -23,6 +23,8 @@ file                       content
                            dy_um, dz_um``, ``u_dx_um, u_dy_um, u_dz_um`` and ``norm_um``
 ``report.md``              the human-readable report (links the plots)
 ``result.json``            everything :func:`load_result` needs to predict (no pickle)
+``order_selection.csv``    only with ``--degree auto``: every candidate order per axis and
+                           its criterion value (:mod:`volcal.order_selection`)
 ``component_errors.png``   the component error motions with +-2 u bands
 ``volumetric_map.png``     3D map of magnified error vectors over the grid
 ``residuals.png``          residual histogram and residuals per station
@@ -61,6 +63,7 @@ import pandas as pd
 from volcal import __version__
 from volcal.errors import ErrorForm, ErrorModel
 from volcal.exceptions import InputError
+from volcal.analysis.identifiability import FieldNullSpace
 from volcal.identify import IdentificationResult, predict_volumetric
 from volcal.machine import Machine
 from volcal.spec import MachineSpec, machine_from_dict, spec_to_dict
@@ -76,11 +79,14 @@ __all__ = [
 #: ``format`` marker of result.json
 RESULT_FORMAT = "volcal-identification-result"
 #: version of the result.json layout this module writes and reads
-RESULT_FORMAT_VERSION = 1
-DATA_FILES = ("parameters.csv", "stations.csv", "residuals.csv", "component_errors.csv",
+RESULT_FORMAT_VERSION = 2  # 2: datum conditions and the null space's action on the field
+DATA_FILES = ("parameters.csv", "stations.csv", "residuals.csv", "datum.csv",
+              "component_errors.csv",
               "volumetric_grid.csv", "report.md", "result.json")
 PLOT_FILES = ("component_errors.png", "volumetric_map.png", "residuals.png")
 RESULT_FILES = DATA_FILES + PLOT_FILES
+#: written only by some runs (``order_selection.csv``: ``--degree auto``)
+OPTIONAL_FILES = ("order_selection.csv",)
 
 #: positions per linear axis of the volumetric grid
 GRID_POINTS = 7
@@ -264,7 +270,8 @@ def _json_safe(obj: Any) -> Any:
 
 def _forms(em: ErrorModel) -> list[dict[str, Any]]:
     return [{"error": s.name, "kind": f.kind, "degree": int(f.degree),
-             "knots": [float(k) for k in f.knots]} for s, f in zip(em.errors, em.forms)]
+             "knots": [float(k) for k in f.knots], "segments": int(f.segments)}
+            for s, f in zip(em.errors, em.forms)]
 
 
 def _versions() -> dict[str, str]:
@@ -315,7 +322,12 @@ def _result_document(result: IdentificationResult, *, data_name: str,
         "max_volumetric_pose": ({a: float(grid[a].iloc[imax]) for a in spec.axis_names}
                                 if imax is not None else None),
         "unidentifiable": list(np.asarray(em.param_names)[~np.asarray(result.identifiable)]),
-        "null_space": list(ident.combinations) if ident is not None else [],
+        "null_space": (list(ident.unidentifiable_combinations) if ident is not None else []),
+        "gauge": (list(ident.gauge_combinations) if ident is not None else []),
+        "datum": (result.datum.to_dict(orient="records") if result.datum is not None
+                  else None),
+        "null_space_field": (result.null_space.to_dict() if result.null_space is not None
+                             else None),
         "frame": result.frame,
         "stations": result.stations.to_dict(orient="records"),
         "notes": list(result.notes),
@@ -338,6 +350,13 @@ class LoadedResult:
     cov_theta: np.ndarray = field(repr=False)
     identifiable: np.ndarray = field(repr=False)
     meta: dict[str, Any] = field(repr=False)
+    null_space: FieldNullSpace | None = field(default=None, repr=False)
+
+    @property
+    def datum(self) -> pd.DataFrame | None:
+        """Every candidate datum condition, imposed or not, with its value (um / urad)."""
+        rec = self.meta.get("datum")
+        return pd.DataFrame(rec) if rec else None
 
     @property
     def spec(self) -> MachineSpec:
@@ -357,7 +376,8 @@ class LoadedResult:
                          with_uncertainty: bool = True) -> pd.DataFrame:
         """As :meth:`IdentificationResult.predict`: poses q (N, n_axes) in mm / rad."""
         return predict_volumetric(self.machine, self.error_model, self.theta,
-                                  self.cov_theta if with_uncertainty else None, q, tool)
+                                  self.cov_theta if with_uncertainty else None, q, tool,
+                                  null_space=self.null_space)
 
     def predict(self, points: pd.DataFrame | str | Path, *, name: str | None = None,
                 with_uncertainty: bool = True) -> pd.DataFrame:
@@ -396,7 +416,8 @@ def load_result(path: str | Path) -> LoadedResult:
     try:
         spec = machine_from_dict(doc["model"], where=f"{file} (model)")
         forms = {f["error"]: ErrorForm(f["kind"], int(f["degree"]),
-                                       tuple(float(k) for k in f["knots"]))
+                                       tuple(float(k) for k in f["knots"]),
+                                       int(f.get("segments", 4)))
                  for f in doc["error_model"]["forms"]}
         datum = doc["error_model"]["datum"]
         names = list(doc["param_names"])
@@ -404,6 +425,8 @@ def load_result(path: str | Path) -> LoadedResult:
         cov = np.array([[np.nan if v is None else v for v in row] for row in doc["cov_theta"]],
                        float).reshape(len(theta), len(theta))
         identifiable = np.array(doc["identifiable"], bool)
+        nsf = doc.get("null_space_field")
+        null_space = FieldNullSpace.from_dict(nsf) if nsf else None
     except InputError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -419,7 +442,7 @@ def load_result(path: str | Path) -> LoadedResult:
     if len(identifiable) != len(theta) or not np.all(np.isfinite(theta)):
         raise InputError("theta / identifiable are inconsistent or not finite", source=str(file))
     machine = Machine.from_model(spec)
-    return LoadedResult(folder, machine, em, theta, cov, identifiable, doc)
+    return LoadedResult(folder, machine, em, theta, cov, identifiable, doc, null_space)
 
 
 # --------------------------------------------------------------------------------------
@@ -626,12 +649,8 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     for s, f in zip(em.errors, em.forms):
         if s.kind == "location":
             label = "constant (location error)"
-        elif f.kind == "poly":
-            label = f"Legendre polynomial, degree {f.degree}"
-        elif f.kind == "table":
-            label = f"piecewise-linear table, {len(f.knots)} knots"
         else:
-            label = "constant"
+            label = f.describe()
         kinds.setdefault(label, []).append(s.name)
     add(f"{em.n_errors} error quantities, {em.n_params} parameters, datum convention "
         f"`{em.datum}`:")
@@ -639,6 +658,7 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     for label, names in kinds.items():
         add(f"- {label}: {', '.join(names)}")
     add("")
+    L.extend(_order_selection_lines(result))
 
     add("## Data")
     add("")
@@ -693,13 +713,23 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     else:
         add("Every error parameter is identifiable from these data.")
     add("")
-    if ident is not None and ident.combinations:
-        add("Null-space combinations (directions the data cannot see; the leading variable "
-            "of each was held). Combinations of stations and `frame_*` only are the "
-            "gauge freedom of multilateration (a rigid motion between the station frame "
-            "and the machine frame), not a defect of the measurement:")
+    if result.datum is not None:
+        add(_datum_section(result))
+    if ident is not None and ident.unidentifiable_combinations:
+        add("Unidentifiable combinations (they change the volumetric error somewhere in the "
+            "declared travel at the measured tool offsets, but the data cannot see them; "
+            "the leading variable of each was held, and `predict` flags the poses whose "
+            "error depends on them):")
         add("")
-        for c in ident.combinations:
+        for c in ident.unidentifiable_combinations:
+            add(f"- `{c}`")
+        add("")
+    if ident is not None and ident.gauge_combinations:
+        add("Gauge freedoms held (they move the volumetric error at most rigidly, which no "
+            "multilateration sees: the rigid motion between the station frame and the "
+            "machine frame, and parameters that duplicate each other):")
+        add("")
+        for c in ident.gauge_combinations:
             add(f"- `{c}`")
         add("")
     if ident is not None and ident.weak:
@@ -763,8 +793,10 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     add("")
     add("Values and standard uncertainties in um (translational) or urad (angular); "
         "`parameters.csv` holds them at full precision. Names: `<error>_<k>` is the k-th "
-        "Legendre coefficient on the normalised travel, `<error>@<pos>` a table value, "
-        "`<error>` a constant.")
+        "Legendre coefficient on the normalised travel, `<error>_0`, `<error>_c<k>`, "
+        "`<error>_s<k>` the Fourier coefficients of 1, cos(k x), sin(k x), `<error>_b<j>` "
+        "the j-th B-spline coefficient, `<error>@<pos>` a table value, `<error>` a "
+        "constant.")
     add("")
     add(_md_table(result.parameters()))
     add("")
@@ -792,15 +824,67 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     return "\n".join(L)
 
 
+def _write_order_selection(result: IdentificationResult, folder: Path) -> None:
+    """``order_selection.csv`` when the orders were chosen from the data (``--degree
+    auto``, :mod:`volcal.order_selection`)."""
+    table = getattr(result, "order_selection", None)
+    if table is not None:
+        table.to_csv(folder / "order_selection.csv", index=False)
+
+
+def _order_selection_lines(result: IdentificationResult) -> list[str]:
+    """The report section on the orders chosen from the data (empty when not chosen)."""
+    t = getattr(result, "order_selection", None)
+    if t is None or not len(t):
+        return []
+    crit = str(t["criterion"].iloc[0])
+    what = ("BIC = chi2 + k ln N on the whitened residuals (k the rank of the "
+            "identification, N the readings used)" if crit == "bic" else
+            "the chi2 of held-out readings in K-fold cross-validation over the poses")
+    chosen = t.loc[t["chosen"], "orders"]
+    L = ["### Orders chosen from the data", "",
+         f"`--degree auto`: per-axis orders by {what}, smaller is better; greedy search one "
+         "axis at a time (`order_selection.csv` lists every candidate). Chosen: "
+         f"`{chosen.iloc[0] if len(chosen) else '?'}`.", ""]
+    per = t[t["axis"] != ""]
+    if len(per):
+        best = per.groupby(["sweep", "axis"])["value"].transform("min")
+        view = per.assign(delta=per["value"] - best)[
+            ["sweep", "axis", "kind", "order", "n_params", "value", "delta", "k"]]
+        L += [_md_table(view.rename(columns={"value": crit, "delta": f"{crit} - best"}),
+                        ".6g"), ""]
+    return L
+
+
 # --------------------------------------------------------------------------------------
 # writing
+
+
+def _datum_section(result: IdentificationResult) -> str:
+    """Report text: which datum conditions hold exactly and which take other values."""
+    tab = result.datum
+    imp = tab[tab["imposed"]]
+    free = tab[~tab["imposed"]]
+    lines = [f"### Datum ({result.error_model.datum})", "",
+             f"{len(imp)} of {len(tab)} candidate conditions are imposed: each removes a "
+             "direction the data cannot see, so together they fix the gauge without "
+             "changing the fit (the weighted residuals are those of the fit without datum)."]
+    if len(free):
+        lines += ["The other conditions would have constrained combinations the data "
+                  "determine; they are not imposed and take these values:", "",
+                  "| condition | value | unit |", "|---|---:|---|"]
+        lines += [f"| {r.condition} | {r.value:.4g} | {r.unit} |" for r in free.itertuples()]
+    else:
+        lines.append("Every candidate condition holds exactly.")
+    return "\n".join(lines) + "\n"
 
 
 def check_out_dir(out_dir: str | Path) -> Path:
     """Raise :class:`InputError` unless ``out_dir`` can be written: it must not exist, or
     be an empty folder or a previous result folder (which is then replaced)."""
     from volcal.outputs import check_out_dir as _check
-    return _check(out_dir, RESULT_FILES, "an identification", marker="result.json")
+    return _check(out_dir, RESULT_FILES + OPTIONAL_FILES, "an identification",
+                  marker="result.json")
 
 
 def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name: str = "",
@@ -833,6 +917,10 @@ def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name:
         result.parameters().to_csv(tmp / "parameters.csv", index=False)
         result.stations.to_csv(tmp / "stations.csv", index=False)
         result.residuals.to_csv(tmp / "residuals.csv", index=False)
+        _write_order_selection(result, tmp)
+        if result.datum is not None:
+            result.datum.rename(columns={"value": "value_in_unit"}).to_csv(
+                tmp / "datum.csv", index=False)
         comp = component_error_table(em, result.theta, result.cov_theta, result.identifiable,
                                      component_points)
         comp.to_csv(tmp / "component_errors.csv", index=False)
@@ -853,7 +941,7 @@ def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name:
                     n_grid=grid_points, n_comp=component_points, plots=plots),
             encoding="utf-8")
 
-    out = write_folder(out_dir, RESULT_FILES, "an identification", writer,
+    out = write_folder(out_dir, RESULT_FILES + OPTIONAL_FILES, "an identification", writer,
                        marker="result.json")
     log.info("wrote %s in %.2f s", out, time.perf_counter() - t0)
     return out

@@ -92,6 +92,8 @@ MAGNITUDES: dict[str, tuple[float, float]] = {
     "squareness": (20e-6, 50e-6),                 # EC0Y, EB0Z, EA0Z
     "rotary_location_translation": (10e-3, 50e-3),  # EX0C, EY0C
     "rotary_location_rotation": (20e-6, 50e-6),   # EA0C, EB0C
+    "tool_position": (5e-3, 20e-3),               # EX0T, EY0T, EZ0T
+    "tool_orientation": (10e-6, 40e-6),           # EA0T, EB0T, EC0T
 }
 #: Ratio of the scale of successive Legendre coefficients of a drawn error motion.
 COEFFICIENT_DECAY = 0.4
@@ -162,6 +164,8 @@ def max_volumetric_error_um(machine: Machine, error_model: ErrorModel, theta: np
 
 def _category(error_model: ErrorModel, k: int) -> str:
     s = error_model.errors[k]
+    if s.kind == "tool":
+        return "tool_position" if s.quantity == "translation" else "tool_orientation"
     axis = error_model.spec.axis(s.axis)
     if s.kind == "location":
         if not axis.is_rotary:
@@ -219,6 +223,21 @@ def draw_true_parameters(machine: Machine, error_model: ErrorModel | None,
         if form.kind == "constant":
             funcs[s.name] = (lambda x, v=size: np.full(np.shape(x), v))
             continue
+        if form.kind == "fourier":
+            # periodic: harmonic k with amplitude |size| decaying by COEFFICIENT_DECAY,
+            # the first harmonic's cosine carrying the drawn size
+            amp = np.array([abs(size) * COEFFICIENT_DECAY ** max(j - 1, 0) * g.normal()
+                            for j in range(2 * form.degree + 1)])
+            if form.degree:
+                amp[1] = size
+
+            def f(x, amp=amp, n=form.degree):
+                x = np.asarray(x, float)
+                return amp[0] + sum(amp[2 * j - 1] * np.cos(j * x) + amp[2 * j] * np.sin(j * x)
+                                    for j in range(1, n + 1))
+
+            funcs[s.name] = f
+            continue
         deg = form.degree if form.kind == "poly" else TABLE_FUNCTION_DEGREE
         # the headline order: the slope P_1, or for a straightness (zero at both ends of
         # travel, which removes P_0 and P_1) the bow P_2
@@ -265,14 +284,8 @@ def _project_datum(em: ErrorModel, theta: np.ndarray) -> np.ndarray:
     C, _ = em.constraints()
     if not C.shape[0]:
         return theta
-    scale = np.ones(em.n_params)
-    col = 0
-    for form in em.forms:
-        n = 1 if form.kind == "constant" else (form.degree + 1 if form.kind == "poly"
-                                               else len(form.knots))
-        if form.kind == "poly":
-            scale[col:col + n] = DATUM_ORDER_FACTOR ** -np.arange(n, dtype=float)
-        col += n
+    # per parameter: its Legendre degree or harmonic number (0 for the other kinds)
+    scale = DATUM_ORDER_FACTOR ** -np.asarray(em.param_order, float)
     W = scale ** 2
     A = (C * W) @ C.T
     theta = theta - W * (C.T @ np.linalg.lstsq(A, C @ theta, rcond=None)[0])

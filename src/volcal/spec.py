@@ -14,7 +14,29 @@ Error names are generated (ISO 230-1 / ISO 230-7), never typed by hand:
   linear axes, carried by the later axis of the pair in x < y < z order: ``EC0Y`` (Y to X
   about z), ``EB0Z`` (Z to X about y), ``EA0Z`` (Z to Y about x);
 * location errors of a rotary axis ``J`` (position and orientation of its average line):
-  two offsets perpendicular to it (``EX0C, EY0C`` for a C axis) and two tilts (``EA0C, EB0C``).
+  two offsets perpendicular to it (``EX0C, EY0C`` for a C axis) and two tilts (``EA0C, EB0C``);
+* the tool's zero position ``EX0T, EY0T, EZ0T`` (mm) and zero orientation ``EA0T, EB0T, EC0T``
+  (rad): where the spindle reference point and the spindle's axes really are relative to the
+  last axis of the tool branch.  Controllers' volumetric compensation carries exactly these
+  (zero position and orientation of the tool).  They matter as soon as the tool offset
+  varies: angular errors that are not zero at the reference position act on the tool
+  offset, and under an ISO 230 datum only these parameters can carry that part.
+
+Error bases (how each component error motion depends on its axis position, see
+:mod:`volcal.errors` and docs/error_bases.md) can be declared per axis and per error motion::
+
+    [[axis]]
+    name = "C"
+    kind = "rotary"
+    # ...
+    basis = { kind = "fourier", degree = 3 }        # every component error motion of C
+    error_basis = { EZC = { kind = "fourier", degree = 5 } }   # this one differs
+
+A basis table holds ``kind`` (``poly``, ``fourier``, ``bspline``, ``table``, ``constant``)
+and the one field that kind uses: ``degree`` (poly: Legendre degree; fourier: highest
+harmonic), ``segments`` (bspline) or ``knots`` (table, axis positions in mm / deg); they are
+the fields of :class:`ErrorForm`.  Without a declaration a rotary axis that turns a full
+turn gets the Fourier series, every other axis the Legendre series.
 
 Reading a model file never executes code: TOML is parsed with :mod:`tomllib` and every
 value is type-checked; numbers must be TOML numbers, never strings or expressions.
@@ -40,6 +62,85 @@ _NAME_RE = re.compile(r"^[A-Z][A-Z0-9]{0,3}$")
 _MODEL_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 _DIRECTIONS = {"+x": (0, 1), "-x": (0, -1), "+y": (1, 1), "-y": (1, -1), "+z": (2, 1), "-z": (2, -1)}
 
+#: kinds of error bases (:class:`ErrorForm`)
+BASIS_KINDS = ("poly", "fourier", "bspline", "table", "constant")
+#: the field each basis kind uses besides ``kind``
+_BASIS_FIELDS = {"poly": ("degree",), "fourier": ("degree",), "bspline": ("segments",),
+                 "table": ("knots",), "constant": ()}
+_FORM_DEFAULTS = {"degree": 3, "knots": (), "segments": 4}
+
+
+@dataclass(frozen=True)
+class ErrorForm:
+    """The basis of one error motion: e(x) = sum_j theta_j b_j(x) (see :mod:`volcal.errors`).
+
+    kind: ``"poly"``: Legendre series P_0 .. P_degree of the travel normalised to [-1, 1];
+    ``"fourier"``: 1, cos(k x), sin(k x) for k = 1 .. degree, x the angle in rad (rotary
+    axes: ISO 230-7 error motions of a full turn are periodic); ``"bspline"``: clamped
+    uniform cubic B-spline of ``segments`` segments over the travel (segments + 3
+    functions); ``"table"``: piecewise linear between values at ``knots`` (axis positions,
+    mm or deg); ``"constant"``: one value.
+    degree: poly and fourier; segments: bspline; knots: table.  A field the kind does not
+    use is reset to its default, so equal bases compare equal.  In a model file the same
+    fields form a table: ``basis = { kind = "bspline", segments = 6 }``.
+    """
+
+    kind: Literal["poly", "fourier", "bspline", "table", "constant"] = "poly"
+    degree: int = 3
+    knots: tuple[float, ...] = ()
+    segments: int = 4
+
+    def __post_init__(self) -> None:
+        if self.kind not in BASIS_KINDS:
+            raise InputError(f"unknown basis kind {self.kind!r}; expected one of "
+                             f"{list(BASIS_KINDS)}")
+        used = _BASIS_FIELDS[self.kind]
+        for f, v in _FORM_DEFAULTS.items():
+            if f not in used:
+                object.__setattr__(self, f, v)
+        if "knots" in used:
+            object.__setattr__(self, "knots", tuple(float(k) for k in self.knots))
+
+    @property
+    def n_params(self) -> int:
+        """Number of basis functions (parameters) of this form."""
+        return {"poly": self.degree + 1, "fourier": 2 * self.degree + 1,
+                "bspline": self.segments + 3, "table": len(self.knots),
+                "constant": 1}[self.kind]
+
+    def problem(self, rotary: bool | None = None) -> str | None:
+        """What is wrong with this form (on a rotary axis when ``rotary``), or None."""
+        if self.kind in ("poly", "fourier") and (
+                isinstance(self.degree, bool) or not isinstance(self.degree, int)
+                or self.degree < 0):
+            return f"{self.kind} degree must be an integer >= 0, got {self.degree!r}"
+        if self.kind == "bspline" and (isinstance(self.segments, bool)
+                                       or not isinstance(self.segments, int)
+                                       or self.segments < 1):
+            return f"bspline segments must be an integer >= 1, got {self.segments!r}"
+        if self.kind == "table" and (len(self.knots) < 2 or any(
+                not b > a for a, b in zip(self.knots, self.knots[1:]))):
+            return f"table knots must be at least two increasing positions, got {self.knots}"
+        if self.kind == "fourier" and rotary is False:
+            return "a fourier basis applies to rotary axes only (x is the angle)"
+        return None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The model-file table of this form (``kind`` and the field it uses)."""
+        d: dict[str, Any] = {"kind": self.kind}
+        for f in _BASIS_FIELDS[self.kind]:
+            v = getattr(self, f)
+            d[f] = [float(k) for k in v] if f == "knots" else int(v)
+        return d
+
+    def describe(self) -> str:
+        """A short readable label (``Fourier series, harmonics 1..3``)."""
+        return {"poly": f"Legendre polynomial, degree {self.degree}",
+                "fourier": f"Fourier series, harmonics 1..{self.degree}",
+                "bspline": f"cubic B-spline, {self.segments} segments",
+                "table": f"piecewise-linear table, {len(self.knots)} knots",
+                "constant": "constant"}[self.kind]
+
 
 @dataclass(frozen=True)
 class AxisSpec:
@@ -57,6 +158,9 @@ class AxisSpec:
     errors: ``"all"`` or the list of component error names to include (e.g. ``["EXX"]``).
     location: ``"all"``/``"none"`` or the list of location error names to include.
     exclude: names to drop from the generated set (component or location).
+    basis: the :class:`ErrorForm` of every component error motion of this axis (None: the
+        default, Fourier for a full-turn rotary axis, else Legendre).
+    error_basis: per component error motion ``(name, ErrorForm)`` pairs overriding ``basis``.
     """
 
     name: str
@@ -69,6 +173,13 @@ class AxisSpec:
     errors: str | tuple[str, ...] = "all"
     location: str | tuple[str, ...] = "all"
     exclude: tuple[str, ...] = ()
+    basis: ErrorForm | None = None
+    error_basis: tuple[tuple[str, ErrorForm], ...] = ()
+
+    @property
+    def full_turn(self) -> bool:
+        """A rotary axis whose travel spans at least a full turn."""
+        return self.is_rotary and (self.travel[1] - self.travel[0]) >= 360.0 - 1e-9
 
     @property
     def dir_index(self) -> int:
@@ -89,11 +200,16 @@ class AxisSpec:
 
 @dataclass(frozen=True)
 class MachineSpec:
-    """A machine topology: a name, a description and the axes in chain order."""
+    """A machine topology: a name, a description and the axes in chain order.
+
+    tool_errors: ``"all"``/``"none"`` or the list of tool zero position / orientation
+    errors (``EX0T EY0T EZ0T EA0T EB0T EC0T``) to include.
+    """
 
     name: str
     axes: tuple[AxisSpec, ...]
     description: str = ""
+    tool_errors: str | tuple[str, ...] = "all"
 
     @property
     def axis_names(self) -> list[str]:
@@ -106,8 +222,13 @@ class MachineSpec:
         raise KeyError(name)
 
     def fingerprint(self) -> str:
-        """Content hash of the topology (used as the build-cache key)."""
-        blob = json.dumps(asdict(self), sort_keys=True, default=list).encode()
+        """Content hash of the topology (used as the build-cache key).  Error bases are
+        not part of the topology: the machine's functions do not depend on them."""
+        d = asdict(self)
+        for a in d["axes"]:
+            a.pop("basis", None)
+            a.pop("error_basis", None)
+        blob = json.dumps(d, sort_keys=True, default=list).encode()
         return hashlib.sha256(blob).hexdigest()[:16]
 
 
@@ -119,15 +240,17 @@ class MachineSpec:
 class ErrorSymbol:
     """One error quantity of the model.
 
-    name: ISO name (``EXX``, ``EC0Y`` ...); axis: the axis it belongs to;
-    kind: ``"component"`` (function of the axis position) or ``"location"`` (constant);
+    name: ISO name (``EXX``, ``EC0Y`` ...); axis: the axis it belongs to (``"T"`` for the
+    tool's zero position and orientation, which belong to no axis);
+    kind: ``"component"`` (function of the axis position), ``"location"`` (constant) or
+    ``"tool"`` (constant: the tool's zero position and orientation);
     quantity: ``"translation"`` (mm) or ``"rotation"`` (rad);
     component: index 0..2 of the machine-frame direction it acts along / about.
     """
 
     name: str
     axis: str
-    kind: Literal["component", "location"]
+    kind: Literal["component", "location", "tool"]
     quantity: Literal["translation", "rotation"]
     component: int
 
@@ -178,7 +301,24 @@ def error_symbols(spec: MachineSpec) -> list[ErrorSymbol]:
         elif a.location != "all":
             locs = [s for s in locs if s.name in a.location]
         out.extend(s for s in comps + locs if s.name not in a.exclude)
-    return out
+    tool = tool_symbols()
+    if spec.tool_errors == "none":
+        tool = []
+    elif spec.tool_errors != "all":
+        tool = [s for s in tool if s.name in spec.tool_errors]
+    return out + tool
+
+
+TOOL_AXIS = "T"
+
+
+def tool_symbols() -> list[ErrorSymbol]:
+    """The tool's zero position (``EX0T EY0T EZ0T``, mm) and zero orientation
+    (``EA0T EB0T EC0T``, rad), in the tool frame."""
+    return ([ErrorSymbol(f"E{c}0{TOOL_AXIS}", TOOL_AXIS, "tool", "translation", j)
+             for j, c in enumerate(AXIS_LETTERS)]
+            + [ErrorSymbol(f"E{c}0{TOOL_AXIS}", TOOL_AXIS, "tool", "rotation", j)
+               for j, c in enumerate(ROT_LETTERS)])
 
 
 # --------------------------------------------------------------------------------------
@@ -208,7 +348,44 @@ def _check_names(value: Any, where: str, key: str, allowed: list[str]) -> str | 
 
 
 _AXIS_KEYS = {"name", "kind", "direction", "branch", "travel", "reference", "center", "errors",
-              "location", "exclude"}
+              "location", "exclude", "basis", "error_basis"}
+
+
+def form_from_dict(d: Any, where: str, key: str, rotary: bool | None = None) -> ErrorForm:
+    """Validate one basis table (``{kind = "fourier", degree = 3}``) into an
+    :class:`ErrorForm`; ``key`` names it in errors (``basis``, ``error_basis.EZC``)."""
+    if not isinstance(d, dict):
+        raise InputError(f"expected a table such as {{ kind = \"poly\", degree = 3 }}, got "
+                         f"{d!r}", source=where, column=key)
+    kind = d.get("kind")
+    if kind not in BASIS_KINDS:
+        raise InputError(f"expected a basis kind from {list(BASIS_KINDS)}, got {kind!r}",
+                         source=where, column=f"{key}.kind")
+    allowed = ("kind",) + _BASIS_FIELDS[kind]
+    unknown = sorted(set(d) - set(allowed))
+    if unknown:
+        raise InputError(f"unknown key(s) {unknown} for a {kind} basis; allowed: "
+                         f"{list(allowed)}", source=where, column=key)
+    args: dict[str, Any] = {}
+    for f in _BASIS_FIELDS[kind]:
+        if f not in d:
+            continue
+        v = d[f]
+        if f == "knots":
+            if not isinstance(v, list):
+                raise InputError(f"expected a list of axis positions, got {v!r}",
+                                 source=where, column=f"{key}.knots")
+            args[f] = tuple(_check_number(x, where, f"{key}.knots") for x in v)
+        elif isinstance(v, bool) or not isinstance(v, int):
+            raise InputError(f"expected an integer, got {type(v).__name__} {v!r}",
+                             source=where, column=f"{key}.{f}")
+        else:
+            args[f] = v
+    form = ErrorForm(kind, **args)
+    bad = form.problem(rotary)
+    if bad:
+        raise InputError(bad, source=where, column=key)
+    return form
 
 
 def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
@@ -265,13 +442,25 @@ def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
         raise InputError(f"expected a list of error names from {comp_names + loc_names}, "
                          f"got {exclude!r}", source=where, column="exclude")
     exclude = _check_names(exclude, where, "exclude", comp_names + loc_names)
+    rotary = kind == "rotary"
+    basis = form_from_dict(d["basis"], where, "basis", rotary) if "basis" in d else None
+    eb = d.get("error_basis", {})
+    if not isinstance(eb, dict):
+        raise InputError(f"expected a table of error names to basis tables, got {eb!r}",
+                         source=where, column="error_basis")
+    bad = [n for n in eb if n not in comp_names]
+    if bad:
+        raise InputError(f"unknown component error name(s) {bad}; this axis generates "
+                         f"{comp_names}", source=where, column="error_basis")
+    error_basis = tuple((n, form_from_dict(v, where, f"error_basis.{n}", rotary))
+                        for n, v in eb.items())
     return AxisSpec(name, kind, d["direction"], d["branch"], (lo, hi), ref, center, errors,
-                    location, exclude)
+                    location, exclude, basis, error_basis)
 
 
 def machine_from_dict(d: dict[str, Any], where: str = "<model>") -> MachineSpec:
     """Validate a parsed model document and build its :class:`MachineSpec`."""
-    allowed = {"name", "description", "axis"}
+    allowed = {"name", "description", "axis", "tool_errors"}
     unknown = set(d) - allowed
     if unknown:
         raise InputError(f"unknown top-level key(s) {sorted(unknown)}; allowed: {sorted(allowed)}",
@@ -306,7 +495,12 @@ def machine_from_dict(d: dict[str, Any], where: str = "<model>") -> MachineSpec:
     if len(set(lin_dirs)) != len(lin_dirs):
         raise InputError("two linear axes share a direction; volcal needs distinct directions "
                          "for the ISO error names", source=where, column="axis.direction")
-    return MachineSpec(d["name"], tuple(axes), desc)
+    tool = _check_names(d.get("tool_errors", "all"), where, "tool_errors",
+                        [s.name for s in tool_symbols()])
+    if "T" in names:
+        raise InputError("axis name 'T' is reserved for the tool's zero position and "
+                         "orientation errors (EX0T ... EC0T)", source=where, column="axis.name")
+    return MachineSpec(d["name"], tuple(axes), desc, tool)
 
 
 def spec_to_dict(spec: MachineSpec) -> dict[str, Any]:
@@ -329,8 +523,13 @@ def spec_to_dict(spec: MachineSpec) -> dict[str, Any]:
         d["location"] = names(a.location)
         if a.exclude:
             d["exclude"] = list(a.exclude)
+        if a.basis is not None:
+            d["basis"] = a.basis.to_dict()
+        if a.error_basis:
+            d["error_basis"] = {n: f.to_dict() for n, f in a.error_basis}
         axes.append(d)
-    return {"name": spec.name, "description": spec.description, "axis": axes}
+    return {"name": spec.name, "description": spec.description,
+            "tool_errors": names(spec.tool_errors), "axis": axes}
 
 
 def load_model_file(path: str | Path) -> MachineSpec:

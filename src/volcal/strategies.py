@@ -21,7 +21,7 @@ from volcal.analysis import analyse_jacobian
 from volcal.data import Measurements
 from volcal.errors import ErrorModel
 from volcal.exceptions import SolverError
-from volcal.identify import rigid_columns
+from volcal.analysis.identifiability import rigid_columns
 from volcal.machine import Machine
 from volcal.multilateration import calibrate_stations, multilaterate
 from volcal.solve import SolveOutcome

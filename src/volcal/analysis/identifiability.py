@@ -42,6 +42,25 @@ class Identifiability:
     combinations: list[str]
     unidentifiable: np.ndarray
     weak: list[tuple[float, str]] = field(default_factory=list)
+    #: (n, k): the null direction of each combination (variables as J's columns), scaled so
+    #: that its pivot variable is 1
+    directions: np.ndarray | None = None
+    #: per combination: "gauge" (the volumetric error over the declared workspace and tool
+    #: offsets changes at most by a rigid motion no multilateration sees) or
+    #: "unidentifiable" (it changes the error somewhere); None until :func:`split_gauge`
+    kinds: list[str] | None = None
+
+    @property
+    def gauge_combinations(self) -> list[str]:
+        """Held null directions that only move the volumetric error rigidly (or not at all)."""
+        return [c for c, k in zip(self.combinations, self.kinds or []) if k == "gauge"]
+
+    @property
+    def unidentifiable_combinations(self) -> list[str]:
+        """Held null directions that change the volumetric error in the workspace."""
+        if self.kinds is None:
+            return list(self.combinations)
+        return [c for c, k in zip(self.combinations, self.kinds) if k != "gauge"]
 
     @property
     def n_null(self) -> int:
@@ -50,8 +69,9 @@ class Identifiability:
     def summary(self) -> str:
         lines = [f"rank {self.rank} of {len(self.names) - self._n_constrained()} free directions "
                  f"(tol {self.tol:.2e}); scaled condition number {self.condition:.3g}"]
-        for c in self.combinations:
-            lines.append(f"  unidentifiable: {c}")
+        kinds = self.kinds or ["unidentifiable"] * len(self.combinations)
+        for c, k in zip(self.combinations, kinds):
+            lines.append(f"  {k}: {c}")
         for s, c in self.weak:
             lines.append(f"  weak (s = {s:.2e}): {c}")
         return "\n".join(lines)
@@ -168,6 +188,9 @@ def analyse_jacobian(J: np.ndarray, names: list[str], C: np.ndarray | None = Non
         R = np.linalg.solve(N_y[pivots_free, :].T, N_y.T)  # rows: directions, R[:, piv] = I
         for j, pv in enumerate(pivots_free):
             combos.append(_describe(R[j], full_names, pv))
+    directions = np.zeros((n, k))
+    if k:
+        directions[free] = (R * d[None, :]).T * (1.0 / d[pivots_free])[None, :]
     unident_free = np.linalg.norm(N_y, axis=1) > 1e-6 if k else np.zeros(len(free), bool)
     unident = np.zeros(n, bool)
     unident[free] = unident_free
@@ -180,4 +203,127 @@ def analyse_jacobian(J: np.ndarray, names: list[str], C: np.ndarray | None = Non
             lead = int(np.argmax(np.abs(v)))
             weak.append((float(s_full[j]), _describe(v, full_names, lead)))
     return Identifiability(list(names), s_full, rank, float(tol), float(cond), float(cond_u),
-                           basis, [int(free[p]) for p in pivots_free], combos, unident, weak)
+                           basis, [int(free[p]) for p in pivots_free], combos, unident, weak,
+                           directions)
+
+
+def rigid_columns(points: np.ndarray) -> np.ndarray:
+    """(3N, 6) design matrix of a small rigid motion a + w x p at points (N, 3): columns
+    a_x, a_y, a_z (mm) and w_x, w_y, w_z (rad), rows x, y, z of each point."""
+    points = np.asarray(points, float)
+    n = len(points)
+    A = np.zeros((3 * n, 6))
+    A[0::3, 0] = A[1::3, 1] = A[2::3, 2] = 1.0
+    x, y, z = points.T
+    # w x p = (wy z - wz y, wz x - wx z, wx y - wy x)
+    A[0::3, 4], A[0::3, 5] = z, -y
+    A[1::3, 3], A[1::3, 5] = -z, x
+    A[2::3, 3], A[2::3, 4] = y, -x
+    return A
+
+
+#: a null direction is gauge when its volumetric field, after removing the best rigid
+#: motion, is below this fraction of the field itself
+GAUGE_TOL = 1e-4
+
+
+@dataclass
+class FieldNullSpace:
+    """How the null directions of a fit act on the volumetric error (for ``predict``).
+
+    theta_dirs: (n_theta, k) the error-parameter part of an orthonormal basis of the null
+    space of the full Jacobian (mm, rad per unit step); rigid: (6, k) the best-fit rigid
+    motion of each direction's field over the declared set (mm, rad); field_scale: (k,) the
+    largest field change of each direction there (mm, > 0); n_gauge / n_unidentifiable: how
+    many independent directions only move the field rigidly / change it.
+    """
+
+    theta_dirs: np.ndarray
+    rigid: np.ndarray
+    field_scale: np.ndarray
+    n_gauge: int
+    n_unidentifiable: int
+
+    def determined(self, G: np.ndarray, points: np.ndarray, tol: float = GAUGE_TOL
+                   ) -> np.ndarray:
+        """Per pose: does its volumetric error follow from the data alone (up to the rigid
+        motion no multilateration sees)?  G: (N, 3, n_theta) d(error)/d(theta) at the poses
+        (mm per mm / rad); points: (N, 3) their nominal tool points (mm)."""
+        G = np.asarray(G, float)
+        if self.theta_dirs.shape[1] == 0:
+            return np.ones(len(G), bool)
+        F = np.einsum("nip,pk->nik", G, self.theta_dirs)          # (N, 3, k)
+        A = rigid_columns(points).reshape(len(G), 3, 6)
+        D = F - np.einsum("nij,jk->nik", A, self.rigid)
+        dev = np.max(np.abs(D) / self.field_scale[None, None, :], axis=(1, 2))
+        return dev <= tol
+
+    def to_dict(self) -> dict:
+        return {"theta_dirs": self.theta_dirs.tolist(), "rigid": self.rigid.tolist(),
+                "field_scale": self.field_scale.tolist(), "n_gauge": self.n_gauge,
+                "n_unidentifiable": self.n_unidentifiable}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FieldNullSpace":
+        nt = len(d["theta_dirs"])
+        return cls(np.asarray(d["theta_dirs"], float).reshape(nt, -1),
+                   np.asarray(d["rigid"], float).reshape(6, -1),
+                   np.asarray(d["field_scale"], float), int(d["n_gauge"]),
+                   int(d["n_unidentifiable"]))
+
+
+def field_null_space(theta_dirs: np.ndarray, G: np.ndarray, points: np.ndarray,
+                     tol: float = GAUGE_TOL) -> FieldNullSpace:
+    """Classify null directions by their effect on the volumetric error.
+
+    theta_dirs: (n_theta, k) error-parameter part of null directions (mm, rad); G:
+    (N, 3, n_theta) d(error)/d(theta) over the declared set (a grid over the travel of every
+    axis at every tool offset of the data); points: (N, 3) nominal tool points there."""
+    theta_dirs = np.asarray(theta_dirs, float)
+    k = theta_dirs.shape[1]
+    F = np.einsum("nip,pk->nik", G, theta_dirs).reshape(-1, k)
+    A = rigid_columns(points)
+    rigid = np.linalg.lstsq(A, F, rcond=None)[0] if k else np.zeros((6, 0))
+    res = F - A @ rigid
+    scale = np.max(np.abs(F), axis=0) if k else np.zeros(0)
+    big = scale.max() if k else 0.0
+    # directions whose field is nil everywhere (station or frame duplicates): scale 1 so
+    # that they never flag anything
+    scale = np.where(scale > tol * max(big, 1e-300), scale, np.inf)
+    n_unid = 0
+    if k and big > 0:
+        sv = np.linalg.svd(res / np.where(np.isfinite(scale), scale, 1.0)[None, :],
+                           compute_uv=False)
+        n_unid = int(np.sum(sv > tol * np.sqrt(len(F))))
+    return FieldNullSpace(theta_dirs, rigid, np.where(np.isfinite(scale), scale, 1e300),
+                          k - n_unid, n_unid)
+
+
+def split_gauge(ident: Identifiability, n_theta: int, G: np.ndarray, points: np.ndarray,
+                theta_scale: np.ndarray, tol: float = GAUGE_TOL) -> Identifiability:
+    """Label each held combination of ``ident`` gauge or unidentifiable (in place; also
+    returned) and restrict ``ident.unidentifiable`` to the variables of unidentifiable ones.
+
+    n_theta: the error parameters are the first n_theta variables; theta_scale: physical
+    units per variable unit for them (mm, rad)."""
+    if ident.directions is None or not ident.combinations:
+        ident.kinds = []
+        return ident
+    kinds = []
+    unident = np.zeros(len(ident.names), bool)
+    A = rigid_columns(points)
+    for j in range(len(ident.combinations)):
+        v = ident.directions[:, j]
+        th = v[:n_theta] * theta_scale
+        F = np.einsum("nip,p->ni", G, th).ravel()
+        big = np.max(np.abs(F)) if len(F) else 0.0
+        res = F - A @ np.linalg.lstsq(A, F, rcond=None)[0] if big > 0 else F
+        # a unit step of the pivot (1 um or 1 urad) that moves the field by less than
+        # 1e-6 um moves nothing: station/frame duplicates with rounding in theta
+        gauge = big < 1e-9 or np.max(np.abs(res)) <= tol * big
+        kinds.append("gauge" if gauge else "unidentifiable")
+        if not gauge:
+            unident |= np.abs(v) > 1e-6 * np.max(np.abs(v))
+    ident.kinds = kinds
+    ident.unidentifiable = unident
+    return ident

@@ -486,6 +486,9 @@ def _null_directions(ider, J: np.ndarray, x: np.ndarray, ident: Identifiability,
             if f.kind == "poly" and n_pos[a] <= f.degree:
                 few.append(f"only {n_pos[a]} distinct positions of axis {a} for the "
                            f"degree-{f.degree} error motions of {a}")
+            elif f.kind in ("fourier", "bspline") and n_pos[a] < f.n_params:
+                few.append(f"only {n_pos[a]} distinct positions of axis {a} for the "
+                           f"{f.n_params}-function {f.kind} error motions of {a}")
         if few:
             return "; ".join(dict.fromkeys(few))
         if all(not in_space(vs[:, j], Tp) for j in range(vs.shape[1])):
@@ -600,9 +603,11 @@ def _volumetric(machine, em, theta: np.ndarray, cov_theta: np.ndarray,
 def analyze_jacobian_report(ider, x: np.ndarray, p: np.ndarray, *, source: str,
                             user_fixed: np.ndarray | None = None,
                             cov_scale: float = 1.0, eval_points: pd.DataFrame | None = None,
-                            n_weak: int = 8, notes: list[str] | None = None
-                            ) -> AnalysisReport:
+                            n_weak: int = 8, notes: list[str] | None = None,
+                            datum_active: np.ndarray | None = None) -> AnalysisReport:
     """The report for an Identifier at x (physical) with data vector p (weights included).
+    The datum: the candidate conditions ``datum_active`` (those an identification imposed),
+    or when None those that remove a null direction at x (:mod:`volcal.datum`).
     The null directions' pivots are held (frame variables first, as the joint
     identification does) for the covariance."""
     from volcal.plans import grid_plan
@@ -612,6 +617,10 @@ def analyze_jacobian_report(ider, x: np.ndarray, p: np.ndarray, *, source: str,
     machine = pr.machine
     n = pr.n_x
     user_fixed = np.zeros(n, bool) if user_fixed is None else np.asarray(user_fixed, bool)
+    if datum_active is None:
+        ider.select_datum(x, p, user_fixed)
+    else:
+        pr.set_datum(datum_active)
     _, J = ider.jacobian(x, p)
     ident = ider.analyse(x, p, user_fixed)
     fixed = user_fixed.copy()
@@ -721,7 +730,8 @@ def analyze_result(result, measurements, *, budget=None, scale_covariance: bool 
              f"chi2/dof {chi2:.4g}"]
     return analyze_jacobian_report(ider, x, p, source="result", user_fixed=user_fixed,
                                    cov_scale=chi2 if scale_covariance else 1.0,
-                                   eval_points=eval_points, n_weak=n_weak, notes=notes)
+                                   eval_points=eval_points, n_weak=n_weak, notes=notes,
+                                   datum_active=pr.datum_active)
 
 
 def analyze_data(model, data, stations=None, *, budget="paper002", strategy: str = "joint",

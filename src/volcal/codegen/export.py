@@ -265,6 +265,7 @@ def _common(machine: Machine, em: ErrorModel, name: str) -> dict[str, str]:
         "param_names": _c_list(em.param_names, _c_str),
         "param_units": _c_list(em.param_units, _c_str),
         "error_names": _c_list([s.name for s in em.errors], _c_str),
+        "error_basis": em.summary(),
     }
 
 

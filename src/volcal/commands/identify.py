@@ -45,8 +45,22 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="joint (default): errors, stations and dead lengths together; "
                         "two-phase; points-only (stations held); classic "
                         "(calibrate -> multilaterate -> fit)")
-    p.add_argument("--degree", type=int, default=3, metavar="N",
-                   help="Legendre degree of the component error motions (default 3)")
+    p.add_argument("--degree", default="3", metavar="N|auto",
+                   help="degree of the component error motions: Legendre degree, or the "
+                        "highest harmonic of the Fourier series on full-turn rotary axes "
+                        "(default 3); 'auto': per-axis orders chosen from the data by "
+                        "--order-criterion (order_selection.csv)")
+    p.add_argument("--basis", action="append", default=[], metavar="NAME=KIND[:N]",
+                   help="error basis of an axis or one error motion, repeatable: KIND poly "
+                        "(N degree), fourier (N harmonics; rotary axes), bspline (N "
+                        "segments), table (N comma-separated knots, mm/deg) or constant; "
+                        "e.g. --basis C=fourier:3 --basis X=bspline:6 (overrides the model "
+                        "file's basis declarations; docs/error_bases.md)")
+    p.add_argument("--order-criterion", default="bic", choices=["bic", "cv"],
+                   help="with --degree auto: bic (chi2 + k ln N, default) or cv (K-fold "
+                        "cross-validation on held-out poses)")
+    p.add_argument("--cv-folds", type=int, default=5, metavar="K",
+                   help="folds of --order-criterion cv (default 5)")
     p.add_argument("--datum", default="iso230", choices=_DATUMS,
                    help="datum convention of the error motions (default iso230)")
     p.add_argument("--budget", default="paper002", metavar="NAME|FILE",
@@ -84,12 +98,26 @@ def _inside(path: Path, folder: Path) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    from volcal.errors import parse_basis
     from volcal.exceptions import InputError
     from volcal.identify import identify
     from volcal.results import check_out_dir, save_result
 
-    if args.degree < 0:
-        raise InputError(f"expected a degree >= 0, got {args.degree}", source="--degree")
+    degree: int | str = str(args.degree).strip().lower()
+    if degree != "auto":
+        try:
+            degree = int(degree)
+        except ValueError:
+            degree = -1
+        if degree < 0:
+            raise InputError(f"expected an integer degree >= 0 or 'auto', got {args.degree!r}",
+                             source="--degree")
+    elif args.cv_folds < 2:
+        raise InputError(f"expected at least 2 folds, got {args.cv_folds}", source="--cv-folds")
+    if degree != "auto" and (args.order_criterion != "bic" or args.cv_folds != 5):
+        raise InputError("--order-criterion and --cv-folds apply with --degree auto only",
+                         source="--order-criterion")
+    forms = dict(parse_basis(b) for b in args.basis) or None
     if args.reject_k is not None and not args.robust:
         raise InputError("--reject-k applies with --robust only", source="--reject-k")
     reject_k = 4.0 if args.reject_k is None else args.reject_k
@@ -106,13 +134,15 @@ def run(args: argparse.Namespace) -> int:
     log.info("identifying: model %s, data %s, strategy %s", args.model, args.data,
              args.strategy)
     res = identify(args.model, args.data, args.stations, strategy=args.strategy,
-                   degree=args.degree, datum=args.datum, budget=args.budget,
+                   degree=degree, forms=forms, order_criterion=args.order_criterion,
+                   cv_folds=args.cv_folds, datum=args.datum, budget=args.budget,
                    robust=args.robust, reject_k=reject_k, exact=args.exact,
                    scale_covariance=args.scale_covariance,
                    station_method=args.station_method, point_method=args.point_method,
                    verbose=getattr(args, "verbose", 0) > 1)
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
-    options = {"model": args.model, "strategy": args.strategy, "degree": args.degree,
+    options = {"model": args.model, "strategy": args.strategy, "degree": degree,
+               "basis": list(args.basis), "order_criterion": args.order_criterion,
                "datum": args.datum, "budget": args.budget, "robust": args.robust,
                "reject_k": reject_k, "exact": args.exact,
                "scale_covariance": args.scale_covariance,

@@ -100,6 +100,10 @@ def _linear_axis_along(spec: MachineSpec, k: int) -> str:
 
 def describe_error(spec: MachineSpec, s: ErrorSymbol) -> str:
     """What an error parameter is, in ISO 230-1 / 230-7 words."""
+    if s.kind == "tool":
+        d = "xyz"[s.component]
+        return (f"tool zero position in {d}" if s.quantity == "translation"
+                else f"tool zero orientation about {d}")
     a: AxisSpec = spec.axis(s.axis)
     d = "xyz"[s.component]
     own = s.component == a.dir_index

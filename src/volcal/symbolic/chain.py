@@ -103,6 +103,12 @@ def build_chain(spec: MachineSpec) -> ChainExpressions:
             x = rigid_inverse(x)
         dual_chain = dual_chain @ d
         exact_chain = exact_chain * x
+    # the tool's zero position and orientation relative to the last axis of the chain
+    g = lambda name: err.get(name, _0)  # noqa: E731 - unselected errors are zero
+    for f in (Translate((_0, _0, _0), (g("EX0T"), g("EY0T"), g("EZ0T"))),
+              SmallRotate((g("EA0T"), g("EB0T"), g("EC0T")))):
+        dual_chain = dual_chain @ as_dual(f)
+        exact_chain = exact_chain * as_exact(f)
     tool = sp.Matrix([*t, 1])
     p0 = dual_chain.real * tool
     p1 = dual_chain.dual * tool

@@ -144,9 +144,20 @@ class MCKernel:
         return cov
 
 
+def restore_datum(ider, result) -> None:
+    """Put in force on ``ider``'s problem the datum conditions the identification imposed
+    (``result.datum``); a result without that record keeps every candidate."""
+    tab = getattr(result, "datum", None)
+    if tab is not None and len(tab) == len(ider.problem.conditions):
+        ider.problem.set_datum(np.asarray(tab["imposed"], bool))
+
+
 def fixed_mask(ider, result) -> np.ndarray:
     """The variables an identification held (reconstructed from its result): the pivots of
-    its null space, stations given as fixed, and for the two-step strategies all stations."""
+    its null space, stations given as fixed, and for the two-step strategies all stations.
+    The datum the identification imposed is put in force on ``ider`` as well: the held set
+    and the datum belong together."""
+    restore_datum(ider, result)
     n = ider.problem.n_x
     fixed = np.zeros(n, bool)
     if result.identifiability is not None:
@@ -563,11 +574,10 @@ def ipopt_resolve(ider, x_hat: np.ndarray, p: np.ndarray, fixed: np.ndarray,
     x0 = pr.to_scaled(x_hat)
     lb, ub = np.full(pr.n_x, -np.inf), np.full(pr.n_x, np.inf)
     lb[fixed] = ub[fixed] = x0[fixed]
-    ng = pr.C.shape[0]
+    lbg, ubg = pr.g_bounds()
     out, st = [], []
     for m in np.atleast_2d(M):
-        r = S(x0=x0, p=pr.pack_data(q, t, m, w), lbx=lb, ubx=ub, lbg=np.zeros(ng),
-              ubg=np.zeros(ng))
+        r = S(x0=x0, p=pr.pack_data(q, t, m, w), lbx=lb, ubx=ub, lbg=lbg, ubg=ubg)
         out.append(pr.from_scaled(r["x"].full()))
         st.append(S.stats().get("return_status", "unknown"))
     return np.array(out), st
