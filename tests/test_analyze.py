@@ -50,7 +50,10 @@ def test_single_offset_along_z_leaves_named_combinations(ex):
     whole = [d for d in unid if d.kind == "error"]
     assert len(whole) == 1 and whole[0].text.startswith("ECY, ECZ")
     combos = [d for d in unid if d.kind == "combination"]
-    assert sum(d.dimension for d in unid) == 12
+    # 12 directions before the tool's zero orientation was a parameter; two of them (EAZ and
+    # EBZ at the reference, which a 100 mm offset along z turns into a tool orientation)
+    # are now removed by the datum
+    assert sum(d.dimension for d in unid) == 10
     # a 100 mm offset along z makes EAZ act like EYZ x 100 mm: "EAZ_k ... 0.1 EYZ_k"
     assert any("EAZ" in d.text and "0.1 EYZ" in d.text for d in combos), \
         [d.text for d in combos]
@@ -61,7 +64,8 @@ def test_enough_offsets_identify_everything(ex):
     rep = _plan(ex, ex.tools)
     assert rep.unidentifiable_errors == []
     assert rep.identifiable[:rep.n_theta].all()
-    assert rep.rank == 75
+    # 75 before the tool's zero orientation was a parameter: the tool offsets see it (3)
+    assert rep.rank == 78
     assert 10 < rep.condition < 1e3 and rep.condition_unscaled > rep.condition
     assert rep.tol == pytest.approx(max(3576, 105) * np.finfo(float).eps *
                                     rep.singular_values[0])

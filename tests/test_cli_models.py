@@ -17,8 +17,9 @@ from volcal.spec import bundled_models
 
 # independent counts: 6 component errors per axis; 3 squareness errors for three linear
 # axes; 4 location errors (2 offsets, 2 tilts) per rotary axis (ISO 230-7)
-EXPECTED = {"mcv754_wxyzt": (3, 21), "xfyz": (3, 21), "head_bc": (5, 41),
-            "trunnion_ac": (5, 41)}
+# error quantities: those of the axes plus the tool's zero position and orientation (6)
+EXPECTED = {"mcv754_wxyzt": (3, 27), "xfyz": (3, 27), "head_bc": (5, 47),
+            "trunnion_ac": (5, 47)}
 
 
 def run(capsys, *argv):
@@ -85,7 +86,7 @@ def test_show_csv_sections(capsys):
     assert axes["A"]["unit"] == "deg" and axes["A"]["travel_min"] == "-120"
     assert axes["A"]["center_z_mm"] == "-100" and axes["X"]["center_x_mm"] == ""
     errs = {r["name"]: r for r in sec["errors"]}
-    assert len(errs) == 41
+    assert len(errs) == 47  # 41 of the axes and 6 of the tool
     assert (errs["EX0C"]["unit"], errs["EX0C"]["report_unit"]) == ("mm", "um")
     assert (errs["EAA"]["unit"], errs["EAA"]["report_unit"]) == ("rad", "urad")
     assert {r["component"] for r in sec["volumetric"]} == {"dx", "dy", "dz"}

@@ -382,3 +382,35 @@ def test_degree_auto_cross_validation(xfyz_case):
     x = sel[sel["axis"] == "X"].drop_duplicates("order").set_index("order")["value"]
     assert x[5] < x[1]  # held-out readings are predicted better by the higher order
     assert res.error_model.forms[0] == ErrorForm("poly", 5)
+
+
+@pytest.mark.filterwarnings("ignore:.*tool offset")
+def test_cli_basis_and_degree_auto(xfyz_case, tmp_path, monkeypatch, capsys):
+    import json
+
+    import volcal.cli
+
+    monkeypatch.setattr(volcal.cli, "_COMMANDS", ["volcal.commands.identify"])
+    machine, plan = xfyz_case
+    em_true, theta = _truth(machine, False)
+    data = tmp_path / "m.csv"
+    _simulate(machine, em_true, theta, plan, np.zeros((1, 3))).measurements.to_csv(
+        data, index=False)
+    out = tmp_path / "res"
+    code = volcal.cli.main(["identify", "--model", "xfyz", "--data", str(data), "--out",
+                            str(out), "--no-plots", "--degree", "auto",
+                            "--basis", "X=bspline:2", "--basis", "EXY=table:0,250,500"])
+    assert code == 0, capsys.readouterr()
+    doc = json.loads((out / "result.json").read_text())
+    forms = {f["error"]: f for f in doc["error_model"]["forms"]}
+    assert forms["EYX"]["kind"] == "bspline" and forms["EXY"]["kind"] == "table"
+    assert doc["options"]["degree"] == "auto"
+    table = pd.read_csv(out / "order_selection.csv")
+    assert set(table.loc[table["axis"] == "X", "kind"]) == {"bspline"}
+    for argv, needle in ((["--basis", "X=fourier:2"], "rotary axes only"),
+                         (["--degree", "three"], "--degree"),
+                         (["--order-criterion", "cv"], "--degree auto"),
+                         (["--basis", "Q=poly:2"], "unknown")):
+        code = volcal.cli.main(["identify", "--model", "xfyz", "--data", str(data), "--out",
+                                str(tmp_path / "bad"), "--no-plots", *argv])
+        assert code == 2 and needle in capsys.readouterr().err, argv

@@ -185,9 +185,15 @@ class Identifier:
     """Model + error model + layout -> a reusable solver (see the module docstring)."""
 
     def __init__(self, machine: Machine, error_model: ErrorModel, layout: Layout, *,
-                 exact: bool = False, hessian: str = "gauss-newton", verbose: bool = False):
+                 exact: bool = False, hessian: str = "gauss-newton", verbose: bool = False,
+                 datum_mode: str = "minimal"):
         self.machine = machine
         self.error_model = error_model
+        if datum_mode not in ("minimal", "impose-all"):
+            raise InputError(f"datum_mode must be 'minimal' or 'impose-all', got {datum_mode!r}")
+        #: "minimal": impose only candidate conditions that remove a null direction;
+        #: "impose-all": every ISO 230 condition (comparison only, see select_datum)
+        self.datum_mode = datum_mode
         self.instrument = SequentialMultilateration()
         self.layout = layout
         t0 = time.perf_counter()
@@ -231,6 +237,18 @@ class Identifier:
         Call[:, :pr.n_theta] = pr.C_all * pr.scale[None, :pr.n_theta]
         if Call.shape[0] == 0:
             pr.set_datum(np.zeros(0, bool))
+            return pr.datum_active
+        if self.datum_mode == "impose-all":
+            # every ISO 230 condition on the component error motions plus the tool's zero
+            # position and orientation held at zero, dependent rows dropped: what an
+            # ISO 230 datum imposed regardless of the data does (kept for comparison,
+            # studies/datum; it can constrain what the data determine)
+            from volcal.errors import _independent_rows
+            keep = np.array([c.klass != "location" for c in pr.conditions])
+            rows = np.flatnonzero(keep)
+            act = np.zeros(len(keep), bool)
+            act[rows[_independent_rows(pr.C_all[rows])]] = True
+            pr.set_datum(act)
             return pr.datum_active
         _, J = self.jacobian(x, p)
         pr.set_datum(select_conditions(J, Call, fixed))
@@ -415,7 +433,7 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
              scale_covariance: bool = False, station_method: str = "sqrt",
              point_method: str = "sqrt", verbose: bool = False,
              forms: dict[str, ErrorForm] | None = None, order_criterion: str = "bic",
-             cv_folds: int = 5) -> IdentificationResult:
+             cv_folds: int = 5, datum_mode: str = "minimal") -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
     model: bundled model name, model file, spec or Machine; data: measurement table (CSV,
@@ -464,7 +482,8 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
                                 sigma_source=sigma_source, notes=notes)
 
     layout = Layout.from_measurements(meas)
-    ider = Identifier(machine, em, layout, exact=exact, hessian=hessian, verbose=verbose)
+    ider = Identifier(machine, em, layout, exact=exact, hessian=hessian, verbose=verbose,
+                      datum_mode=datum_mode)
     pr = ider.problem
     weights = 1.0 / sigma
     x0 = pr.pack_x(np.zeros(em.n_params), st0)

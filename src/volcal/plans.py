@@ -5,6 +5,11 @@ the axis (``X``, ``Y``, ``Z``, ``B``, ``C`` ...), in model order, one row per co
 pose, in file units: linear axes in mm, rotary axes in degrees.  Tool offsets are not part
 of a plan: the simulator measures every pose with every tool offset it is given.
 
+* :func:`default_plan`: the plan ``simulate`` and ``analyze`` use when none is given: the
+  grid below for a model without rotary axes; with rotary axes a linear-axis grid plus
+  rotary sweeps over the whole travel at several linear and rotary positions;
+* :func:`summary_grid`: the poses over which the "largest volumetric error" is stated
+  (linear axes and, on a coarse grid, the rotary axes over their travel);
 * :func:`grid_plan`: a full grid over the travel (rotary axes on a coarser grid);
 * :func:`line_plan`: lines along each axis through the reference pose;
 * :func:`diagonal_plan`: the four body diagonals of the linear-axis box (ISO 230-6);
@@ -31,9 +36,10 @@ from volcal.exceptions import InputError
 from volcal.spec import AxisSpec, MachineSpec, resolve_model
 
 __all__ = [
-    "grid_plan", "line_plan", "diagonal_plan", "plan_from_csv", "check_plan",
+    "default_plan", "summary_grid", "grid_plan", "line_plan", "diagonal_plan",
+    "plan_from_csv", "check_plan",
     "default_stations", "ROTARY_GRID_FULL_TURN", "ROTARY_GRID_PARTIAL",
-    "STATION_MIN_CLEARANCE_MM",
+    "STATION_MIN_CLEARANCE_MM", "SUMMARY_ROTARY_FULL_TURN", "SUMMARY_ROTARY_PARTIAL",
 ]
 
 #: Default number of angles of a full-turn rotary axis (travel >= 360 deg) in a grid plan:
@@ -42,6 +48,11 @@ ROTARY_GRID_FULL_TURN = 4
 #: Default number of angles of a rotary axis with a partial travel in a grid plan
 #: (both ends and the middle).
 ROTARY_GRID_PARTIAL = 3
+#: Angles of a full-turn rotary axis in :func:`summary_grid` (every 45 deg).
+SUMMARY_ROTARY_FULL_TURN = 8
+#: Angles of a partial-travel rotary axis in :func:`summary_grid` (both ends included; the
+#: reference position is added when it is not among them).
+SUMMARY_ROTARY_PARTIAL = 5
 #: :func:`default_stations` keeps every station at least this far (mm) from every nominal
 #: tool point of the default grid.
 STATION_MIN_CLEARANCE_MM = 50.0
@@ -148,6 +159,120 @@ def grid_plan(spec: Any, n: int | dict[str, int] = 5, margin: float = 0.0) -> pd
 
 def _reference(spec: MachineSpec) -> np.ndarray:
     return np.array([a.reference for a in spec.axes], dtype=float)
+
+
+def summary_grid(spec: Any, n: int = 5) -> pd.DataFrame:
+    """The poses over which volcal states a model's largest volumetric error.
+
+    ``n`` positions per linear axis over its travel, and every rotary axis over its
+    travel too on a coarse grid that holds its reference position:
+    :data:`SUMMARY_ROTARY_FULL_TURN` angles 45 deg apart for a full turn,
+    :data:`SUMMARY_ROTARY_PARTIAL` evenly spaced angles (both ends) plus the reference
+    for a partial travel.  Without rotary axes this is ``grid_plan(spec, n)``.  Returns
+    the poses (columns = axis names, mm / deg), the last axis varying fastest."""
+    spec = _as_spec(spec)
+    grids = []
+    for a in spec.axes:
+        if not a.is_rotary:
+            grids.append(_axis_positions(a, n))
+        elif _full_turn(a):
+            grids.append(_axis_positions(a, SUMMARY_ROTARY_FULL_TURN, through_reference=True))
+        else:
+            grids.append(np.unique(np.round(np.append(
+                _axis_positions(a, SUMMARY_ROTARY_PARTIAL), a.reference), 9)))
+    return _frame(spec, np.array(list(itertools.product(*grids))))
+
+
+def _other_rotary_positions(a: AxisSpec) -> np.ndarray:
+    """Where a rotary axis stands while another one sweeps: its reference and two more
+    (a full turn: 120 deg apart; a partial travel: both ends, or an end and the middle
+    when the reference is an end)."""
+    if _full_turn(a):
+        return _axis_positions(a, 3, through_reference=True)
+    lo, hi = a.travel
+    pos = {round(lo, 9), round(a.reference, 9), round(hi, 9)}
+    if len(pos) < 3:
+        pos.add(round((lo + hi) / 2, 9))
+    return np.array(sorted(pos))
+
+
+def _linear_anchors(spec: MachineSpec, frac: float = 0.75) -> np.ndarray:
+    """Linear-axis positions (one row per anchor, columns = linear axes in model order)
+    where the rotary sweeps of :func:`default_plan` are measured: corners of the box
+    spanned by the linear axes shrunk to ``frac`` of its size about its centre; all
+    corners for up to two linear axes, the half with an odd number of upper ends for
+    three or more (for X Y Z the four corners of a tetrahedron: lever arms in every
+    direction at four heights and radii)."""
+    lin = [a for a in spec.axes if not a.is_rotary]
+    if not lin:
+        return np.zeros((1, 0))
+    c = np.array([(a.travel[0] + a.travel[1]) / 2 for a in lin])
+    h = np.array([(a.travel[1] - a.travel[0]) / 2 for a in lin]) * frac
+    signs = np.array(list(itertools.product((-1.0, 1.0), repeat=len(lin))))
+    if len(lin) >= 3:
+        signs = signs[(signs > 0).sum(axis=1) % 2 == 1]
+    return c + signs * h
+
+
+def default_plan(spec: Any, degree: int = 3) -> pd.DataFrame:
+    """The plan ``volcal simulate`` and ``volcal analyze`` measure when none is given.
+
+    Without rotary axes: :func:`grid_plan` with ``max(5, degree + 2)`` positions per
+    axis (5 x 5 x 5 for the default Legendre degree 3).
+
+    With rotary axes, a plan that lets the data see every error the volumetric error
+    depends on (checked by the plan analysis, ``volcal analyze``), at a size that keeps
+    simulate + identify to seconds:
+
+    1. the linear axes on a ``max(5, degree + 2)`` grid with the rotary axes at their
+       reference (the linear axes' error motions);
+    2. for every rotary axis a sweep over its whole travel: ``2 degree + 6`` angles for a
+       full turn (12, 30 deg apart, for degree 3: more than the ``2 degree + 1``
+       functions of its Fourier series, and no aliasing of the harmonics it has),
+       ``degree + 4`` evenly spaced angles (both ends) for a partial travel; each sweep
+       with the other rotary axes at three positions (see below) and the linear axes at
+       the corners of a tetrahedron inside their box (at 75 % of the travel about its
+       centre): the rotary axes' error motions and location errors, through lever arms
+       of different lengths and directions.  A rotary axis that stands still during
+       another's sweep is at its reference and two more positions (a full turn: 120 deg
+       apart; a partial travel: both ends).
+
+    Tool offsets are not part of a plan: measure every pose with several of them,
+    including offsets off the spindle axis (the default of ``volcal simulate``), so that
+    the angular errors of the last axes and the tool's orientation are seen.
+
+    degree: the polynomial degree of the error model (default 3).  Returns the plan
+    (columns = axis names, mm / deg), duplicates removed.
+    """
+    spec = _as_spec(spec)
+    if isinstance(degree, bool) or not isinstance(degree, (int, np.integer)) or degree < 0:
+        raise InputError(f"expected a degree >= 0, got {degree!r}")
+    n_lin = max(5, int(degree) + 2)
+    rot = [j for j, a in enumerate(spec.axes) if a.is_rotary]
+    if not rot:
+        return grid_plan(spec, n_lin)
+    lin = [j for j, a in enumerate(spec.axes) if not a.is_rotary]
+    ref = _reference(spec)
+    parts = [grid_plan(spec, {a.name: (1 if a.is_rotary else n_lin) for a in spec.axes})
+             .to_numpy(float)]
+    anchors = _linear_anchors(spec)
+    for j in rot:
+        a = spec.axes[j]
+        sweep = _axis_positions(a, 2 * int(degree) + 6 if _full_turn(a) else int(degree) + 4,
+                                through_reference=True)
+        others = [k for k in rot if k != j]
+        other_pos = [_other_rotary_positions(spec.axes[k]) for k in others]
+        rows = []
+        for combo in itertools.product(*other_pos):
+            for anchor in anchors:
+                for v in sweep:
+                    r = ref.copy()
+                    r[j] = v
+                    r[others] = combo
+                    r[lin] = anchor
+                    rows.append(r)
+        parts.append(np.array(rows))
+    return _frame(spec, np.concatenate(parts))
 
 
 def line_plan(spec: Any, n: int = 11) -> pd.DataFrame:
@@ -289,20 +414,23 @@ def nominal_points(spec: Any, plan: pd.DataFrame, tools: np.ndarray | None = Non
 
 
 def default_stations(spec: Any, n: int = 6, seed: int = 0, *,
-                     tools: np.ndarray | None = None) -> pd.DataFrame:
+                     tools: np.ndarray | None = None,
+                     plan: pd.DataFrame | None = None) -> pd.DataFrame:
     """A plausible layout of ``n`` tracker stations around the workspace.
 
-    The nominal tool points of the default :func:`grid_plan` (with ``tools``, default zero
-    offset) span a box.  Stations sit on an ellipse around that box in the xy-plane (the
-    ellipse through the corners of the box grown by ``150 mm + 10 %`` of its largest side),
-    at angles ``360/n`` apart with a seeded jitter of up to +-15 % of the spacing, and
-    alternate between two heights, at 25 % and 75 % of the box's z range (+-5 % jitter).
+    The nominal tool points of ``plan`` (default :func:`default_plan`: the default grid
+    for a model without rotary axes) with ``tools`` (default zero offset) span a box.
+    Stations sit on an ellipse around that box in the xy-plane (the ellipse through the
+    corners of the box grown by ``150 mm + 10 %`` of its largest side), at angles
+    ``360/n`` apart with a seeded jitter of up to +-15 % of the spacing, and alternate
+    between two heights, at 25 % and 75 % of the box's z range (+-5 % jitter).
     They are therefore outside the point cloud (at least :data:`STATION_MIN_CLEARANCE_MM`
     from every point, checked) and never coplanar (checked).  Dead lengths are drawn
     uniformly in [0.05, 0.5] mm.
 
     n: number of stations (>= 4: fewer cannot be non-coplanar).
     seed: seed of the numpy Generator for the jitter and the dead lengths.
+    plan: the poses the stations must keep clear of (mm / deg; default the default plan).
 
     Returns a stations table in :func:`volcal.data.load_stations` form (``station``
     ``S1``..``Sn``, ``x_mm, y_mm, z_mm, dead_length_mm`` in mm, ``dead_length_given``
@@ -313,7 +441,7 @@ def default_stations(spec: Any, n: int = 6, seed: int = 0, *,
         raise InputError(f"expected at least 4 stations (3 or fewer are always coplanar), "
                          f"got {n!r}")
     rng = np.random.default_rng(seed)
-    pts = nominal_points(spec, grid_plan(spec), tools)
+    pts = nominal_points(spec, default_plan(spec) if plan is None else plan, tools)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     c, half = (lo + hi) / 2, (hi - lo) / 2
     grow = 150.0 + 0.1 * float((hi - lo).max())

@@ -18,9 +18,10 @@ file                       content
                            per component error motion of that axis with its unit
                            (``EXX_um``, ``EAX_urad``) and its standard uncertainty
                            (``u_EXX_um``); cells of other axes' errors are empty
-``volumetric_grid.csv``    a grid over the box of the linear axes (rotary axes at their
-                           reference, tool offset 0): axis columns (mm / deg), ``dx_um,
-                           dy_um, dz_um``, ``u_dx_um, u_dy_um, u_dz_um`` and ``norm_um``
+``volumetric_grid.csv``    a grid over the box of the linear axes and, on a coarse grid,
+                           the rotary axes' whole travel (tool offset 0): axis columns
+                           (mm / deg), ``dx_um, dy_um, dz_um``, ``u_dx_um, u_dy_um,
+                           u_dz_um`` and ``norm_um``
 ``report.md``              the human-readable report (links the plots)
 ``result.json``            everything :func:`load_result` needs to predict (no pickle)
 ``order_selection.csv``    only with ``--degree auto``: every candidate order per axis and
@@ -28,7 +29,13 @@ file                       content
 ``component_errors.png``   the component error motions with +-2 u bands
 ``volumetric_map.png``     3D map of magnified error vectors over the grid
 ``residuals.png``          residual histogram and residuals per station
+``residuals_vs_axes.png``  normalised residuals against each axis position, binned means
 =========================  ==================================================================
+
+The report opens with the **model adequacy** test (:mod:`volcal.analysis.adequacy`):
+chi2/dof against its 99.9 % interval and, when outside, the likely cause (residual
+structure against one axis, outliers, the uncertainty budget); result.json holds it under
+``adequacy``.
 
 Every value is an **error** (actual - nominal, ISO 230-1); a correction is its negative.
 Uncertainties are standard uncertainties (k = 1) of the linearised covariance.  A
@@ -63,6 +70,7 @@ import pandas as pd
 from volcal import __version__
 from volcal.errors import ErrorForm, ErrorModel
 from volcal.exceptions import InputError
+from volcal.analysis.adequacy import assess, plot_residuals_vs_axes
 from volcal.analysis.identifiability import FieldNullSpace
 from volcal.identify import IdentificationResult, predict_volumetric
 from volcal.machine import Machine
@@ -83,13 +91,18 @@ RESULT_FORMAT_VERSION = 2  # 2: datum conditions and the null space's action on 
 DATA_FILES = ("parameters.csv", "stations.csv", "residuals.csv", "datum.csv",
               "component_errors.csv",
               "volumetric_grid.csv", "report.md", "result.json")
-PLOT_FILES = ("component_errors.png", "volumetric_map.png", "residuals.png")
+PLOT_FILES = ("component_errors.png", "volumetric_map.png", "residuals.png",
+              "residuals_vs_axes.png")
 RESULT_FILES = DATA_FILES + PLOT_FILES
 #: written only by some runs (``order_selection.csv``: ``--degree auto``)
 OPTIONAL_FILES = ("order_selection.csv",)
 
 #: positions per linear axis of the volumetric grid
 GRID_POINTS = 7
+#: at most this many positions per linear axis of the volumetric grid of a model with
+#: rotary axes (whose grid also spans the rotary axes' travel: 40-48 rotary poses per
+#: linear position)
+GRID_POINTS_WITH_ROTARY = 5
 #: positions per axis of the component error table
 COMPONENT_POINTS = 41
 
@@ -165,15 +178,22 @@ def component_error_table(error_model: ErrorModel, theta: np.ndarray,
 
 def volumetric_grid_table(machine: Machine, error_model: ErrorModel, theta: np.ndarray,
                           cov_theta: np.ndarray | None = None,
-                          n: int = GRID_POINTS) -> pd.DataFrame:
-    """Volumetric error on a grid of ``n`` positions per linear axis over its travel,
-    rotary axes at their reference position, tool offset 0.  Columns: the axes (mm /
-    deg), ``dx_um, dy_um, dz_um``, ``u_dx_um, u_dy_um, u_dz_um`` (with ``cov_theta``)
-    and ``norm_um`` (length of the error vector)."""
-    from volcal.plans import grid_plan
+                          n: int = GRID_POINTS, *, rotary: bool = True) -> pd.DataFrame:
+    """Volumetric error on a grid over the workspace, tool offset 0: ``n`` positions per
+    linear axis over its travel (at most :data:`GRID_POINTS_WITH_ROTARY` for a model with
+    rotary axes) and, with ``rotary`` (default), the rotary axes over their whole travel
+    on the coarse grid of :func:`volcal.plans.summary_grid` (8 angles 45 deg apart for a
+    full turn; 5 evenly spaced angles plus the reference for a partial travel); without
+    ``rotary`` the rotary axes stay at their reference.  Columns: the axes (mm / deg),
+    ``dx_um, dy_um, dz_um``, ``u_dx_um, u_dy_um, u_dz_um`` (with ``cov_theta``) and
+    ``norm_um`` (length of the error vector)."""
+    from volcal.plans import grid_plan, summary_grid
 
     spec = machine.spec
-    grid = grid_plan(spec, {a.name: (1 if a.is_rotary else n) for a in spec.axes})
+    if rotary and any(a.is_rotary for a in spec.axes):
+        grid = summary_grid(spec, min(int(n), GRID_POINTS_WITH_ROTARY))
+    else:
+        grid = grid_plan(spec, {a.name: (1 if a.is_rotary else n) for a in spec.axes})
     q = machine.axis_to_internal(grid.to_numpy(float))
     pred = predict_volumetric(machine, error_model, theta, cov_theta, q)
     out = grid.copy()
@@ -281,6 +301,21 @@ def _versions() -> dict[str, str]:
             "python": platform.python_version()}
 
 
+def _grid_axes(spec: MachineSpec, grid: pd.DataFrame) -> list[str]:
+    """The axes that take more than one position in a grid of poses."""
+    return [a for a in spec.axis_names if a in grid and grid[a].nunique() > 1]
+
+
+def _grid_coverage(spec: MachineSpec, grid: pd.DataFrame) -> str:
+    """Which axes a volumetric grid spans, in words (for the report and the terminal)."""
+    moving = _grid_axes(spec, grid)
+    fixed = [a.name for a in spec.axes if a.name not in moving]
+    text = f"grid over {', '.join(moving) or 'no axis'}"
+    if fixed:
+        text += f"; {', '.join(fixed)} at reference"
+    return text + ", tool offset 0"
+
+
 def _result_document(result: IdentificationResult, *, data_name: str,
                      options: Mapping[str, Any] | None, grid: pd.DataFrame,
                      created: str) -> dict[str, Any]:
@@ -321,6 +356,9 @@ def _result_document(result: IdentificationResult, *, data_name: str,
         "max_volumetric_um": float(grid["norm_um"].iloc[imax]) if imax is not None else None,
         "max_volumetric_pose": ({a: float(grid[a].iloc[imax]) for a in spec.axis_names}
                                 if imax is not None else None),
+        # the axes the volumetric grid (and so max_volumetric_um) spans, tool offset 0
+        "max_volumetric_axes": _grid_axes(spec, grid),
+        "adequacy": assess(result).to_dict(),
         "unidentifiable": list(np.asarray(em.param_names)[~np.asarray(result.identifiable)]),
         "null_space": (list(ident.unidentifiable_combinations) if ident is not None else []),
         "gauge": (list(ident.gauge_combinations) if ident is not None else []),
@@ -361,6 +399,13 @@ class LoadedResult:
     @property
     def spec(self) -> MachineSpec:
         return self.machine.spec
+
+    @property
+    def adequacy(self) -> dict[str, Any] | None:
+        """The saved model adequacy test (:meth:`volcal.analysis.adequacy.Adequacy.to_dict`:
+        ``verdict``, ``chi2_per_dof``, ``interval``, ``causes`` ...); None for a result
+        written before the test existed."""
+        return self.meta.get("adequacy")
 
     def parameters(self) -> pd.DataFrame:
         """``name, value, unit, std, identifiable`` in um / urad (as parameters.csv)."""
@@ -540,6 +585,13 @@ def _plot_volumetric_map(machine: Machine, grid: pd.DataFrame, path: Path) -> No
     fig.savefig(path, dpi=110)
 
 
+def _plot_residuals_vs_axes(result: IdentificationResult, path: Path) -> None:
+    spec = result.machine.spec
+    plot_residuals_vs_axes(result.residuals, spec.axis_names,
+                           [_axis_unit(spec, a) for a in spec.axis_names], path,
+                           adequacy=assess(result))
+
+
 def _plot_residuals(residuals: pd.DataFrame, path: Path) -> None:
     r = residuals["residual_um"].to_numpy(float)
     rej = np.asarray(residuals["rejected"], bool)
@@ -623,16 +675,22 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
         ("residual RMS", f"{result.residual_rms_um:.4g} um"),
         ("chi2 / dof", _fmt(result.conditions.get("chi2_per_dof"))),
     ]
+    adequacy = assess(result)
+    rows.append(("model adequacy", "the model fits (chi2/dof inside its 99.9 % interval)"
+                 if adequacy.adequate else
+                 "**INADEQUATE**: chi2/dof outside its 99.9 % interval; likely cause: "
+                 + ", ".join(c.kind for c in adequacy.causes) + " (see Model adequacy)"))
     if imax is not None:
         pose = ", ".join(f"{a} = {grid[a].iloc[imax]:g} {_axis_unit(spec, a)}"
                          for a in spec.axis_names)
         rows.append(("largest volumetric error", f"{grid['norm_um'].iloc[imax]:.4g} um at "
-                     f"{pose} (grid below, tool offset 0)"))
+                     f"{pose} ({_grid_coverage(spec, grid)}; see Volumetric error)"))
     rows += [("unidentifiable parameters", str(len(unid))),
              ("rejected readings", str(int(rej.sum()))),
              ("total time", f"{result.seconds:.3g} s")]
     add(_md_table(pd.DataFrame(rows, columns=["quantity", "value"])))
     add("")
+    add(_adequacy_section(adequacy, plots))
 
     add("## Model")
     add("")
@@ -766,18 +824,31 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
 
     add("## Volumetric error")
     add("")
-    lin = [a.name for a in spec.axes if not a.is_rotary]
-    rot = [a.name for a in spec.axes if a.is_rotary]
-    add(f"`volumetric_grid.csv`: {n_grid} positions per linear axis ({', '.join(lin) or '-'}) "
-        f"over the travel" + (f", rotary axes {', '.join(rot)} at their reference" if rot
-                              else "") + f", tool offset 0; {len(grid)} poses. Largest error "
+    covered = []
+    for a in spec.axes:
+        v = np.unique(grid[a.name].to_numpy(float)) if a.name in grid else np.array([])
+        u = _axis_unit(spec, a.name)
+        covered.append(f"{a.name}: {len(v)} positions {v.min():g} .. {v.max():g} {u}"
+                       if len(v) > 1 else f"{a.name} at {a.reference:g} {u}")
+    rot = [a for a in spec.axes if a.is_rotary]
+    at_ref = np.ones(len(grid), bool)
+    for a in rot:
+        at_ref &= np.isclose(grid[a.name].to_numpy(float), a.reference)
+    add(f"`volumetric_grid.csv` covers {', '.join(_grid_axes(spec, grid)) or 'no axis'}: "
+        f"{'; '.join(covered)}; tool offset 0; {len(grid)} poses. Largest error "
         f"{grid['norm_um'].max():.4g} um, RMS of the norm "
-        f"{float(np.sqrt(np.mean(grid['norm_um'] ** 2))):.4g} um. Uncertainties propagate the "
-        "identifiable parameters; the rigid motion between station frame and machine frame "
-        "is not determined by multilateration.")
+        f"{float(np.sqrt(np.mean(grid['norm_um'] ** 2))):.4g} um"
+        + (f"; with the rotary axes {', '.join(a.name for a in rot)} at their reference "
+           f"the largest error is {grid['norm_um'][at_ref].max():.4g} um" if rot
+           and at_ref.any() and len(_grid_axes(spec, grid)) > len(spec.axes) - len(rot)
+           else "")
+        + ". Uncertainties propagate the identifiable parameters; the rigid motion between "
+        "station frame and machine frame is not determined by multilateration.")
     add("")
     if plots:
-        add("![volumetric error map](volumetric_map.png)")
+        add("![volumetric error map](volumetric_map.png)" + (
+            "" if not rot else f"\n\n(The map shows the poses with "
+            f"{', '.join(a.name for a in rot)} at their reference.)"))
         add("")
 
     add("## Residuals")
@@ -818,7 +889,8 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     add("")
     add("`parameters.csv`, `stations.csv`, `residuals.csv`, `component_errors.csv`, "
         "`volumetric_grid.csv`, `result.json` (everything `volcal predict --result` needs)"
-        + (", `component_errors.png`, `volumetric_map.png`, `residuals.png`" if plots
+        + (", `component_errors.png`, `volumetric_map.png`, `residuals.png`, "
+           "`residuals_vs_axes.png`" if plots
            else " (plots not written: --no-plots)") + ".")
     add("")
     return "\n".join(L)
@@ -858,6 +930,50 @@ def _order_selection_lines(result: IdentificationResult) -> list[str]:
 
 # --------------------------------------------------------------------------------------
 # writing
+
+
+def _adequacy_section(ad, plots: bool) -> str:
+    """Report text: the model adequacy test (see :mod:`volcal.analysis.adequacy`)."""
+    lo, hi = ad.interval
+    lines = ["## Model adequacy", ""]
+    if ad.adequate:
+        lines.append(f"**The model fits the data within their uncertainty**: chi2/dof = "
+                     f"{ad.chi2_per_dof:.4g} lies inside its 99.9 % interval "
+                     f"[{lo:.4g}, {hi:.4g}] for {ad.dof} degrees of freedom "
+                     f"({ad.n_readings} readings used).")
+    else:
+        lines.append(f"**WARNING: the model does not fit the data within their uncertainty.** "
+                     f"chi2/dof = {ad.chi2_per_dof:.4g} lies outside its 99.9 % interval "
+                     f"[{lo:.4g}, {hi:.4g}] for {ad.dof} degrees of freedom "
+                     f"({ad.n_readings} readings used). The identified errors and their "
+                     "uncertainties are not to be trusted until the cause is removed.")
+        lines += ["", "Likely cause" + ("s, most likely first:" if len(ad.causes) > 1
+                                          else ":"), ""]
+        lines += [f"- **{c.kind}** ({100 * c.share:.0f} % of the excess chi2): {c.text}"
+                  for c in ad.causes]
+    lines.append("")
+    for w in ad.warnings:
+        lines += [f"**Warning:** {w}.", ""]
+    o = ad.outliers
+    lines += ["| check | value |", "|---|---|",
+              f"| largest abs. normalised residual | {_fmt(o['max_abs'])} |",
+              f"| readings beyond 5 robust sigma / 5 budget sigma | "
+              f"{o['n_beyond_5_robust']} / {o['n_beyond_5_sigma']} |",
+              f"| excess kurtosis of the normalised residuals | {_fmt(o['excess_kurtosis'])} |",
+              f"| budget factor (sigma multiplier the residuals call for) | "
+              f"{_fmt(ad.budget_factor)} |"]
+    lines += ["", "Residual structure against each axis' position (nested F-test of the "
+              "binned means per station against the station means; share: of the residual "
+              "sum of squares the binned means explain beyond chance):", "",
+              "| axis | bins | F | p-value | share |", "|---|---:|---:|---:|---:|"]
+    for st in ad.structure:
+        p = f"{st.p_value:.2g}" if st.log10_p > -300 else "< 1e-300"
+        lines.append(f"| {st.axis} | {st.n_bins} | {st.f:.3g} | {p} | "
+                     f"{100 * st.explained_share:.1f} % |")
+    lines.append("")
+    if plots:
+        lines += ["![normalised residuals against each axis](residuals_vs_axes.png)", ""]
+    return "\n".join(lines)
 
 
 def _datum_section(result: IdentificationResult) -> str:
@@ -934,8 +1050,15 @@ def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name:
         if plots:
             log.info("plotting")
             _plot_component_errors(comp, em, tmp / "component_errors.png")
-            _plot_volumetric_map(machine, grid, tmp / "volumetric_map.png")
+            # the 3D map: the poses with the rotary axes at their reference
+            at_ref = np.ones(len(grid), bool)
+            for a in machine.spec.axes:
+                if a.is_rotary:
+                    at_ref &= np.isclose(grid[a.name].to_numpy(float), a.reference)
+            _plot_volumetric_map(machine, grid[at_ref].reset_index(drop=True),
+                                 tmp / "volumetric_map.png")
             _plot_residuals(result.residuals, tmp / "residuals.png")
+            _plot_residuals_vs_axes(result, tmp / "residuals_vs_axes.png")
         (tmp / "report.md").write_text(
             _report(result, data_name=data_name, created=created, options=options, grid=grid,
                     n_grid=grid_points, n_comp=component_points, plots=plots),

@@ -147,11 +147,12 @@ def max_volumetric_error_um(machine: Machine, error_model: ErrorModel, theta: np
                             plan: pd.DataFrame | None = None,
                             tool: np.ndarray | None = None) -> float:
     """Largest ``||actual - nominal||`` (um, exact model) over the poses of ``plan``
-    (default :func:`volcal.plans.grid_plan` of the model) with tool offset ``tool``
-    (mm, default zero)."""
-    from volcal.plans import grid_plan
+    (default :func:`volcal.plans.summary_grid` of the model: 5 positions per linear axis
+    and the rotary axes over their whole travel on a coarse grid) with tool offset
+    ``tool`` (mm, default zero)."""
+    from volcal.plans import summary_grid
 
-    plan = grid_plan(machine.spec) if plan is None else plan
+    plan = summary_grid(machine.spec) if plan is None else plan
     q = _plan_internal(machine, plan)
     t = np.zeros(3) if tool is None else np.asarray(tool, float)
     _, dp, _ = machine.evaluate(q, t, _error_values(error_model, q, theta), exact=True)
@@ -201,16 +202,16 @@ def draw_true_parameters(machine: Machine, error_model: ErrorModel | None,
     Legendre orders first, so that the drawn shapes keep their decay; then
     ``theta -= pinv(C) C theta``; see :func:`_project_datum`), and scaled so
     that the largest volumetric error ``||actual - nominal||`` of the exact model over
-    ``grid`` (default :func:`volcal.plans.grid_plan` of the model) with zero tool offset
-    equals ``max_volumetric_um`` (um; ``None``: no scaling).  The exact model is not
-    linear in the parameters, so the scale is refined until the maximum matches to a
-    relative 1e-10.
+    ``grid`` (default :func:`volcal.plans.summary_grid` of the model, which spans the
+    rotary axes' travel too) with zero tool offset equals ``max_volumetric_um`` (um;
+    ``None``: no scaling).  The exact model is not linear in the parameters, so the scale
+    is refined until the maximum matches to a relative 1e-10.
 
     machine: the Machine; error_model: its parameterisation (None: the default
     :class:`ErrorModel`); rng: numpy Generator or integer seed.
     Returns theta, shape (error_model.n_params,), mm / rad.
     """
-    from volcal.plans import grid_plan
+    from volcal.plans import summary_grid
 
     machine = _machine(machine)
     em = _error_model(machine, error_model)
@@ -221,6 +222,10 @@ def draw_true_parameters(machine: Machine, error_model: ErrorModel | None,
         size = g.uniform(*lo_hi) * (1.0 if g.random() < 0.5 else -1.0)
         form = em.forms[k]
         if form.kind == "constant":
+            if _category(em, k) == "tool_position":
+                # left at zero: without rotary axes on the tool branch the tool's zero
+                # position is a translation of the whole field, which nothing sees
+                size = 0.0
             funcs[s.name] = (lambda x, v=size: np.full(np.shape(x), v))
             continue
         if form.kind == "fourier":
@@ -259,7 +264,7 @@ def draw_true_parameters(machine: Machine, error_model: ErrorModel | None,
     target = float(max_volumetric_um)
     if not target > 0:
         raise InputError(f"expected max_volumetric_um > 0, got {max_volumetric_um!r}")
-    grid = grid_plan(machine.spec) if grid is None else grid
+    grid = summary_grid(machine.spec) if grid is None else grid
     for _ in range(20):
         current = max_volumetric_error_um(machine, em, theta, grid)
         if current == 0.0:

@@ -46,6 +46,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import numbers
 import re
 import tomllib
 from dataclasses import asdict, dataclass, field
@@ -100,6 +101,10 @@ class ErrorForm:
                 object.__setattr__(self, f, v)
         if "knots" in used:
             object.__setattr__(self, "knots", tuple(float(k) for k in self.knots))
+        for f in ("degree", "segments"):  # numpy integers from the API become ints
+            v = getattr(self, f)
+            if isinstance(v, numbers.Integral) and not isinstance(v, bool):
+                object.__setattr__(self, f, int(v))
 
     @property
     def n_params(self) -> int:

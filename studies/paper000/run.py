@@ -104,7 +104,7 @@ def one_trial(ex, seed: int, cfg: dict) -> tuple[list[dict], list[dict]]:
                             condition_scaled=res.conditions["jacobian_scaled"],
                             converged=res.success, seconds=res.seconds))
     # joint identification: the tool point of the identified model at the commanded pose
-    pred = res.predict(q_pts, tool, with_uncertainty=False).to_numpy()[:, :3] * 1e-3
+    pred = res.predict(q_pts, tool, with_uncertainty=False)[["dx_um", "dy_um", "dz_um"]].to_numpy() * 1e-3
     p0 = m.evaluate(q_pts, tool[0], zeros)[0]
     err = np.linalg.norm(p0 + pred - p_true, axis=1) * 1e3
     _, rig = rigid_fit(p_true, p0 + pred - p_true)

@@ -302,7 +302,8 @@ def field_null_space(theta_dirs: np.ndarray, G: np.ndarray, points: np.ndarray,
 def split_gauge(ident: Identifiability, n_theta: int, G: np.ndarray, points: np.ndarray,
                 theta_scale: np.ndarray, tol: float = GAUGE_TOL) -> Identifiability:
     """Label each held combination of ``ident`` gauge or unidentifiable (in place; also
-    returned) and restrict ``ident.unidentifiable`` to the variables of unidentifiable ones.
+    returned).  ``ident.unidentifiable`` is left as it is: a variable in a held direction of
+    either kind has no value of its own (it depends on which variable was held).
 
     n_theta: the error parameters are the first n_theta variables; theta_scale: physical
     units per variable unit for them (mm, rad)."""
@@ -310,7 +311,6 @@ def split_gauge(ident: Identifiability, n_theta: int, G: np.ndarray, points: np.
         ident.kinds = []
         return ident
     kinds = []
-    unident = np.zeros(len(ident.names), bool)
     A = rigid_columns(points)
     for j in range(len(ident.combinations)):
         v = ident.directions[:, j]
@@ -322,8 +322,5 @@ def split_gauge(ident: Identifiability, n_theta: int, G: np.ndarray, points: np.
         # 1e-6 um moves nothing: station/frame duplicates with rounding in theta
         gauge = big < 1e-9 or np.max(np.abs(res)) <= tol * big
         kinds.append("gauge" if gauge else "unidentifiable")
-        if not gauge:
-            unident |= np.abs(v) > 1e-6 * np.max(np.abs(v))
     ident.kinds = kinds
-    ident.unidentifiable = unident
     return ident

@@ -51,11 +51,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--stations", type=Path, metavar="S.csv",
                    help="stations table (station, x, y, z mm, dead_length): the plan's "
                         "stations, or start values for --data")
-    p.add_argument("--plan", metavar="grid|lines|diagonals|FILE.csv",
-                   help="the plan's poses (default: a grid; with --example its plan)")
+    p.add_argument("--plan", metavar="default|grid|lines|diagonals|FILE.csv",
+                   help="the plan's poses (default: the default plan of `volcal simulate`, "
+                        "a grid, with rotary axes a linear grid plus rotary sweeps; with "
+                        "--example its plan; --grid alone: a grid)")
     p.add_argument("--grid", metavar="N", help="positions per axis (N or X=6,Y=5,Z=5)")
     p.add_argument("--tools", metavar="\"x,y,z;x,y,z\"",
-                   help="tool (reflector) offsets in mm (default: the example's, or 0,0,0)")
+                   help="tool (reflector) offsets in mm (default: the example's, or those of "
+                        "`volcal simulate`: 0,0,0;0,0,-100;80,0,-100;0,80,-100)")
     p.add_argument("--budget", metavar="NAME|FILE",
                    help="uncertainty budget (default paper002, or the example's)")
     p.add_argument("--degree", type=int, default=3, metavar="N",
@@ -85,11 +88,12 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from volcal.analysis.report import analyze_data, analyze_plan
-    from volcal.commands.simulate import _grid_counts
+    from volcal.commands.simulate import _DEFAULT_TOOLS, _grid_counts
     from volcal.errors import ErrorForm, ErrorModel
     from volcal.exceptions import InputError
     from volcal.machine import Machine
-    from volcal.plans import diagonal_plan, grid_plan, line_plan, plan_from_csv
+    from volcal.plans import (default_plan, diagonal_plan, grid_plan, line_plan,
+                              plan_from_csv)
     from volcal.simulate import example, parse_tools
     from volcal.threads import blas_threads
 
@@ -124,9 +128,14 @@ def run(args: argparse.Namespace) -> int:
                 print(f"volcal analyze: identification did not converge ({res.status})")
                 return 1
         else:
-            kind = args.plan or "grid"
+            kind = args.plan or ("grid" if args.grid is not None else "default")
             if args.plan is None and ex is not None and args.grid is None:
                 plan = ex.plan
+            elif kind == "default":
+                if args.grid is not None:
+                    raise InputError("--grid applies to --plan grid, lines or diagonals",
+                                     source="--grid")
+                plan = default_plan(spec, args.degree)
             elif kind in ("grid", "lines", "diagonals"):
                 counts = _grid_counts(args.grid, kind)
                 plan = {"grid": grid_plan, "lines": line_plan,
@@ -144,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
                 from volcal.plans import default_stations
                 stations = default_stations(spec, 6, tools=tools)
             if tools is None:
-                tools = ex.tools if ex is not None else np.zeros((1, 3))
+                tools = ex.tools if ex is not None else parse_tools(_DEFAULT_TOOLS)
             rep = analyze_plan(machine, plan, stations, tools, budget, error_model=em,
                                eval_points=evalp, n_weak=args.weak)
     return _finish(args, rep)

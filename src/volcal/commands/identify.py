@@ -101,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
     from volcal.errors import parse_basis
     from volcal.exceptions import InputError
     from volcal.identify import identify
+    from volcal.analysis.adequacy import assess
     from volcal.results import check_out_dir, save_result
 
     degree: int | str = str(args.degree).strip().lower()
@@ -151,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
     path = save_result(res, out, data_name=str(args.data), plots=not args.no_plots,
                        options=options)
     meta = json.loads((path / "result.json").read_text(encoding="utf-8"))
+    adequacy = assess(res)  # computed once per result (kept on it), as in the report
     if not getattr(args, "quiet", False):
         spec = res.machine.spec
         n_rej = meta["n_rejected"]
@@ -162,13 +164,28 @@ def run(args: argparse.Namespace) -> int:
               f"{res.seconds:.1f} s)")
         print(f"  residual RMS             {res.residual_rms_um:.3f} um (chi2/dof "
               f"{res.conditions.get('chi2_per_dof', float('nan')):.3g})")
+        lo, hi = adequacy.interval
+        print("  model adequacy           " + (
+            f"fits (chi2/dof inside [{lo:.3g}, {hi:.3g}])" if adequacy.adequate else
+            f"INADEQUATE (chi2/dof outside [{lo:.3g}, {hi:.3g}]; likely cause: "
+            + ", ".join(c.kind + (f" against axis {c.numbers['axis']}"
+                                  if c.kind == "structure" else "")
+                        for c in adequacy.causes) + ")"))
+        axes = meta.get("max_volumetric_axes") or []
+        fixed = [a for a in spec.axis_names if a not in axes]
         print(f"  largest volumetric error {meta['max_volumetric_um']:.2f} um "
-              "(grid over the linear axes, tool offset 0)")
+              f"(grid over {', '.join(axes) or 'no axis'}"
+              + (f", {', '.join(fixed)} at reference" if fixed else "") + ", tool offset 0)")
         print("  unidentifiable           " + (", ".join(unid) if unid else "none"))
         if args.robust:
             print(f"  rejected readings        {n_rej}")
         print(f"  report                   {path / 'report.md'}")
         print(f"  files                    {path}")
+    # warnings reach the terminal (stderr) unless -q
+    if not adequacy.adequate:
+        log.warning("%s (report: %s)", adequacy.message, path / "report.md")
+    for w in adequacy.warnings:
+        log.warning("%s", w)
     if not res.success:
         return 1
     return 0

@@ -51,10 +51,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--stations", metavar="S.csv", type=Path,
                    help="true stations (station, x_mm, y_mm, z_mm[, dead_length_mm]); default: "
                         "six stations around the workspace at two heights")
-    p.add_argument("--plan", metavar="grid|lines|diagonals|FILE.csv",
-                   help="measurement plan: a grid over the travel (default), lines along the "
-                        "axes, the ISO 230-6 body diagonals, or a CSV of poses (axis columns, "
-                        "mm/deg)")
+    p.add_argument("--plan", metavar="default|grid|lines|diagonals|FILE.csv",
+                   help="measurement plan: the default (a grid over the travel; with rotary "
+                        "axes a linear-axis grid plus rotary sweeps over the whole travel at "
+                        "several linear and rotary positions, see volcal.plans.default_plan), "
+                        "a grid over the travel, lines along the axes, the ISO 230-6 body "
+                        "diagonals, or a CSV of poses (axis columns, mm/deg)")
     p.add_argument("--grid", metavar="N",
                    help="positions per axis: N for every linear axis (rotary axes coarser), or "
                         "per axis as X=6,Y=5,Z=5; for lines/diagonals the points per line "
@@ -78,6 +80,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def _grid_counts(text: str | None, plan: str):
     from volcal.exceptions import InputError
 
+    if plan == "default":
+        if text is not None:
+            raise InputError("--grid applies to --plan grid, lines or diagonals, not to the "
+                             "default plan", source="--grid")
+        return None
     if text is None:
         return 5 if plan == "grid" else 11
     text = text.strip()
@@ -102,8 +109,8 @@ def run(args: argparse.Namespace) -> int:
     from volcal.errors import ErrorForm, ErrorModel
     from volcal.exceptions import InputError
     from volcal.machine import Machine
-    from volcal.plans import (default_stations, diagonal_plan, grid_plan, line_plan,
-                              plan_from_csv)
+    from volcal.plans import (default_plan, default_stations, diagonal_plan, grid_plan,
+                              line_plan, plan_from_csv)
     from volcal.simulate import (draw_true_parameters, example, load_true_parameters,
                                  parse_tools, save_simulation, simulate)
 
@@ -113,8 +120,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"expected a degree >= 0, got {args.degree}", source="--degree")
     # parse cheap options first: a typo fails before any model is built
     tools = parse_tools(args.tools) if args.tools is not None else None
-    plan_kind = args.plan or "grid"
-    if plan_kind in ("grid", "lines", "diagonals"):
+    # no --plan: the default plan, or a grid when only --grid is given
+    plan_kind = args.plan or ("grid" if args.grid is not None else "default")
+    if plan_kind in ("default", "grid", "lines", "diagonals"):
         counts = _grid_counts(args.grid, plan_kind)
     elif args.grid is not None:
         raise InputError("--grid applies to --plan grid, lines or diagonals, not to a plan file",
@@ -152,6 +160,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.plan is None and ex is not None and args.grid is None:
         plan = ex.plan
+    elif plan_kind == "default":
+        plan = default_plan(spec, args.degree)
     elif plan_kind == "grid":
         plan = grid_plan(spec, counts)
     elif plan_kind == "lines":
