@@ -98,7 +98,8 @@ def test_c_example_reproduces_python_identification(c_run, python_result, ex, ex
     # ... and to each parameter's own size or standard uncertainty, whichever is larger
     # (a parameter near zero is known only to its uncertainty)
     scale = np.fmax(np.abs(vp), par_py["std"].to_numpy())
-    assert np.all(np.abs(vc - vp) <= 1e-9 * scale)  # held at zero: exactly zero
+    # (1e-8: the C solver's own stationarity tolerance; held at zero: exactly zero)
+    assert np.all(np.abs(vc - vp) <= 1e-8 * scale)
 
     st_c = pd.read_csv(out / "stations.csv")
     assert list(st_c["station"]) == list(python_result.stations["station"])
@@ -294,7 +295,9 @@ def test_two_phase_strategy_agrees_with_tight_python(ex, data, tmp_path):
     x, outs, fixed, _ = ider.run("two-phase", pr.pack_x(np.zeros(pr.n_theta), st0), p)
     assert np.array_equal(fixed, d.phases[-1].fixed)
     th = x[:pr.n_theta]
-    assert np.abs(res_c.theta - th).max() <= 1e-9 * np.abs(th).max()
+    # the C solver ends phase 1 (stations) once its step is <= tol_step = 1e-7 um, which
+    # moves the phase-2 parameters by up to ~2e-10 mm (1e-8 of the largest here)
+    assert np.abs(res_c.theta - th).max() <= 2e-8 * np.abs(th).max()
 
 
 def test_cli_codegen(exported, ex, data, capsys, tmp_path):

@@ -289,7 +289,11 @@ def test_rotary_axes_unidentifiable_parameters_and_round_trip(tmp_path):
     assert rows_b["u_EBB_urad"].isna().all() and rows_b["u_EAB_urad"].notna().all()
     assert (rows_b["EBB_urad"] == 0).all()
     grid = pd.read_csv(out / "volumetric_grid.csv")
-    assert len(grid) == 27 and (grid["C"] == 0).all() and (grid["B"] == 0).all()
+    # the grid spans the rotary axes' travel too: C every 45 deg, B at 5 angles (0 among
+    # them); with both at their reference it is the 3 x 3 x 3 grid of the linear axes
+    assert len(grid) == 27 * 8 * 5
+    assert grid["C"].nunique() == 8 and sorted(grid["B"].unique()) == [-100, -50, 0, 50, 100]
+    assert ((grid["C"] == 0) & (grid["B"] == 0)).sum() == 27
     report = (out / "report.md").read_text()
     assert "`EBB_0`" in report and "`EBB_1`" in report and "a note" in report
     assert "| 5 | S1 | d |" in report  # the rejected reading, with its file row

@@ -62,7 +62,11 @@ def truth_functions(spec, truth: dict) -> dict:
 
     funcs = {}
     for s in error_symbols(spec):
-        v = truth[s.name] * (1e-3 if s.quantity == "translation" else 1e-6)
+        # the tool's zero position and orientation are not part of paper 002's truth: zero
+        v = truth.get(s.name, 0.0) * (1e-3 if s.quantity == "translation" else 1e-6)
+        if s.kind in ("location", "tool"):
+            funcs[s.name] = (lambda x, v=v: np.full(np.shape(x), v))
+            continue
         a = spec.axis(s.axis)
         lo, hi = a.travel
         if s.kind == "location":
@@ -174,7 +178,9 @@ def main(argv=None) -> int:
         mc, k = res["mc"], res["kernel"]
         t_mc = mc.samples.seconds
         # Table 3 equivalent: every error at the end of its travel (straightness: middle)
-        qs = default_quantities(em)
+        # paper 002's Table 3 has no tool zero position / orientation: leave them out
+        tool = {s.name for s in em.errors if s.kind == "tool"}
+        qs = [q for q in default_quantities(em) if q.split("(")[0] not in tool]
         tab = quantity_table(mc, em, qs)
         err_names = [q.split("(")[0] for q in qs]
         truth_vals = []
@@ -186,8 +192,9 @@ def main(argv=None) -> int:
         tab.insert(1, "error", err_names)
         tab["truth"] = truth_vals
         tab["E_n_vs_truth"] = evaluation_factor(tab["value"], tab["U"], tab["truth"], 0.0)
-        tab["paper_value"] = [cfg["truth"][e] for e in err_names]
-        tab["paper_U"] = [paper_U[e] for e in err_names]
+        # the tool zero position / orientation are not part of paper 002: no paper figures
+        tab["paper_value"] = [cfg["truth"].get(e, np.nan) for e in err_names]
+        tab["paper_U"] = [paper_U.get(e, np.nan) for e in err_names]
         tab["U_over_paper_U"] = tab["U"] / tab["paper_U"]
         tab["U_linear"] = 2 * tab["u_linear"]
         tab.to_csv(out / f"table3_{variant}.csv", index=False)

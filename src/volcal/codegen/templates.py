@@ -585,6 +585,14 @@ static int ${NAME}_run(${NAME}_mem *m, const double *q, const double *tool,
         done = 1;
         break;
       }
+      /* stationary, and the Gauss-Newton model predicts a decrease of the cost (-g^T dz / 2)
+         below 1e-13 of it: the step left is rounding noise of the gradient (its size grows
+         with |r|), not a distance to the minimiser, so this is the minimiser to working
+         precision */
+      if (s.kkt_rel <= opt->tol_kkt && -0.5 * s.gdx <= 1e-13 * fabs(s.f)) {
+        done = 1;
+        break;
+      }
       if (it >= opt->max_iter) break;
       /* backtracking (Armijo) on the cost; the constraints hold along every step */
       for (ls = 0; ls < 40; ++ls) {
@@ -1296,7 +1304,9 @@ names the first that failed and the parameters are NaN or must not be used):
   problem (reduced gradient = gradient + C^T lambda with least-squares multipliers), its
   norm is returned as `res.kkt`;
 - the Gauss-Newton step at the returned point, an estimate of the distance to the
-  minimiser, is <= `tol_step` um/urad (default ${opt_tol_step});
+  minimiser, is <= `tol_step` um/urad (default ${opt_tol_step}), or the decrease of the
+  cost the Gauss-Newton model predicts for it is below 1e-13 of the cost: the step left is
+  then rounding noise of the gradient, which grows with the size of the residuals;
 - the datum constraints hold to `tol_constraint` (default ${opt_tol_constraint});
 - both were reached within `max_iter` iterations per phase (default ${opt_max_iter}) and
   every number stayed finite;

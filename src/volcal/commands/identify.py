@@ -5,7 +5,9 @@ Example::
     volcal identify --model mcv754_wxyzt --data sim/measurements.csv --out result/
 
 Writes the result folder of DESIGN.md (see :mod:`volcal.results`) and prints a short
-summary.  Exit codes: 0 success, 1 the solver did not converge, 2 bad input.  The input
+summary.  When chi2/dof lies outside its 99.9 % interval (the model adequacy test,
+:mod:`volcal.analysis.adequacy`) a warning naming the likely cause goes to the terminal
+(stderr; silenced only by -q), as does a warning for data from a single station.  Exit codes: 0 success, 1 the solver did not converge, 2 bad input.  The input
 files are only read; the output folder is written atomically and replaces only a previous
 result folder.
 """
