@@ -25,6 +25,8 @@ from volcal.machine import Machine
 from volcal.plans import default_stations, grid_plan
 from volcal.spec import bundled_models
 
+# a low order keeps the 5-axis plans small and every error motion identifiable
+DEGREE = 1
 TOOLS = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 120.0], [90.0, 0.0, 60.0], [0.0, 90.0, 60.0]])
 
 
@@ -36,7 +38,7 @@ def _data(name: str, seed: int = 3):
     plan = grid_plan(spec, {**{a.name: 4 if len(spec.axes) <= 3 else 2 for a in spec.axes
                                if not a.is_rotary}, **rot})
     st = default_stations(spec, 5, seed=seed, tools=TOOLS)
-    em = ErrorModel(spec, default=ErrorForm("poly", 2))
+    em = ErrorModel(spec, default=ErrorForm("poly", DEGREE))
     rng = np.random.default_rng(seed)
     theta = rng.normal(size=em.n_params) * np.where(
         np.asarray(em.param_units) == "mm", 5e-5, 5e-8)  # a field of a few um
@@ -65,7 +67,7 @@ def fits(request):
     m, em, data, st = _data(request.param)
     out = {}
     for d in DATUMS:
-        e = ErrorModel(m.spec, default=ErrorForm("poly", 2), datum=d)
+        e = ErrorModel(m.spec, default=ErrorForm("poly", DEGREE), datum=d)
         out[d] = identify(m, data, st, error_model=e)
     return m, out
 
@@ -75,8 +77,7 @@ def test_every_datum_gives_the_residuals_of_the_fit_without_datum(fits):
     chi = {d: float(np.sum(r.residuals["normalised_residual"] ** 2)) for d, r in res.items()}
     for d in DATUMS:
         assert res[d].success, res[d].status
-        assert chi[d] == pytest.approx(chi["none"], rel=1e-7), chi
-    print({d: r.datum["imposed"].sum() for d, r in res.items()}, chi)
+        assert chi[d] == pytest.approx(chi["none"], rel=1e-8), chi
 
 
 def test_every_datum_gives_the_same_field_modulo_the_gauge(fits):
