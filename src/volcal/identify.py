@@ -152,20 +152,34 @@ def predict_volumetric(machine: Machine, em: ErrorModel, theta: np.ndarray,
     return out
 
 
-def declared_poses(spec: MachineSpec, n_poses: int = 1024) -> np.ndarray:
+def _halton(n: int, d: int) -> np.ndarray:
+    """The first n points (after 0) of the d-dimensional Halton sequence in [0, 1)^d (radical
+    inverses in the first d primes): deterministic and low-discrepancy."""
+    primes = [2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53, 59, 61, 67, 71]
+    if d > len(primes):
+        raise ValueError(f"at most {len(primes)} dimensions")
+    out = np.zeros((n, d))
+    idx = np.arange(1, n + 1)
+    for j in range(d):
+        b, k, f = primes[j], idx.copy(), np.ones(n)
+        while np.any(k > 0):
+            f /= b
+            out[:, j] += f * (k % b)
+            k //= b
+    return out
+
+
+def declared_poses(spec: MachineSpec, n_poses: int = 256) -> np.ndarray:
     """Poses (N, n_axes; mm, rad) spanning the declared travel of every axis: the corners of
     the travel box (up to 64) and a Halton sequence inside it.  A low-discrepancy sequence
     rather than a grid, so that it never aliases with a regular measurement plan (a grid of
     4 angles over a full turn sees sin(t) - sin(2t) as zero, a Halton sample does not)."""
-    from scipy.stats import qmc
-
     n_ax = len(spec.axes)
     lo = np.array([np.deg2rad(a.travel[0]) if a.is_rotary else a.travel[0] for a in spec.axes])
     hi = np.array([np.deg2rad(a.travel[1]) if a.is_rotary else a.travel[1] for a in spec.axes])
-    u = qmc.Halton(d=n_ax, scramble=False).random(n_poses + 1)[1:]
+    u = _halton(n_poses, n_ax)
     if n_ax <= 6:
-        corners = np.array(list(np.ndindex(*([2] * n_ax))), float)
-        u = np.vstack([corners, u])
+        u = np.vstack([np.array(list(np.ndindex(*([2] * n_ax))), float), u])
     return lo + u * (hi - lo)
 
 
