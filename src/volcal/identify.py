@@ -316,7 +316,8 @@ class Identifier:
             if solve:
                 out = self.solver.solve(x, p, fixed=fixed)
                 if out.success:
-                    out.x = polish(self.problem, out.x, p, fixed)
+                    out.x, out.polish_steps, out.polish_f = polish(self.problem, out.x, p,
+                                                                   fixed)
                 return out
             # a plan without data (export-time analysis): keep the start point
             return SolveOutcome(np.array(x, float), float("nan"), "not solved", True, 0, 0.0)

@@ -345,7 +345,9 @@ def _result_document(result: IdentificationResult, *, data_name: str,
         "status": result.status,
         "success": result.success,
         "phases": [{"status": o.status, "success": o.success, "iterations": o.iterations,
-                    "seconds": o.seconds, "objective": o.f} for o in result.outcomes],
+                    "seconds": o.seconds, "objective": o.f,
+                    "gauss_newton_polish_steps": o.polish_steps,
+                    "objective_after_polish": o.polish_f} for o in result.outcomes],
         "seconds": result.seconds,
         "sigma_source": result.sigma_source,
         "n_readings": int(len(result.residuals)),
@@ -738,10 +740,15 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
         add("")
         add("Options: " + ", ".join(f"`{k}={v}`" for k, v in options.items()))
     add("")
-    ph = [(k + 1, o.status, "yes" if o.success else "no", o.iterations, f"{o.seconds:.3g}")
-          for k, o in enumerate(result.outcomes)]
+    ph = [(k + 1, o.status, "yes" if o.success else "no", o.iterations, o.polish_steps,
+           f"{o.seconds:.3g}") for k, o in enumerate(result.outcomes)]
     add(_md_table(pd.DataFrame(ph, columns=["phase", "solver status", "success", "iterations",
-                                            "time (s)"])))
+                                            "Gauss-Newton polish steps", "time (s)"])))
+    add("")
+    add("IPOPT stops once the objective stalls (`Solved_To_Acceptable_Level` is then the "
+        "usual status: at the minimum the gradient of a whitened sum of squares is at "
+        "rounding level, not zero); the Gauss-Newton polish steps under the datum then end "
+        "at the minimiser to working precision.")
     add("")
     m = result.machine
     add(f"Timings: total {result.seconds:.3g} s (solver phases "
