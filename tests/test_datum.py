@@ -132,3 +132,23 @@ def test_candidates_follow_the_documented_order():
     assert sum(k == "straightness" for k in
                (c.klass for c in candidate_conditions(em, "reference"))) == 6
     assert candidate_conditions(em, "none") == []
+
+
+def test_predict_flags_poses_the_data_cannot_determine():
+    """One tool offset (0, 0, 0): the angular error motions of the last axis and the tool's
+    orientation are invisible.  Predicting at that offset is determined; at a 150 mm offset
+    it depends on them, so the rows say so and carry no uncertainty."""
+    m, em, data, st = _data("xfyz")
+    one = data[(data[["tool_x", "tool_y", "tool_z"]] == 0).all(axis=1)]
+    res = identify(m, one, st, error_model=ErrorModel(m.spec, default=ErrorForm("poly", DEGREE)))
+    assert res.success
+    q = declared_poses(m.spec, 50)
+    at0 = res.predict(q, np.zeros(3))
+    assert at0["determined"].all()
+    assert np.isfinite(at0[["u_dx_um", "u_dy_um", "u_dz_um"]].to_numpy()).all()
+    far = res.predict(q, np.array([0.0, 0.0, 150.0]))
+    assert not far["determined"].any()
+    assert far[["u_dx_um", "u_dy_um", "u_dz_um"]].isna().all().all()
+    # the held directions are named: gauge at the measured offset, not "unidentifiable"
+    assert res.identifiability.gauge_combinations
+    assert any("EA0T" in c or "EAZ" in c for c in res.identifiability.gauge_combinations)

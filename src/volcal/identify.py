@@ -85,6 +85,13 @@ class IdentificationResult:
         return "; ".join(o.status for o in self.outcomes)
 
     @property
+    def adequacy(self):
+        """Does the model fit the data? chi2/dof against its 99.9 % interval and, when
+        outside, the likely cause (:func:`volcal.analysis.adequacy.assess`)."""
+        from volcal.analysis.adequacy import assess
+        return assess(self)
+
+    @property
     def residual_rms_um(self) -> float:
         r = self.residuals.loc[~self.residuals["rejected"], "residual_um"]
         return float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan")
@@ -121,7 +128,7 @@ def field_jacobian(machine: Machine, em: ErrorModel, theta: np.ndarray, q: np.nd
     tool = np.zeros((len(q), 3)) if tool is None else np.broadcast_to(tool, (len(q), 3))
     e = em.values(q, theta)
     p0, dp, Je = machine.evaluate(q, tool, e)
-    return p0, dp, np.einsum("nik,nkp->nip", Je, em.basis(q))
+    return p0, dp, np.matmul(Je, em.basis(q))  # (N, 3, n_errors) @ (N, n_errors, n_params)
 
 
 def predict_volumetric(machine: Machine, em: ErrorModel, theta: np.ndarray,
@@ -143,7 +150,7 @@ def predict_volumetric(machine: Machine, em: ErrorModel, theta: np.ndarray,
         # held variables (NaN rows) contribute nothing where the pose is determined: their
         # value is a convention there; elsewhere the uncertainty is unknown, never zero
         cov = np.nan_to_num(cov_theta)
-        var = np.einsum("nip,pq,niq->ni", G, cov, G)
+        var = np.sum((G @ cov) * G, axis=2)
         u = np.sqrt(np.clip(var, 0, None)) * 1e3
         u[~det] = np.nan
         out[["u_dx_um", "u_dy_um", "u_dz_um"]] = u
@@ -232,9 +239,16 @@ class Identifier:
 
     # ---- pieces ---------------------------------------------------------------------
     def jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Whitened residuals and Jacobian wrt the scaled variables at physical x."""
-        r, J = self.problem.jacobian(self.problem.to_scaled(x), p)
-        return r.full().ravel(), J.full()
+        """Whitened residuals and Jacobian wrt the scaled variables at physical x.  The
+        last evaluation is kept: the datum selection, the analysis and the covariance ask
+        for the same point in turn, and the dense Jacobian is the expensive part."""
+        key = (np.asarray(x, float).tobytes(), np.asarray(p, float).tobytes())
+        if getattr(self, "_jac_key", None) != key:
+            r, J = self.problem.jacobian(self.problem.to_scaled(x), p)
+            r, J = r.full().ravel(), J.full()
+            r.flags.writeable = J.flags.writeable = False  # shared: read-only
+            self._jac_key, self._jac = key, (r, J)
+        return self._jac
 
     def analyse(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray,
                 constrained: bool = True) -> Identifiability:
