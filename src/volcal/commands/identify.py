@@ -179,6 +179,13 @@ def run(args: argparse.Namespace) -> int:
               f"(grid over {', '.join(axes) or 'no axis'}"
               + (f", {', '.join(fixed)} at reference" if fixed else "") + ", tool offset 0)")
         print("  unidentifiable           " + (", ".join(unid) if unid else "none"))
+        if res.datum is not None and len(res.datum):
+            free = res.datum.loc[~res.datum["imposed"]]
+            print(f"  datum ({res.error_model.datum})           "
+                  f"{int(res.datum['imposed'].sum())} of {len(res.datum)} conditions imposed"
+                  + (f"; not imposed (the data determine them, values in datum.csv): "
+                     + ", ".join(c.split(" ")[0] for c in free["condition"]) if len(free)
+                     else ""))
         if args.robust:
             print(f"  rejected readings        {n_rej}")
         print(f"  report                   {path / 'report.md'}")
