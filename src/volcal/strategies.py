@@ -22,6 +22,7 @@ from volcal.data import Measurements
 from volcal.errors import ErrorModel
 from volcal.exceptions import SolverError
 from volcal.analysis.identifiability import rigid_columns
+from volcal.datum import candidate_conditions, condition_table, select_conditions
 from volcal.machine import Machine
 from volcal.multilateration import calibrate_stations, multilaterate
 from volcal.solve import SolveOutcome
@@ -82,7 +83,13 @@ def classic_pipeline(machine: Machine, em: ErrorModel, meas: Measurements, st0: 
     A = np.hstack([G, rigid_columns(p0_pts)])
     scale = np.r_[[1e-3 if u == "mm" else 1e-6 for u in em.param_units], [1e-3] * 3, [1e-6] * 3]
     As = A * scale
-    Cs = np.hstack([em.constraints()[0] * scale[:em.n_params], np.zeros((em.constraints()[0].shape[0], 6))])
+    # the datum: the candidate conditions that remove a null direction of this linear fit
+    # (the same rule as the one-step identification, volcal.datum)
+    conds = candidate_conditions(em, em.datum)
+    C_all = (np.array([c.row for c in conds]) if conds else np.zeros((0, em.n_params)))
+    C_all = np.hstack([C_all * scale[:em.n_params], np.zeros((len(C_all), 6))])
+    datum_active = select_conditions(As, C_all)
+    Cs = C_all[datum_active]
     names = em.param_names + ["frame_tx_mm", "frame_ty_mm", "frame_tz_mm",
                               "frame_rx_rad", "frame_ry_rad", "frame_rz_rad"]
     ident = analyse_jacobian(As, names, Cs, prefer=np.r_[np.ones(em.n_params), np.zeros(6)])
@@ -143,4 +150,5 @@ def classic_pipeline(machine: Machine, em: ErrorModel, meas: Measurements, st0: 
                                 identifiable, stations_out, x[em.n_params:], residuals, ident,
                                 [out_cal, out_ml, out_fit], conditions,
                                 residuals.iloc[0:0].assign(row=[]),
-                                time.perf_counter() - t_start, sigma_source, notes)
+                                time.perf_counter() - t_start, sigma_source, notes,
+                                condition_table(conds, datum_active, theta))
