@@ -498,9 +498,9 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
 
     st0, st_fixed, notes = initial_stations(machine, meas, st_table)
     sigma = meas.sigma.copy()
-    budget_sigma = reading_sigma(machine, bud, meas, st0[:, :3])
     no_sigma = ~np.isfinite(sigma)
-    sigma[no_sigma] = budget_sigma[no_sigma]
+    if no_sigma.any():  # the budget only where the table gives no sigma
+        sigma[no_sigma] = reading_sigma(machine, bud, meas, st0[:, :3])[no_sigma]
     sigma_source = "table" if not no_sigma.any() else (
         f"budget {bud.name}" if no_sigma.all() else f"table and budget {bud.name}")
 
