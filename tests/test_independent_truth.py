@@ -203,6 +203,7 @@ def _run(name):
         "field_um": field, "field_max_um": field_max, "chi2": res.conditions["chi2_per_dof"],
         "residual_um": res.residual_rms_um, "status": res.status, "success": res.success,
         "unidentifiable": int((~res.identifiable).sum()),
+        "adequate": res.adequacy.adequate, "adequacy": res.adequacy.message,
         "ref_field_um": ref_field, "ref_chi2": ref.chi2_per_dof,
         "ref_residual_um": ref.residual_rms_um,
     }
@@ -228,6 +229,7 @@ def _check(name, *, limit=None, chi2=False):
     if limit is not None:
         assert f["field_um"] <= limit, msg
     if chi2:
+        assert f["adequate"], f["adequacy"]
         # the reference fit shows what the data and the noise give: chi2/dof ~ 1
         assert 0.8 < f["ref_chi2"] < 1.25, msg
         assert 0.8 < f["chi2"] < 1.25, msg
@@ -244,8 +246,10 @@ def test_three_axis_four_tool_offsets():
 
 def test_three_axis_non_representable_truth():
     # sines with non-integer periods, steps and tables: no polynomial basis fits them, so
-    # the target is the plain least-squares fit of the same parameterisation
-    _check("3ax-nonrep")
+    # the target is the plain least-squares fit of the same parameterisation; and the
+    # fit says that it does not fit
+    f = _check("3ax-nonrep")
+    assert not f["adequate"], f["adequacy"]
 
 
 def test_five_axis_several_tool_offsets():
