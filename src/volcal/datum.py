@@ -39,6 +39,8 @@ from typing import Literal
 import numpy as np
 import scipy.linalg as sla
 
+from volcal.units import report_factor, report_unit
+
 DatumName = Literal["iso230", "reference", "none"]
 DATUMS: tuple[str, ...] = ("iso230", "reference", "none")
 
@@ -173,11 +175,11 @@ def condition_table(conditions: list[Condition], imposed: np.ndarray, theta: np.
     import pandas as pd
 
     theta = np.asarray(theta, float)
-    vals = [float(c.row @ theta) * (1e3 if c.unit == "mm" else 1e6) for c in conditions]
+    vals = [float(c.row @ theta) * report_factor(c.unit) for c in conditions]
     return pd.DataFrame({
         "condition": [c.label for c in conditions],
         "class": [c.klass for c in conditions],
         "imposed": np.asarray(imposed, bool)[:len(conditions)],
         "value": vals,
-        "unit": ["um" if c.unit == "mm" else "urad" for c in conditions],
+        "unit": [report_unit(c.unit) for c in conditions],
     })

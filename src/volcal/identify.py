@@ -44,6 +44,7 @@ from volcal.problem import IdentificationProblem, Layout
 from volcal.solve import NLPSolver, SolveOutcome, polish
 from volcal.spec import MachineSpec
 from volcal.uncertainty.budget import Budget, load_budget
+from volcal.units import report_factors, report_unit
 
 log = logging.getLogger(__name__)
 
@@ -99,13 +100,13 @@ class IdentificationResult:
     def parameters(self) -> pd.DataFrame:
         """name, value, unit, std, identifiable (values in um / urad)."""
         units = self.error_model.param_units
-        f = np.array([1e3 if u == "mm" else 1e6 for u in units])
+        f = report_factors(units)
         std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
         std[~self.identifiable] = np.nan
         return pd.DataFrame({
             "name": self.error_model.param_names,
             "value": self.theta * f,
-            "unit": ["um" if u == "mm" else "urad" for u in units],
+            "unit": [report_unit(u) for u in units],
             "std": std,
             "identifiable": self.identifiable,
         })
@@ -420,6 +421,16 @@ def initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFram
                 est[k, :3] = [row["x_mm"], row["y_mm"], row["z_mm"]]
                 est[k, 3] = row["dead_length_mm"]
                 fixed[k] = bool(row["fixed"])
+        # ids that do not match are never silently ignored (load_measurements warns)
+        described = [str(s) for s in tab.index]
+        if not set(described) & set(meas.station_ids):
+            raise InputError(f"no station of the data ({', '.join(meas.station_ids[:8])}) is "
+                             f"described in the stations table ({', '.join(described[:8])}); "
+                             "station ids must match exactly", source="stations table")
+        unused = [s for s in described if s not in meas.station_ids]
+        if unused:
+            notes.append(f"stations table entries without readings ignored: "
+                         f"{', '.join(unused)}")
     missing = np.isnan(est[:, 0])
     if missing.any():
         p0, _, _ = machine.evaluate(meas.q_internal, meas.tool, np.zeros(machine.n_errors))

@@ -26,6 +26,7 @@ from volcal.datum import candidate_conditions
 from volcal.errors import ErrorModel
 from volcal.instruments import Instrument
 from volcal.machine import Machine
+from volcal.units import solver_scale
 
 
 class _Gram(ca.Callback):
@@ -148,9 +149,9 @@ class IdentificationProblem:
         # 1 um for stations): IPOPT then sees a Hessian whose conditioning reflects the
         # geometry of the experiment, not the choice of units.
         self.scale = np.concatenate([
-            [1e-3 if u == "mm" else 1e-6 for u in em.param_units],
+            solver_scale(em.param_units),
             np.full(n_ps * n_st, 1e-3),
-            [1e-3 if u == "mm" else 1e-6 for u in ins.global_param_units]])
+            solver_scale(ins.global_param_units)])
 
         # Two SX functions of the *scaled* variables.  Per pose: the actual tool point and
         # its derivative wrt theta (the chain and the error functions, the expensive part,

@@ -75,6 +75,7 @@ from volcal.analysis.identifiability import FieldNullSpace
 from volcal.identify import IdentificationResult, predict_volumetric
 from volcal.machine import Machine
 from volcal.spec import MachineSpec, machine_from_dict, spec_to_dict
+from volcal.units import REPORT
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +113,7 @@ _UVOL = ["u_dx_um", "u_dy_um", "u_dz_um"]
 
 def _unit_factor(unit: str) -> tuple[float, str]:
     """Internal unit (mm / rad) -> (factor, report unit) (um / urad)."""
-    return (1e3, "um") if unit == "mm" else (1e6, "urad")
+    return REPORT[unit]
 
 
 def _axis_unit(spec: MachineSpec, name: str) -> str:
@@ -449,6 +450,9 @@ def load_result(path: str | Path) -> LoadedResult:
     if not file.is_file():
         raise InputError("no result.json here; expected a folder written by `volcal identify`",
                          source=str(folder if path.suffix != ".json" else file))
+    # a folder edited after it was written, or mixed from two runs, is refused
+    from volcal.outputs import verify_manifest
+    verify_manifest(folder)
     try:
         doc = json.loads(file.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -1013,7 +1017,7 @@ def check_out_dir(out_dir: str | Path) -> Path:
 def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name: str = "",
                 plots: bool = True, options: Mapping[str, Any] | None = None,
                 grid_points: int = GRID_POINTS,
-                component_points: int = COMPONENT_POINTS) -> Path:
+                component_points: int = COMPONENT_POINTS, force: bool | None = None) -> Path:
     """Write the result folder (see the module docstring) and return its path.
 
     data_name: the data file name recorded in result.json and the report; plots: write
@@ -1023,7 +1027,9 @@ def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name:
 
     Atomic: built in a temporary folder next to ``out_dir`` and renamed into place; a
     failure leaves ``out_dir`` as it was (absent or the previous result).  An existing
-    ``out_dir`` that is neither empty nor a previous result raises :class:`InputError`.
+    ``out_dir`` that is neither empty nor a previous result raises :class:`InputError`;
+    a previous result is replaced unless ``force`` is False (see
+    :func:`volcal.outputs.check_out_dir`; the command line needs ``--force``).
     """
     t0 = time.perf_counter()
     from volcal.outputs import write_folder
@@ -1072,6 +1078,6 @@ def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name:
             encoding="utf-8")
 
     out = write_folder(out_dir, RESULT_FILES + OPTIONAL_FILES, "an identification", writer,
-                       marker="result.json")
+                       marker="result.json", force=force)
     log.info("wrote %s in %.2f s", out, time.perf_counter() - t0)
     return out

@@ -57,6 +57,7 @@ from volcal.errors import ErrorModel, legendre
 from volcal.exceptions import InputError
 from volcal.machine import Machine
 from volcal.uncertainty.budget import ANGLE_UNITS, LENGTH_UNITS, Budget, load_budget
+from volcal.units import REPORT
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +104,7 @@ DATUM_ORDER_FACTOR = 30.0
 #: Degree of the random smooth function drawn for a table-form error motion.
 TABLE_FUNCTION_DEGREE = 4
 
-_TO_FILE = {"mm": (1e3, "um"), "rad": (1e6, "urad")}
+_TO_FILE = REPORT
 
 
 # --------------------------------------------------------------------------------------
@@ -584,7 +585,8 @@ def simulate(machine: Machine | str, error_model: ErrorModel | None, theta_true:
 # files
 
 
-def save_simulation(sim: Simulation, out_dir: str | Path) -> Path:
+def save_simulation(sim: Simulation, out_dir: str | Path, *, force: bool | None = None
+                    ) -> Path:
     """Write a simulation to ``out_dir``: ``measurements.csv`` (the measurement table),
     ``stations.csv`` (true stations: ``station, x_mm, y_mm, z_mm, dead_length_mm``),
     ``true_parameters.csv`` (``name, value, unit`` in um / urad), ``true_volumetric.csv``
@@ -612,7 +614,7 @@ def save_simulation(sim: Simulation, out_dir: str | Path) -> Path:
                 "station_setup_s": STATION_SETUP_S}
         (tmp / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
 
-    return write_folder(out_dir, SIMULATION_FILES, "a simulation", writer)
+    return write_folder(out_dir, SIMULATION_FILES, "a simulation", writer, force=force)
 
 
 # --------------------------------------------------------------------------------------

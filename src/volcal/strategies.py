@@ -26,6 +26,7 @@ from volcal.datum import candidate_conditions, condition_table, select_condition
 from volcal.machine import Machine
 from volcal.multilateration import calibrate_stations, multilaterate
 from volcal.solve import SolveOutcome
+from volcal.units import solver_scale
 
 
 def classic_pipeline(machine: Machine, em: ErrorModel, meas: Measurements, st0: np.ndarray,
@@ -81,7 +82,7 @@ def classic_pipeline(machine: Machine, em: ErrorModel, meas: Measurements, st0: 
     _, _, Je = machine.evaluate(q_pts, t_pts, zeros)
     G = np.einsum("nik,nkp->nip", Je, em.basis(q_pts)).reshape(-1, em.n_params)
     A = np.hstack([G, rigid_columns(p0_pts)])
-    scale = np.r_[[1e-3 if u == "mm" else 1e-6 for u in em.param_units], [1e-3] * 3, [1e-6] * 3]
+    scale = np.r_[solver_scale(em.param_units), solver_scale(["mm"] * 3 + ["rad"] * 3)]
     As = A * scale
     # the datum: the candidate conditions that remove a null direction of this linear fit
     # (the same rule as the one-step identification, volcal.datum)

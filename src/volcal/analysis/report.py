@@ -39,6 +39,7 @@ import pandas as pd
 import scipy.linalg as sla
 
 from volcal.analysis.identifiability import Identifiability, _describe, scaled_constrained_svd
+from volcal.units import report_factors
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +129,7 @@ class AnalysisReport:
         return [d for d in self.null if d.kind != "gauge"]
 
     def _factors(self) -> np.ndarray:
-        return np.array([1e3 if u == "mm" else 1e6 for u in self.units])
+        return report_factors(self.units)
 
     def parameters(self) -> pd.DataFrame:
         """name, kind, unit (um / urad; stations mm with u in um), value, u, identifiable."""

@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from volcal.units import report_factors
+
 __all__ = ["CoverageSetup", "coverage_experiment", "run_coverage", "summarise_coverage",
            "Z95"]
 
@@ -104,7 +106,7 @@ def coverage_experiment(setup: CoverageSetup, k: int, *, seed: int = 0,
     u = pred[["u_dx_um", "u_dy_um", "u_dz_um"]].to_numpy()
     lin_in = np.abs(est - truth) <= Z95 * u
     par = res.parameters()
-    f = np.array([1e3 if un == "mm" else 1e6 for un in em.param_units])
+    f = report_factors(em.param_units)
     zpar = (par["value"].to_numpy() - theta * f) / par["std"].to_numpy()
     out = {"k": k, "truth": truth, "estimate": est, "u_linear": u, "linear_inside": lin_in,
            "z_parameters": zpar, "status": res.status, "success": res.success,
