@@ -180,10 +180,30 @@ def test_non_convergence_is_flagged_never_hidden(exported, data):
         args = {k: kw.pop(k, a[k]) for k in ("q", "tool", "length", "sigma")}
         return solver.identify(args["q"], args["tool"], args["length"], args["sigma"], **kw)
 
-    # too few iterations from the usual start
+    def best_iterate(r):
+        """flagged, with the best iterate: finite values and the real chi2 per dof"""
+        assert not r.converged and r.status != 0
+        assert r.status_text.endswith("best iterate returned")
+        assert np.isfinite(r.theta).all() and np.isfinite(r.stations[ST_COLS].to_numpy()).all()
+        assert np.isfinite(r.chi2_per_dof) and r.chi2_per_dof > 0 and r.dof > 0
+        assert np.isfinite(r.kkt_rel) and np.isfinite(r.cost)
+
+    def nothing_computed(r):
+        """flagged, and NaN where no finite iterate exists: never a chi2 per dof of 0"""
+        assert not r.converged and np.isnan(r.theta).all() and np.isnan(r.chi2_per_dof)
+
+    # too few iterations from the usual start: the best iterate (here the last), flagged
     r = run(max_iter=1)
-    assert not r.converged and r.status_text == "iteration limit reached"
-    assert np.isnan(r.theta).all()
+    best_iterate(r)
+    assert r.status_text == "iteration limit reached; best iterate returned"
+    assert r.iterations == 1 and r.kkt_rel > DEFAULT_OPTIONS["tol_kkt"]
+    # one Gauss-Newton step from the usual start is already close (chi2 per dof real)
+    assert abs(r.chi2_per_dof - good.chi2_per_dof) < 1e-3 * good.chi2_per_dof
+    assert np.abs(r.theta - good.theta).max() < 1e-2 * np.abs(good.theta).max()
+    # no iteration at all: the start point, with its own (large) chi2 per dof
+    r0 = run(max_iter=0)
+    best_iterate(r0)
+    assert r0.iterations == 0 and r0.chi2_per_dof > r.chi2_per_dof
     # absurd start stations: either flagged, or converged to the same answer
     rng = np.random.default_rng(0)
     flagged = 0
@@ -194,11 +214,16 @@ def test_non_convergence_is_flagged_never_hidden(exported, data):
             assert np.abs(r.theta - good.theta).max() <= 1e-9 * np.abs(good.theta).max()
         else:
             flagged += 1
-            assert np.isnan(r.theta).all()
+            if r.status_text.startswith("NaN or Inf"):
+                nothing_computed(r)   # the first iterate was not finite already
+            else:
+                best_iterate(r)
+                assert r.chi2_per_dof > 100   # far from the answer, and it says so
     assert flagged >= 2
     # absurd start parameters
     r = run(theta0=np.full(len(good.theta), 1.0), max_iter=3)
-    assert not r.converged
+    best_iterate(r)
+    assert r.chi2_per_dof > 100
     # corrupted data: one reading off by 1 mm converges numerically but is not plausible
     L = a["length"].copy()
     L[10] += 1.0
@@ -216,10 +241,14 @@ def test_non_convergence_is_flagged_never_hidden(exported, data):
     # invalid input is refused before any iteration
     L = a["length"].copy()
     L[3] = np.nan
-    assert run(length=L).status_text.startswith("invalid input")
+    r = run(length=L)
+    assert r.status_text.startswith("invalid input")
+    nothing_computed(r)
     s = a["sigma"].copy()
     s[5] = 0.0
-    assert run(sigma=s).status_text.startswith("invalid input")
+    r = run(sigma=s)
+    assert r.status_text.startswith("invalid input")
+    nothing_computed(r)
 
 
 def test_example_program_exit_code_flags_corrupted_file(exported, data, tmp_path):
@@ -239,6 +268,26 @@ def test_example_program_exit_code_flags_corrupted_file(exported, data, tmp_path
     proc = subprocess.run([str(exported.example), str(bad), str(tmp_path / "out2")],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "not a reading of the exported plan" in proc.stderr
+
+
+def test_example_program_at_iteration_limit_writes_best_iterate(ex, data, tmp_path):
+    """At the iteration limit the example program writes the best iterate, flagged (exit
+    code 1, converged = 0), with the real chi2 per dof: never NaN values and chi2/dof 0."""
+    info = export_solver(ex.model, data[0], tmp_path / "it1", options={"max_iter": 1},
+                         cflags=CFLAGS)
+    out = tmp_path / "out"
+    proc = subprocess.run([str(info.example), str(data[1]), str(out)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "iteration limit reached; best iterate returned" in proc.stdout
+    assert "NOT CONVERGED" in proc.stdout and "chi2/dof 0\n" not in proc.stdout
+    st = _status(out / "status.txt")
+    assert st["converged"] == "0" and st["status"] == "5" and st["iterations"] == "1"
+    assert 0.5 < float(st["chi2_per_dof"]) < 2.0 and int(st["dof"]) > 0
+    assert f"chi2/dof {float(st['chi2_per_dof']):.4g}" in proc.stdout
+    assert np.isfinite(pd.read_csv(out / "parameters.csv")["value"]).all()
+    vol = pd.read_csv(out / "volumetric.csv")
+    assert np.isfinite(vol[["dx_um", "dy_um", "dz_um"]].to_numpy()).all()
 
 
 def test_unchanged_export_is_reused(exported, ex, data, tmp_path):

@@ -17,8 +17,12 @@ What is free: every number of the data, start values, solver options.
 The solver: constrained Gauss-Newton with exact elimination of the datum constraints, a
 backtracking line search, and a convergence check that the caller can trust (relative KKT
 stationarity, Gauss-Newton step at the returned point, constraint violation, finiteness,
-and a plausibility bound on chi2 per degree of freedom); see
-:mod:`volcal.codegen.solver`.
+and a plausibility bound on chi2 per degree of freedom); when it stops without converging
+(iteration limit, failed line search) it returns the best iterate, flagged, with its real
+chi2 per degree of freedom; see :mod:`volcal.codegen.solver`.  The hand-written C, the
+Makefile and the READMEs are Jinja2 templates in ``volcal/codegen/templates/``, rendered
+by :mod:`volcal.codegen.templates`; golden copies for one configuration are in
+``tests/golden/codegen/``.
 
 Start stations: as :func:`volcal.identify.identify` chooses them - from the stations table
 given at export when it lists a station, else computed in C from the readings on the

@@ -147,6 +147,9 @@ def _generator_hash() -> str:
     h = hashlib.sha256()
     for mod in ("export.py", "solver.py", "templates.py"):
         h.update((Path(__file__).parent / mod).read_bytes())
+    for f in T.template_files():
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
     return h.hexdigest()[:16]
 
 
@@ -269,12 +272,8 @@ def _common(machine: Machine, em: ErrorModel, name: str) -> dict[str, str]:
     }
 
 
-def _render(template: T.Template, mapping: dict) -> str:
-    m = dict(mapping)
-    m["common_header"] = T.Template(T.COMMON_HEADER).substitute(m)
-    m["common_source"] = T.Template(T.COMMON_SOURCE).substitute(m)
-    m["csv_helpers"] = T.Template(T.CSV_HELPERS).substitute(m)
-    return template.substitute(m)
+def _render(template: str, mapping: dict) -> str:
+    return T.render(template, mapping)
 
 
 # ---------------------------------------------------------------------------------------
@@ -518,10 +517,10 @@ def export_solver(model, plan, out: str | Path, *, stations=None, strategy: str 
     })
     for k in ("tol_kkt", "tol_step", "tol_constraint", "max_chi2", "max_station_rms"):
         mp[k] = _c_double(opts[k])
-    files[f"{name}.h"] = _render(T.SOLVER_HEADER, mp)
-    files[f"{name}.c"] = _render(T.SOLVER_SOURCE, mp)
-    files["main.c"] = _render(T.SOLVER_MAIN, mp)
-    files["Makefile"] = T.MAKEFILE.substitute(mp)
+    files[f"{name}.h"] = _render("solver.h.j2", mp)
+    files[f"{name}.c"] = _render("solver.c.j2", mp)
+    files["main.c"] = _render("solver_main.c.j2", mp)
+    files["Makefile"] = _render("Makefile.j2", mp)
     files["plan.csv"] = d.layout.to_csv(index=False)
     names = np.asarray(pr.names)
     phases = [{"name": ph.name, "fixed": names[ph.fixed].tolist(),
@@ -596,11 +595,11 @@ def export_model(model, out: str | Path, *, degree: int = 3, datum: str = "iso23
     mp.update({"volcal_version": __version__, "casadi_version": ca.__version__,
                "model": _model_label(model, spec), "fingerprint": spec.fingerprint(),
                "degree": str(degree), "datum": datum})
-    files[f"{name}.h"] = _render(T.MODEL_HEADER, mp)
-    files[f"{name}.c"] = _render(T.MODEL_SOURCE, mp)
-    files["main.c"] = _render(T.MODEL_MAIN, mp)
-    files["Makefile"] = T.MAKEFILE.substitute(mp)
-    files["README.md"] = T.README_MODEL.substitute(mp)
+    files[f"{name}.h"] = _render("model.h.j2", mp)
+    files[f"{name}.c"] = _render("model.c.j2", mp)
+    files["main.c"] = _render("model_main.c.j2", mp)
+    files["Makefile"] = _render("Makefile.j2", mp)
+    files["README.md"] = _render("README_model.md.j2", mp)
     manifest = {
         "format": EXPORT_FORMAT, "kind": "model", "name": name,
         "model": {"name": spec.name, "source": _model_label(model, spec),
@@ -643,4 +642,4 @@ def _readme_solver(d: SolverDefinition, name: str, mp: dict, phases: list[dict],
                              if d.st_given.any() else ""))
     for k, v in opts.items():
         m[f"opt_{k}"] = str(v)
-    return T.README_SOLVER.substitute(m)
+    return _render("README_solver.md.j2", m)

@@ -63,7 +63,10 @@ class CResult:
     """What the compiled solver returned (values in mm / rad, as the C API).
 
     converged: every convergence check passed (see the export's README); status, status_text:
-    the C status code and its text; phase, iterations; kkt: final KKT stationarity residual;
+    the C status code and its text (not converged: after the iteration limit, a failed line
+    search or a NaN after a finite iterate, the values are those of the best iterate, with
+    its own kkt, step and chi2_per_dof; NaN when nothing was computed, e.g. for bad input);
+    phase, iterations; kkt: final KKT stationarity residual;
     kkt_rel: its relative form; step: final Gauss-Newton step (um / urad); constraint_violation;
     cost; chi2_per_dof; dof; theta (n_params,); stations (DataFrame station, x_mm, y_mm,
     z_mm, dead_length_mm); frame (6,); residual_mm, sigma_mm (N,); seconds: wall time of
