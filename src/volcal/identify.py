@@ -33,6 +33,7 @@ import pandas as pd
 
 from volcal.analysis import (FieldNullSpace, Identifiability, analyse_jacobian,
                              constrained_covariance, field_null_space, split_gauge)
+from volcal.analysis.identifiability import FieldSets
 from volcal.analysis.identifiability import rigid_columns
 from volcal.datum import condition_table, null_space, select_conditions
 from volcal.data import Measurements, load_measurements, load_stations
@@ -191,6 +192,20 @@ def declared_poses(spec: MachineSpec, n_poses: int = 256) -> np.ndarray:
     return lo + u * (hi - lo)
 
 
+def field_sets(machine: Machine, em: ErrorModel, theta: np.ndarray, q_meas: np.ndarray,
+               tools_meas: np.ndarray) -> FieldSets:
+    """The measured set (the data's poses and tool offsets) and the declared set (a Halton
+    sample of the travel at every measured tool offset) with their nominal points (mm) and
+    d(volumetric error)/d(theta) (see :class:`volcal.analysis.identifiability.FieldSets`)."""
+    q = declared_poses(machine.spec)
+    tools = np.unique(np.atleast_2d(np.asarray(tools_meas, float)), axis=0)
+    Q = np.repeat(q, len(tools), axis=0)
+    T = np.tile(tools, (len(q), 1))
+    p_d, _, G_d = field_jacobian(machine, em, theta, Q, T)
+    p_m, _, G_m = field_jacobian(machine, em, theta, q_meas, tools_meas)
+    return FieldSets(G_m, p_m, G_d, p_d)
+
+
 def rigid_fit(points: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Best-fit small rigid motion (a, w) with d ~ a + w x points, least squares.
     Returns (params (6,), residual d - fit). Multilateration cannot see this motion."""
@@ -284,23 +299,29 @@ class Identifier:
         return pr.datum_active
 
     def field_null_space(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray,
-                         tools: np.ndarray) -> tuple[FieldNullSpace, np.ndarray, np.ndarray]:
-        """How the null directions of the full Jacobian at x (no datum; ``fixed`` held) act
-        on the volumetric error over the declared set: a grid over the travel of every axis
-        at each of ``tools`` (K, 3) mm.  Returns (that, G, nominal points) of the set."""
-        _, J = self.jacobian(x, p)
-        free, d, N = null_space(J, fixed)
+                         q_meas: np.ndarray, tools_meas: np.ndarray
+                         ) -> tuple[FieldNullSpace, FieldSets]:
+        """How the null directions of the full Jacobian (no datum; ``fixed`` held) act on
+        the volumetric error.
+
+        The null space is taken at x with the error parameters at zero: there the
+        first-order and the exact model have the same Jacobian and the gauge of the model
+        is exact (at theta != 0 the first-order model represents a rigid motion of the
+        cloud only to first order, which turns exact null directions into weak ones).  The
+        measured set is the data's distinct (pose, tool offset) pairs q_meas (N, n_axes;
+        mm, rad), tools_meas (N, 3) mm; the declared set a Halton sample of the travel of
+        every axis at each measured tool offset."""
         pr = self.problem
         nt = pr.n_theta
+        x0 = np.array(x, float)
+        x0[:nt] = 0.0
+        _, J = self.jacobian(x0, p)
+        free, d, N = null_space(J, fixed)
         dirs = np.zeros((pr.n_x, N.shape[1]))
         dirs[free] = N * d[:, None]
         theta_dirs = dirs[:nt] * pr.scale[:nt, None]
-        q = declared_poses(self.machine.spec)
-        tools = np.unique(np.atleast_2d(np.asarray(tools, float)), axis=0)
-        Q = np.repeat(q, len(tools), axis=0)
-        T = np.tile(tools, (len(q), 1))
-        p0, _, G = field_jacobian(self.machine, self.error_model, x[:nt], Q, T)
-        return field_null_space(theta_dirs, G, p0), G, p0
+        sets = field_sets(self.machine, self.error_model, x[:nt], q_meas, tools_meas)
+        return field_null_space(theta_dirs, sets), sets
 
     def _scaled_constraints(self) -> np.ndarray:
         pr = self.problem
@@ -579,8 +600,10 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
     # travel at the measured tool offsets.
     base_fixed = fixed.copy()
     base_fixed[list(ident.pivots)] = False
-    null_field, G_decl, p_decl = ider.field_null_space(x, p, base_fixed, meas.tool)
-    split_gauge(ident, nt, G_decl, p_decl, pr.scale[:nt])
+    _, first = Layout.poses.fget(layout)  # one reading of every distinct pose
+    null_field, sets = ider.field_null_space(x, p, base_fixed, meas.q_internal[first],
+                                             meas.tool[first])
+    split_gauge(ident, nt, sets, pr.scale[:nt])
     # a parameter taking part in an unidentifiable direction has no value of its own: its
     # value depends on which variable was held (reported), so it gets no uncertainty
     identifiable = ~ident.unidentifiable[:nt]

@@ -222,20 +222,55 @@ def rigid_columns(points: np.ndarray) -> np.ndarray:
     return A
 
 
-#: a null direction is gauge when its volumetric field, after removing the best rigid
-#: motion, is below this fraction of the field itself
-GAUGE_TOL = 1e-4
+@dataclass
+class FieldSets:
+    """Where the volumetric error is looked at: the measured set (every distinct pose and
+    tool offset of the data) and the declared set (the travel of every axis at the
+    measured tool offsets).  G_*: (N, 3, n_theta) d(error)/d(theta) (mm per mm / rad);
+    p_*: (N, 3) nominal tool points (mm)."""
+
+    G_meas: np.ndarray
+    p_meas: np.ndarray
+    G_decl: np.ndarray
+    p_decl: np.ndarray
+
+
+#: a direction moves the error at a pose when it departs there from the rigid motion it
+#: makes at the measured poses by more than this fraction of its largest effect
+GAUGE_TOL = 1e-3
+#: a unit step (1 um or 1 urad) of a null direction that moves the error by less than this
+#: (mm) anywhere moves nothing (station and frame duplicates, rounding in theta)
+NIL_FIELD_MM = 1e-9
+
+
+def _rigid_reference(G_meas: np.ndarray, p_meas: np.ndarray, th: np.ndarray) -> np.ndarray:
+    """(6, k): the rigid motion each theta direction makes at the measured poses.  A null
+    direction of the data changes no reading, so at the measured poses its field is the
+    rigid motion the stations follow; that motion, not a fit over other poses, is the
+    reference for deciding what else it changes."""
+    F = np.einsum("nip,pk->nik", G_meas, th).reshape(-1, th.shape[1])
+    A = rigid_columns(p_meas)
+    return np.linalg.lstsq(A, F, rcond=None)[0]
+
+
+def _deviation(G: np.ndarray, points: np.ndarray, th: np.ndarray, rigid: np.ndarray
+               ) -> np.ndarray:
+    """(N, 3, k): field of each direction minus its measured-set rigid motion, mm."""
+    F = np.einsum("nip,pk->nik", G, th)
+    A = rigid_columns(points).reshape(len(G), 3, 6)
+    return F - np.einsum("nij,jk->nik", A, rigid)
 
 
 @dataclass
 class FieldNullSpace:
     """How the null directions of a fit act on the volumetric error (for ``predict``).
 
-    theta_dirs: (n_theta, k) the error-parameter part of an orthonormal basis of the null
-    space of the full Jacobian (mm, rad per unit step); rigid: (6, k) the best-fit rigid
-    motion of each direction's field over the declared set (mm, rad); field_scale: (k,) the
-    largest field change of each direction there (mm, > 0); n_gauge / n_unidentifiable: how
-    many independent directions only move the field rigidly / change it.
+    theta_dirs: (n_theta, k) the error-parameter part of a basis of the null space of the
+    full Jacobian (mm, rad per unit step); rigid: (6, k) the rigid motion each direction
+    makes at the measured poses (mm, rad); field_scale: (k,) its largest effect over the
+    measured and declared sets (mm; huge for directions that move nothing);
+    n_gauge / n_unidentifiable: how many independent directions move the error over the
+    declared set at most by that rigid motion / change it.
     """
 
     theta_dirs: np.ndarray
@@ -252,9 +287,7 @@ class FieldNullSpace:
         G = np.asarray(G, float)
         if self.theta_dirs.shape[1] == 0:
             return np.ones(len(G), bool)
-        F = np.einsum("nip,pk->nik", G, self.theta_dirs)          # (N, 3, k)
-        A = rigid_columns(points).reshape(len(G), 3, 6)
-        D = F - np.einsum("nij,jk->nik", A, self.rigid)
+        D = _deviation(G, points, self.theta_dirs, self.rigid)
         dev = np.max(np.abs(D) / self.field_scale[None, None, :], axis=(1, 2))
         return dev <= tol
 
@@ -272,37 +305,36 @@ class FieldNullSpace:
                    int(d["n_unidentifiable"]))
 
 
-def field_null_space(theta_dirs: np.ndarray, G: np.ndarray, points: np.ndarray,
-                     tol: float = GAUGE_TOL) -> FieldNullSpace:
+def field_null_space(theta_dirs: np.ndarray, sets: FieldSets, tol: float = GAUGE_TOL
+                     ) -> FieldNullSpace:
     """Classify null directions by their effect on the volumetric error.
 
-    theta_dirs: (n_theta, k) error-parameter part of null directions (mm, rad); G:
-    (N, 3, n_theta) d(error)/d(theta) over the declared set (a grid over the travel of every
-    axis at every tool offset of the data); points: (N, 3) nominal tool points there."""
-    theta_dirs = np.asarray(theta_dirs, float)
-    k = theta_dirs.shape[1]
-    F = np.einsum("nip,pk->nik", G, theta_dirs).reshape(-1, k)
-    A = rigid_columns(points)
-    rigid = np.linalg.lstsq(A, F, rcond=None)[0] if k else np.zeros((6, 0))
-    res = F - A @ rigid
-    scale = np.max(np.abs(F), axis=0) if k else np.zeros(0)
-    big = scale.max() if k else 0.0
-    # directions whose field is nil everywhere (station or frame duplicates): scale 1 so
-    # that they never flag anything
-    scale = np.where(scale > tol * max(big, 1e-300), scale, np.inf)
-    n_unid = 0
-    if k and big > 0:
-        sv = np.linalg.svd(res / np.where(np.isfinite(scale), scale, 1.0)[None, :],
-                           compute_uv=False)
-        n_unid = int(np.sum(sv > tol * np.sqrt(len(F))))
-    return FieldNullSpace(theta_dirs, rigid, np.where(np.isfinite(scale), scale, 1e300),
-                          k - n_unid, n_unid)
+    theta_dirs: (n_theta, k) error-parameter part of null directions (mm, rad); sets: the
+    measured and declared sets (:class:`FieldSets`)."""
+    th = np.asarray(theta_dirs, float)
+    k = th.shape[1]
+    if k == 0:
+        return FieldNullSpace(th, np.zeros((6, 0)), np.zeros(0), 0, 0)
+    rigid = _rigid_reference(sets.G_meas, sets.p_meas, th)
+    F_all = np.concatenate([np.einsum("nip,pk->nik", sets.G_meas, th).reshape(-1, k),
+                            np.einsum("nip,pk->nik", sets.G_decl, th).reshape(-1, k)])
+    scale = np.max(np.abs(F_all), axis=0)
+    # a direction (a unit step of its variables: 1 um or 1 urad) that moves the error by
+    # less than NIL_FIELD_MM anywhere moves nothing: it never flags a pose
+    scale = np.where(scale <= NIL_FIELD_MM, 1e300, scale)
+    D = _deviation(sets.G_decl, sets.p_decl, th, rigid).reshape(-1, k) / scale[None, :]
+    # singular values of the RMS deviation (per entry, as ``determined`` judges a pose)
+    sv = np.linalg.svd(D, compute_uv=False) / np.sqrt(len(D)) if D.size else np.zeros(0)
+    n_unid = int(np.sum(sv > tol))
+    return FieldNullSpace(th, rigid, scale, k - n_unid, n_unid)
 
 
-def split_gauge(ident: Identifiability, n_theta: int, G: np.ndarray, points: np.ndarray,
+def split_gauge(ident: Identifiability, n_theta: int, sets: FieldSets,
                 theta_scale: np.ndarray, tol: float = GAUGE_TOL) -> Identifiability:
     """Label each held combination of ``ident`` gauge or unidentifiable (in place; also
-    returned).  ``ident.unidentifiable`` is left as it is: a variable in a held direction of
+    returned) with the same rule as :func:`field_null_space`: unidentifiable when its
+    field over the declared set departs from the rigid motion it makes at the measured
+    poses.  ``ident.unidentifiable`` is left as it is: a variable in a held direction of
     either kind has no value of its own (it depends on which variable was held).
 
     n_theta: the error parameters are the first n_theta variables; theta_scale: physical
@@ -310,17 +342,9 @@ def split_gauge(ident: Identifiability, n_theta: int, G: np.ndarray, points: np.
     if ident.directions is None or not ident.combinations:
         ident.kinds = []
         return ident
-    kinds = []
-    A = rigid_columns(points)
-    for j in range(len(ident.combinations)):
-        v = ident.directions[:, j]
-        th = v[:n_theta] * theta_scale
-        F = np.einsum("nip,p->ni", G, th).ravel()
-        big = np.max(np.abs(F)) if len(F) else 0.0
-        res = F - A @ np.linalg.lstsq(A, F, rcond=None)[0] if big > 0 else F
-        # a unit step of the pivot (1 um or 1 urad) that moves the field by less than
-        # 1e-6 um moves nothing: station/frame duplicates with rounding in theta
-        gauge = big < 1e-9 or np.max(np.abs(res)) <= tol * big
-        kinds.append("gauge" if gauge else "unidentifiable")
-    ident.kinds = kinds
+    th = ident.directions[:n_theta] * np.asarray(theta_scale, float)[:, None]
+    fns = field_null_space(th, sets, tol)
+    D = _deviation(sets.G_decl, sets.p_decl, th, fns.rigid)
+    dev = np.max(np.abs(D), axis=(0, 1)) / fns.field_scale
+    ident.kinds = ["unidentifiable" if v > tol else "gauge" for v in dev]
     return ident
