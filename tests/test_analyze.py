@@ -130,7 +130,9 @@ def test_analyze_command(tmp_path, capsys):
     ns = pd.read_csv(out / "null_space.csv")
     assert set(ns["kind"]) == {"gauge", "error"}
     # a second run replaces the previous analysis; a foreign folder is refused
-    assert main(["analyze", "--example", "mcv754", "--no-plots", "--out", str(out)]) == 0
+    assert main(["analyze", "--example", "mcv754", "--no-plots", "--out", str(out)]) == 2
+    assert main(["analyze", "--example", "mcv754", "--no-plots", "--out", str(out),
+                 "--force"]) == 0
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "keep.txt").write_text("x")
     assert main(["analyze", "--example", "mcv754", "--out", str(tmp_path / "other")]) == 2

@@ -384,8 +384,11 @@ def test_stations_not_described_when_required(tmp_path, spec3):
     err = error_of(write(tmp_path, df), spec3, stations=st_path, require_station_positions=True)
     msg = assert_where(err, "meas.csv", 26, "station")
     assert "station 'S3'" in msg and "describes: S1, S2, S4" in msg
-    # not required: the same tables load
-    m = quiet_load(df, spec3, stations=st_path)
+    # not required: the same tables load, with warnings naming the ids that do not match
+    with pytest.warns(DataWarning) as rec:
+        m = load_measurements(df, spec3, stations=st_path)
+    text = " | ".join(str(w.message) for w in rec)
+    assert "'S3'" in text and "not described in the stations table" in text
     assert list(m.stations["station"]) == ["S1", "S2", "S4"]
     # required but no table at all
     err = error_of(df, spec3, require_station_positions=True)

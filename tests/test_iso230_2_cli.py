@@ -14,11 +14,15 @@ from volcal.iso230_2.cli import add_parser
 
 
 def run_cli(argv):
+    """The command as `volcal` runs it (``--force`` as the command line's output policy)."""
+    from volcal.outputs import output_policy
+    force = "--force" in argv
     parser = argparse.ArgumentParser(prog="volcal")
     parser.add_argument("-q", "--quiet", action="store_true")
     add_parser(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(argv)
-    return args.func(args)
+    args = parser.parse_args([a for a in argv if a != "--force"])
+    with output_policy(force):
+        return args.func(args)
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +36,7 @@ def example_out(tmp_path_factory):
 def test_cli_writes_every_file_and_prints_where(tmp_path, capsys):
     out = tmp_path / "r"
     assert run_cli(["iso230-2", "--example", "--out", str(out)]) == 0
-    assert sorted(p.name for p in out.iterdir()) == sorted(OUTPUT_FILES)
+    assert sorted(p.name for p in out.iterdir()) == sorted([*OUTPUT_FILES, "manifest.json"])
     printed = capsys.readouterr().out
     assert str(out) in printed and "E = " in printed
     assert (out / "iso230_2.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -140,7 +144,9 @@ def test_earlier_result_is_replaced_and_input_not_modified(tmp_path):
     digest = hashlib.sha256(data.read_bytes()).hexdigest()
     out = tmp_path / "res"
     assert run_cli(["iso230-2", str(data), "--out", str(out), "--degree", "2"]) == 0
-    assert run_cli(["iso230-2", str(data), "--out", str(out), "--degree", "3"]) == 0
+    with pytest.raises(InputError, match="--force"):
+        run_cli(["iso230-2", str(data), "--out", str(out), "--degree", "3"])
+    assert run_cli(["iso230-2", str(data), "--out", str(out), "--degree", "3", "--force"]) == 0
     poly = pd.read_csv(out / "polynomial.csv")
     assert set(poly["coefficient"]) == {"a0", "a1", "a2", "a3"}
     assert hashlib.sha256(data.read_bytes()).hexdigest() == digest
@@ -173,7 +179,7 @@ def test_plane_cli(tmp_path):
                     "--spacing-mm", "100"]) == 0
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(["plane_parameters.csv", "plane_polynomial.csv", "plane_grid.csv",
-                            "plane_means.csv", "report.md", "plane.png"])
+                            "plane_means.csv", "report.md", "plane.png", "manifest.json"])
     grid = pd.read_csv(out / "plane_grid.csv")
     assert len(grid) == 7 * 5
     np.testing.assert_array_equal(grid["correction_um"], -grid["deviation_um"])

@@ -214,7 +214,8 @@ def test_mc_command_writes_results_and_resumes(tmp_path, capsys):
     assert summ["trials"] == 300 and summ["not_converged"] == 0
     assert summ["verify_against_ipopt"]["theta_rel"] < 1e-9
     first = pd.read_csv(out / "parameters.csv")
-    assert main(argv) == 0
+    assert main(argv) == 2          # an earlier run is replaced only with --force
+    assert main(argv + ["--force"]) == 0
     assert "3 chunk(s) resumed" in capsys.readouterr().out
     pd.testing.assert_frame_equal(first, pd.read_csv(out / "parameters.csv"))
     assert main(["mc", "--model", "mcv754_wxyzt", "--out", str(out)]) == 2

@@ -348,7 +348,7 @@ def test_example_matches_paper000(mcv):
 def test_save_and_reload(tmp_path, mcv):
     sim = mcv.simulate(2)
     out = save_simulation(sim, tmp_path / "sim")
-    assert sorted(p.name for p in out.iterdir()) == sorted(SIMULATION_FILES)
+    assert sorted(p.name for p in out.iterdir()) == sorted([*SIMULATION_FILES, "manifest.json"])
     assert [p.name for p in tmp_path.iterdir()] == ["sim"]  # no temporary folder left
     theta = load_true_parameters(out / "true_parameters.csv", mcv.error_model)
     np.testing.assert_allclose(theta, sim.theta, rtol=1e-14, atol=1e-20)
@@ -452,7 +452,7 @@ def only_simulate(monkeypatch):
 def test_cli_example(tmp_path, only_simulate, capsys):
     out = tmp_path / "sim"
     assert cli.main(["simulate", "--example", "mcv754", "--seed", "5", "--out", str(out)]) == 0
-    assert sorted(p.name for p in out.iterdir()) == sorted(SIMULATION_FILES)
+    assert sorted(p.name for p in out.iterdir()) == sorted([*SIMULATION_FILES, "manifest.json"])
     assert "wrote" in capsys.readouterr().out
     ex = example("mcv754")
     m = pd.read_csv(out / "measurements.csv", dtype={"station": str, "point": str})

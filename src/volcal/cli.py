@@ -24,6 +24,7 @@ _COMMANDS = [
     "volcal.commands.codegen",
     "volcal.commands.analyze",
     "volcal.commands.mc",
+    "volcal.commands.compensate",
 ]
 
 
@@ -54,7 +55,37 @@ def build_parser() -> argparse.ArgumentParser:
                          help="print only errors")
         cmd.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS,
                          help="more output (repeat for debug output)")
+        if "--force" not in cmd._option_string_actions:
+            cmd.add_argument("--force", action="store_true", default=False,
+                             help="replace an earlier output of this command in the output "
+                                  "folder (never an input or a folder volcal did not write)")
     return parser
+
+
+_SIGNALLED = False
+
+
+def _terminate(signum, frame):  # pragma: no cover - exercised through a subprocess
+    # SIGTERM takes the same path as Ctrl-C: finally blocks remove temporary folders and
+    # stop worker processes
+    global _SIGNALLED
+    _SIGNALLED = True
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def _exit_soon(code: int, seconds: float = 10.0) -> None:  # pragma: no cover - subprocess
+    """After a signal, the process must end even if a library's exit handler waits on a
+    worker that was stopped mid-task: a daemon thread ends it after ``seconds``."""
+    import os
+    import threading
+    import time
+
+    def later() -> None:
+        time.sleep(seconds)
+        sys.stderr.flush()
+        os._exit(code)
+
+    threading.Thread(target=later, daemon=True).start()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -69,8 +100,20 @@ def main(argv: list[str] | None = None) -> int:
     # small dense problems: one BLAS thread is much faster than a contended pool
     from volcal.threads import set_blas_threads
     set_blas_threads(1)
+    import signal
+    import threading
+
+    from volcal.outputs import output_policy
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminate)
+        prev_int = signal.getsignal(signal.SIGINT)
+        if prev_int is signal.default_int_handler:
+            signal.signal(signal.SIGINT, _terminate)
+    else:  # pragma: no cover
+        previous = prev_int = None
     try:
-        return int(args.func(args) or 0)
+        with output_policy(bool(getattr(args, "force", False))):
+            return int(args.func(args) or 0)
     except (UserError, InputError, FileNotFoundError) as exc:
         # Validation errors carry file/row/column in their message: no traceback.
         print(f"volcal {args.command}: error: {exc}", file=sys.stderr)
@@ -82,6 +125,23 @@ def main(argv: list[str] | None = None) -> int:
         # output piped into e.g. `head`, which closed early: not an error of ours
         sys.stderr.close()
         return 0
+    except OSError as exc:
+        # read-only folder, a file where a folder is expected, a full disk, ...
+        where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+        print(f"volcal {args.command}: error: {exc.strerror or exc}{where}; nothing was "
+              "written", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"volcal {args.command}: interrupted; no partial output was left behind",
+              file=sys.stderr)
+        if _SIGNALLED:
+            _exit_soon(130)
+        return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+        if prev_int is not None:
+            signal.signal(signal.SIGINT, prev_int)
 
 
 if __name__ == "__main__":  # pragma: no cover

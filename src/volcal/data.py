@@ -232,6 +232,26 @@ def _is_blank(v: Any) -> bool:
         return False
 
 
+_CONVERT_HINT = ("(convert it, e.g. pandas.read_csv(path, sep=';', decimal=',')"
+                 ".to_csv(new_path, index=False))")
+
+
+def _separator_hint(path: Path) -> str:
+    """A hint when the first line shows ';', tab or '|' separators (a spreadsheet's export
+    in a locale with decimal commas)."""
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
+            first = fh.readline()
+    except OSError:
+        return ""
+    for sep, name in ((";", "semicolons"), ("\t", "tabs"), ("|", "'|'")):
+        if first.count(sep) >= 1 and first.count(sep) >= first.count(","):
+            return (f"; the header is separated by {name}, and decimal commas would then split "
+                    "numbers: volcal reads comma-separated files with '.' as the decimal mark "
+                    + _CONVERT_HINT)
+    return ""
+
+
 def _read_raw(source: str | Path | pd.DataFrame, name: str | None, what: str) -> _Raw:
     if isinstance(source, pd.DataFrame):
         label = name if name is not None else DATAFRAME_NAME
@@ -257,7 +277,7 @@ def _read_raw(source: str | Path | pd.DataFrame, name: str | None, what: str) ->
                          row=1) from None
     except pd.errors.ParserError as exc:
         m = re.search(r"line (\d+)", str(exc))
-        raise InputError(f"cannot parse as CSV: {exc}", source=label,
+        raise InputError(f"cannot parse as CSV: {exc}{_separator_hint(path)}", source=label,
                          row=int(m.group(1)) if m else None) from None
     except UnicodeDecodeError as exc:
         raise InputError(f"not UTF-8 text: {exc}", source=label) from None
@@ -279,7 +299,8 @@ def _read_raw(source: str | Path | pd.DataFrame, name: str | None, what: str) ->
         body.columns = range(body.shape[1])
     if len(header_cells) == 1 and re.search(r"[;\t|]", header_cells[0]):
         raise InputError(f"the header {header_cells[0]!r} looks separated by ';', tab or '|'; "
-                         "volcal reads comma-separated files", source=label, row=1)
+                         "volcal reads comma-separated files with '.' as the decimal mark "
+                         f"{_CONVERT_HINT}", source=label, row=1)
     if body.shape[0] == 0:
         raise InputError(f"the {what} has a header but no data rows", source=label, row=2)
     return _Raw(label, header_cells, body, rows)
@@ -414,7 +435,10 @@ def _parse_float(values: pd.Series, rows: np.ndarray, column: str, unit: str, op
     bad = (~blank & np.isnan(num)) | bools
     num[bad] = np.nan
     _report(problems, rows, bad, column,
-            lambda k: f"expected a number ({unit}), got {_describe(vals[k])}")
+            lambda k: f"expected a number ({unit}), got {_describe(vals[k])}"
+            + (" (a decimal comma? volcal reads '.' as the decimal mark)"
+               if isinstance(vals[k], str) and re.fullmatch(r"\s*[-+]?\d+,\d+\s*", vals[k])
+               else ""))
     if not optional:
         _report(problems, rows, blank, column,
                 f"missing value (empty cell or NaN); expected a number ({unit})")
@@ -677,6 +701,7 @@ def load_measurements(source: str | Path | pd.DataFrame, spec: MachineSpec, *,
                 lambda k, qa=qa, lo=lo, hi=hi, tol=tol, a=a, unit=unit:
                 f"{a.name} = {qa[k]:g} {unit} is outside the travel [{lo:g}, {hi:g}] {unit} of "
                 f"axis {a.name} (tolerance {tol:g} {unit})")
+    _warn_radians(raw.name, spec, q_file, label)
     if "sigma" in pos:
         _report(problems, rows, sigma <= 0, label["sigma"],
                 lambda k: f"expected a positive standard uncertainty in mm, got {sigma[k]:g}")
@@ -726,6 +751,9 @@ def load_measurements(source: str | Path | pd.DataFrame, spec: MachineSpec, *,
                          f"{need} are needed to locate it (3 position coordinates and a dead "
                          "length)" if need == MIN_READINGS_PER_STATION else
                          f"station '{s}' has {counts[i]} reading(s); at least {need} needed")
+    if stations_df is not None:
+        _check_station_ids(raw.name, station_ids, first_row, stations_df, label["station"],
+                           problems)
     if require_station_positions:
         if stations_df is None:
             problems.add(None, label["station"], "station positions are required "
@@ -760,6 +788,61 @@ def load_measurements(source: str | Path | pd.DataFrame, spec: MachineSpec, *,
                         point_ids=point_ids, point_index=point_index, q_internal=q_internal,
                         tool=tool, length=length, sigma=sigma, time=time, rows=rows.copy(),
                         given_columns=given, stations=stations_df)
+
+
+def _warn_radians(name: str, spec: MachineSpec, q_file: np.ndarray,
+                  label: dict[str, str]) -> None:
+    """Rotary axis positions are in degrees: a column whose values all lie within +-2 pi,
+    spread over more than one unit and are not whole numbers, on an axis whose travel spans
+    180 deg or more, is most likely in radians."""
+    for j, a in enumerate(spec.axes):
+        if not a.is_rotary:
+            continue
+        v = q_file[:, j]
+        v = v[np.isfinite(v)]
+        lo, hi = a.travel
+        if (len(v) and hi - lo >= 180.0 and np.all(np.abs(v) <= 2 * np.pi + 1e-9)
+                and np.ptp(v) > 1.0 and not np.all(v == np.round(v))):
+            warnings.warn(f"{name}: column '{label[a.name]}' (rotary axis {a.name}) looks like "
+                          f"radians: every value lies within +-2 pi ({v.min():.4g} to "
+                          f"{v.max():.4g}) while the travel spans {lo:g} to {hi:g} deg; rotary "
+                          "axis positions are read in degrees", DataWarning, stacklevel=3)
+
+
+def _id_list(ids: Iterable[str], n: int = 8) -> str:
+    ids = [f"'{i}'" for i in ids]
+    return ", ".join(ids[:n]) + (f", ... ({len(ids)} in all)" if len(ids) > n else "")
+
+
+def _check_station_ids(name: str, station_ids: list[str], first_row: dict[str, int],
+                       stations_df: pd.DataFrame, column: str, problems: "_Problems") -> None:
+    """The stations table must describe the stations of the data: no common id at all is
+    an error (the table is for other data, or its ids are spelt differently); stations in
+    the table without readings, above all ones marked ``fixed``, and stations of the data
+    the table does not describe (they are then located from the data) are warnings."""
+    described = [str(s) for s in stations_df["station"]]
+    used = set(station_ids)
+    common = used.intersection(described)
+    if not common:
+        problems.add(first_row[station_ids[0]], column,
+                     f"no station of the data is described in the stations table: the data "
+                     f"use {_id_list(station_ids)}, the stations table describes "
+                     f"{_id_list(described)}; station ids must match exactly (as text)")
+        return
+    unknown = [s for s in described if s not in used]
+    if unknown:
+        fixed = set(stations_df.loc[stations_df["fixed"].astype(bool), "station"].astype(str))
+        held = [s for s in unknown if s in fixed]
+        warnings.warn(f"{name}: the stations table describes station(s) with no reading in "
+                      f"the data: {_id_list(unknown)}"
+                      + (f" (marked fixed: {_id_list(held)})" if held else "")
+                      + "; they are ignored", DataWarning, stacklevel=4)
+    missing = [s for s in station_ids if s not in common]
+    if missing:
+        warnings.warn(f"{name}: station(s) {_id_list(missing)} (first in row "
+                      f"{first_row[missing[0]]}) are not described in the stations table; "
+                      "their positions and dead lengths are estimated from the data",
+                      DataWarning, stacklevel=4)
 
 
 def _warn_geometry(name: str, spec: MachineSpec, station_ids: list[str],

@@ -104,7 +104,11 @@ class Machine:
         if funcs is None:
             funcs = _build_functions(spec)
             if use_cache:
-                _save(path, funcs)
+                try:
+                    _save(path, funcs)
+                except OSError as exc:  # a read-only or full cache costs speed, not the run
+                    log.warning("could not write the model cache entry %s: %s", path,
+                                exc.strerror or exc)
         return cls(spec, funcs, error_symbols(spec), time.perf_counter() - t0, from_cache)
 
     # ---- convenience -------------------------------------------------------------------
@@ -157,9 +161,13 @@ def _save(path: Path, funcs: dict[str, ca.Function]) -> None:
         ser.pack(funcs[name])
     # write-then-rename: a concurrent reader never sees a half-written entry
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(ser.encode())
-    os.replace(tmp, path)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(ser.encode())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def _load(path: Path) -> dict[str, ca.Function]:

@@ -463,8 +463,39 @@ def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
                     location, exclude, basis, error_basis)
 
 
+# limits checked when a model is loaded: a model beyond them is refused with a clear
+# InputError instead of exhausting the stack, the memory or the user's patience
+MAX_MODEL_BYTES = 1_000_000     # size of a model file
+MAX_NESTING = 8                 # tables / arrays inside each other (a model needs 4)
+MAX_AXES = 12                   # axes in the chain
+MAX_ERROR_SYMBOLS = 250         # error parameters of the chain (12 rotary axes: 133)
+
+
+def _nesting(doc: Any) -> int:
+    """Depth of nested tables and arrays (iterative: no recursion on hostile input)."""
+    deepest, stack = 0, [(doc, 0)]
+    while stack:
+        v, depth = stack.pop()
+        if isinstance(v, dict):
+            v = list(v.values())
+        elif not isinstance(v, list):
+            continue
+        depth += 1
+        deepest = max(deepest, depth)
+        if deepest > MAX_NESTING:
+            return deepest
+        stack.extend((x, depth) for x in v)
+    return deepest
+
+
 def machine_from_dict(d: dict[str, Any], where: str = "<model>") -> MachineSpec:
     """Validate a parsed model document and build its :class:`MachineSpec`."""
+    if not isinstance(d, dict):
+        raise InputError(f"expected a table (the model document), got {type(d).__name__}",
+                         source=where)
+    if _nesting(d) > MAX_NESTING:
+        raise InputError(f"tables or arrays are nested more than {MAX_NESTING} deep; a model "
+                         "needs [[axis]] tables with plain values", source=where)
     allowed = {"name", "description", "axis", "tool_errors"}
     unknown = set(d) - allowed
     if unknown:
@@ -482,6 +513,9 @@ def machine_from_dict(d: dict[str, Any], where: str = "<model>") -> MachineSpec:
     axes_raw = d.get("axis")
     if not isinstance(axes_raw, list) or not axes_raw:
         raise InputError("expected one or more [[axis]] tables", source=where, column="axis")
+    if len(axes_raw) > MAX_AXES:
+        raise InputError(f"{len(axes_raw)} axes; volcal models hold at most {MAX_AXES}",
+                         source=where, column="axis")
     axes = []
     for k, a in enumerate(axes_raw):
         if not isinstance(a, dict):
@@ -505,7 +539,12 @@ def machine_from_dict(d: dict[str, Any], where: str = "<model>") -> MachineSpec:
     if "T" in names:
         raise InputError("axis name 'T' is reserved for the tool's zero position and "
                          "orientation errors (EX0T ... EC0T)", source=where, column="axis.name")
-    return MachineSpec(d["name"], tuple(axes), desc, tool)
+    spec = MachineSpec(d["name"], tuple(axes), desc, tool)
+    n_err = len(error_symbols(spec))
+    if n_err > MAX_ERROR_SYMBOLS:
+        raise InputError(f"{n_err} error parameters; volcal models hold at most "
+                         f"{MAX_ERROR_SYMBOLS}", source=where, column="axis")
+    return spec
 
 
 def spec_to_dict(spec: MachineSpec) -> dict[str, Any]:
@@ -541,6 +580,13 @@ def load_model_file(path: str | Path) -> MachineSpec:
     """Parse and validate a model TOML file (never executes any of its content)."""
     path = Path(path)
     try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise InputError(f"cannot read model file: {exc.strerror}", source=str(path)) from None
+    if size > MAX_MODEL_BYTES:
+        raise InputError(f"the file has {size} bytes; a model file holds at most "
+                         f"{MAX_MODEL_BYTES} (is it a model?)", source=str(path))
+    try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise InputError(f"cannot read model file: {exc.strerror}", source=str(path)) from exc
@@ -550,7 +596,10 @@ def load_model_file(path: str | Path) -> MachineSpec:
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"not valid TOML: {exc}", source=str(path)) from exc
+        raise InputError(f"not valid TOML: {exc}", source=str(path)) from None
+    except RecursionError:
+        raise InputError(f"tables or arrays are nested too deeply (at most {MAX_NESTING})",
+                         source=str(path)) from None
     return machine_from_dict(doc, str(path))
 
 

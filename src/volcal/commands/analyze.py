@@ -77,7 +77,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--weak", type=int, default=8, metavar="K",
                    help="how many weakest directions to list (default 8)")
     p.add_argument("--out", type=Path, metavar="DIR",
-                   help="output folder for the report, CSV and plots (replaced if it holds "
+                   help="output folder for the report, CSV and plots (with --force, replaces "
                         "a previous analysis)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.set_defaults(func=run)
@@ -106,6 +106,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--scale-covariance needs --data (a plan has no residuals)",
                          source="--scale-covariance")
     tools = parse_tools(args.tools) if args.tools is not None else None
+    if args.out is not None:
+        # the output folder before any solving
+        from pathlib import Path
+
+        from volcal.analysis.report import ANALYSIS_FILES
+        from volcal.outputs import check_out_dir
+        check_out_dir(args.out, ANALYSIS_FILES, "an analysis", inputs=[
+            args.result, args.data, args.stations, args.model and Path(args.model),
+            args.budget and Path(args.budget),
+            args.plan and Path(args.plan)])
     if args.result is not None:
         return _run_result(args)
     ex = example(args.example) if args.example else None

@@ -34,6 +34,10 @@ class DemoSummary:
     n_readings: int
 
 
+DEMO_FILES = ("truth_comparison.csv",)
+DEMO_DIRS = ("simulation", "identification")
+
+
 def run_demo(out_dir: str | Path = "volcal-demo", *, seed: int | None = None,
              strategy: str = "joint", example_name: str = "mcv754",
              plots: bool = True) -> DemoSummary:
@@ -43,18 +47,19 @@ def run_demo(out_dir: str | Path = "volcal-demo", *, seed: int | None = None,
     from volcal.results import save_result
     from volcal.simulate import example, save_simulation
 
+    from volcal.outputs import check_out_dir, write_folder
+
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
+    # before any computing: the folder must be new, empty or an earlier demo
+    check_out_dir(out_dir, DEMO_FILES, "volcal demo", "truth_comparison.csv",
+                  allowed_dirs=DEMO_DIRS)
     ex = example(example_name)
     log.info("simulating %s (%s)", ex.name, ex.description)
     sim = ex.simulate(seed)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    save_simulation(sim, out_dir / "simulation")
     log.info("identifying %d readings (strategy %s)", len(sim.measurements), strategy)
     res = identify(ex.machine, sim.measurements, strategy=strategy, budget=ex.budget,
                    error_model=ex.error_model)
-    save_result(res, out_dir / "identification", data_name="simulation/measurements.csv",
-                plots=plots)
 
     # identification error against the simulated truth, on the workspace grid, tool 0;
     # the rigid motion between station and machine frame is invisible to any
@@ -77,7 +82,16 @@ def run_demo(out_dir: str | Path = "volcal-demo", *, seed: int | None = None,
     table[["dx_um", "dy_um", "dz_um"]] = pred[["dx_um", "dy_um", "dz_um"]].to_numpy()
     table[["err_dx_um", "err_dy_um", "err_dz_um"]] = diff_r
     table[["u_dx_um", "u_dy_um", "u_dz_um"]] = u
-    table.to_csv(out_dir / "truth_comparison.csv", index=False)
+
+    def writer(tmp: Path) -> None:
+        save_simulation(sim, tmp / "simulation", force=True)
+        save_result(res, tmp / "identification", data_name="simulation/measurements.csv",
+                    plots=plots, force=True)
+        table.to_csv(tmp / "truth_comparison.csv", index=False)
+
+    # one folder written as a whole: a demo interrupted while writing leaves nothing
+    write_folder(out_dir, DEMO_FILES, "volcal demo", writer, marker="truth_comparison.csv",
+                 allowed_dirs=DEMO_DIRS)
     names = np.asarray(res.error_model.param_names)[~res.identifiable].tolist()
     return DemoSummary(
         out_dir=out_dir.resolve(), status=res.status,

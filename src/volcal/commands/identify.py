@@ -9,7 +9,7 @@ summary.  When chi2/dof lies outside its 99.9 % interval (the model adequacy tes
 :mod:`volcal.analysis.adequacy`) a warning naming the likely cause goes to the terminal
 (stderr; silenced only by -q), as does a warning for data from a single station.  Exit codes: 0 success, 1 the solver did not converge, 2 bad input.  The input
 files are only read; the output folder is written atomically and replaces only a previous
-result folder.
+result folder, with --force.
 """
 from __future__ import annotations
 
@@ -85,7 +85,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--scale-covariance", action="store_true",
                    help="scale the covariance by the residual variance factor (chi2/dof)")
     p.add_argument("--out", required=True, type=Path, metavar="DIR",
-                   help="output folder (created; a previous result folder is replaced)")
+                   help="output folder (created; a previous result folder is replaced "
+                        "with --force)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.set_defaults(func=run)
     return p

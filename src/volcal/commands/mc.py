@@ -22,6 +22,32 @@ import argparse
 from pathlib import Path
 
 
+MC_FILES = ("parameters.csv", "error_motions.csv", "volumetric.csv", "comparison.csv",
+            "contributions.csv", "summary.json", "report.md", "volumetric_U.png",
+            "max_volumetric.png", "contributions.png")
+
+
+def _write(out_dir: Path, inputs, write) -> dict:
+    """The outputs through :func:`volcal.outputs.write_folder` (temporary folder, manifest,
+    rename); the resumable ``samples/`` chunks written during the run move in with them."""
+    import os
+
+    from volcal.outputs import write_folder
+
+    summary: dict = {}
+
+    def writer(tmp: Path) -> None:
+        summary.update(write(tmp))
+        # last, so that a failure above leaves the chunks where a rerun resumes them
+        samples = Path(out_dir) / "samples"
+        if samples.is_dir():
+            os.rename(samples, tmp / "samples")
+
+    write_folder(out_dir, MC_FILES, "volcal mc", writer, marker="summary.json",
+                 inputs=inputs, allowed_dirs=("samples",), force=True)
+    return summary
+
+
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "mc",
@@ -85,7 +111,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--eval-grid", type=int, default=5, metavar="N",
                    help="poses per axis of the workspace grid for volumetric errors")
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
-                   help="output folder (samples kept there: rerun to resume)")
+                   help="output folder (samples kept there: rerun an interrupted run to "
+                        "resume it; a finished run is replaced with --force)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -118,6 +145,13 @@ def run(args: argparse.Namespace) -> int:
         if not args.reference.is_file():
             raise InputError("no such file", source=str(args.reference))
         reference = pd.read_csv(args.reference)
+    # fail before any solving: the output folder must be writable without touching an input
+    from volcal.outputs import check_out_dir
+    inputs = (args.result, args.data, args.stations, args.reference,
+              Path(args.budget) if args.budget else None,
+              Path(args.model) if args.model else None)
+    check_out_dir(args.out, MC_FILES, "volcal mc", "summary.json", inputs=inputs,
+                  allowed_dirs=("samples",))
     ex = example(args.example) if args.example else None
     strategy = args.strategy
     if args.result is not None:
@@ -162,9 +196,9 @@ def run(args: argparse.Namespace) -> int:
                                     "chi2_per_dof": res.conditions.get("chi2_per_dof"),
                                     "residual_rms_um": res.residual_rms_um},
                  "verify_against_ipopt": out["verify"]}
-        summary = write_mc_outputs(args.out, mc, em, contributions=out["contributions"],
-                                   reference=reference, quantities=quantities,
-                                   plots=not args.no_plots, extra=extra)
+        summary = _write(args.out, inputs, lambda tmp: write_mc_outputs(
+            tmp, mc, em, contributions=out["contributions"], reference=reference,
+            quantities=quantities, plots=not args.no_plots, extra=extra))
     if not getattr(args, "quiet", False):
         mv, ag = summary["max_volumetric"], summary["agreement_with_linearised"]
         print(f"volcal mc: {summary['trials']} trials ({summary['mode']}), seed "

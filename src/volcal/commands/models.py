@@ -14,6 +14,8 @@ from dataclasses import dataclass
 from volcal.spec import AXIS_LETTERS, AxisSpec, ErrorSymbol, MachineSpec, error_symbols
 
 _SECTIONS = ("axes", "errors", "volumetric")
+# the written-out first-order formula doubles in size with every rotary axis
+MAX_WRITTEN_ROTARY = 4
 _COMPONENTS = ("dx", "dy", "dz")
 _COMPONENT_TEXT = {"dx": "Δx", "dy": "Δy", "dz": "Δz"}
 
@@ -226,6 +228,19 @@ def run_show(args) -> int:
     err_header = ["name", "axis", "kind", "quantity", "unit", "report_unit", "meaning"]
     vol_header = ["component", "error", "error_unit", "coefficient"]
     terms = silent = None
+    n_rot = sum(a.is_rotary for a in spec.axes)
+    too_big = None
+    if "volumetric" in sections and n_rot > MAX_WRITTEN_ROTARY:
+        # each rotary axis doubles the terms of the expanded formula: 4 rotary axes take
+        # seconds, 6 a quarter of a minute, 12 hours; the model itself builds in linear time
+        too_big = (f"the first-order volumetric error is not written out: written out in "
+                   f"full it has about 2^{n_rot} terms per error parameter ({n_rot} rotary "
+                   f"axes; at most {MAX_WRITTEN_ROTARY} are written out); volcal builds and "
+                   "uses the model without it")
+        if args.section == "volumetric":
+            from volcal.exceptions import InputError
+            raise InputError(too_big, source=str(args.model))
+        sections = tuple(x for x in sections if x != "volumetric")
     if "volumetric" in sections:
         terms, silent = volumetric_terms(spec)
 
@@ -242,6 +257,8 @@ def run_show(args) -> int:
             else:
                 _write_csv(vol_header, [[t.component, t.error, t.unit, t.coefficient]
                                         for t in terms])
+        if too_big:
+            print(f"\n# volumetric: {too_big}")
         return 0
 
     out = []
@@ -273,6 +290,8 @@ def run_show(args) -> int:
                 f"positions: {axes_legend}; tool offset tool_x, tool_y, tool_z (mm, tool "
                 "frame)", "",
                 volumetric_text(terms, silent), ""]
+    if too_big:
+        out += [too_big, ""]
     print("\n".join(out).rstrip())
     return 0
 

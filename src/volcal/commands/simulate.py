@@ -72,7 +72,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, required=True, metavar="N",
                    help="seed of the random numbers (same seed -> same data)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
-                   help="output folder (created; a previous simulation output is replaced)")
+                   help="output folder (created; a previous simulation is replaced with "
+                        "--force)")
     p.set_defaults(func=run)
     return p
 
@@ -128,6 +129,13 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--grid applies to --plan grid, lines or diagonals, not to a plan file",
                          source="--grid")
 
+    # the output folder before any model is built
+    from volcal.outputs import check_out_dir
+    from volcal.simulate import SIMULATION_FILES
+    check_out_dir(args.out, SIMULATION_FILES, "a simulation",
+                  inputs=[getattr(args, k, None) for k in ("plan", "true_parameters", "stations",
+                                                           "model", "budget")
+                          if isinstance(getattr(args, k, None), (str, Path))])
     ex = example(args.example) if args.example else None
     machine = ex.machine if ex else Machine.from_model(args.model)
     spec = machine.spec

@@ -79,6 +79,14 @@ def run(args) -> int:
         raise InputError("no data: give DATA.csv (or --example)", source="arguments")
     out = Path(args.out) if args.out else Path.cwd() / f"{Path(data).stem}_iso230_2"
     quiet = getattr(args, "quiet", False)
+    # the output folder before any computing
+    from volcal.outputs import check_out_dir
+    if args.plane:
+        from .plane import PLANE_FILES as _files
+    else:
+        from .report import OUTPUT_FILES as _files
+    check_out_dir(out, _files, "volcal iso230-2 --plane" if args.plane else "volcal iso230-2",
+                  inputs=[data])
 
     if args.plane:
         from .plane import evaluate_plane, write_plane_report

@@ -39,8 +39,37 @@ def _start_method() -> str:
     return "fork" if "fork" in mp.get_all_start_methods() else "spawn"
 
 
-def _init_worker(blob: bytes) -> None:
+def _watch_parent(parent: int) -> None:
+    """In a worker: end this process when its parent is gone (killed, even by SIGKILL)."""
+    import signal
+    import threading
+    import time
+
+    # Ctrl-C reaches the whole process group: the parent handles it and stops the pool
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:  # Linux: the kernel sends SIGTERM when the parent exits
+        import ctypes
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except Exception:  # pragma: no cover - not Linux
+        pass
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(1)
+
+    def watch() -> None:
+        while True:
+            time.sleep(0.5)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="volcal-parent-watch", daemon=True).start()
+
+
+def _init_worker(blob: bytes, parent: int | None = None) -> None:
     global _KERNEL
+    if parent is not None:
+        _watch_parent(parent)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from volcal.threads import set_blas_threads
     set_blas_threads(1)
@@ -88,18 +117,31 @@ def run_chunks(kernel, chunks: Iterable, *, workers: int | None = None,
     os.environ["OPENBLAS_NUM_THREADS"] = "1"
     try:
         pool = ProcessPoolExecutor(max_workers=min(n, len(chunks)), mp_context=ctx,
-                                   initializer=_init_worker, initargs=(blob,))
+                                   initializer=_init_worker, initargs=(blob, os.getpid()))
     finally:
         if old is None:
             os.environ.pop("OPENBLAS_NUM_THREADS", None)
         else:
             os.environ["OPENBLAS_NUM_THREADS"] = old
+    done = False
     try:
         futs = [pool.submit(_run_local, c) for c in chunks]
         for f in as_completed(futs):
             yield f.result()
+        done = True
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        if not done:
+            # Ctrl-C, SIGTERM (raised as KeyboardInterrupt by the command line), an error or
+            # an abandoned generator: stop the workers now, not after their running chunks
+            procs = list((getattr(pool, "_processes", None) or {}).values())
+            for proc in procs:
+                if proc.is_alive():
+                    proc.terminate()
+            pool.shutdown(wait=False, cancel_futures=True)
+            for proc in procs:
+                proc.join(timeout=5)
+        else:
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _run_dask(kernel, chunks, scheduler):
