@@ -523,3 +523,21 @@ def test_fuzz_model_files(tmp_path, data, capsys):
     if code == 2:
         assert str(f) in err and "Traceback" not in err
     assert f.read_bytes() == content
+
+
+def test_codegen_output_is_guarded(tmp_path, capsys):
+    """The export folder is checked before anything is generated: a file, or a folder of
+    the user's files, gets exit 2 and stays as it was."""
+    from volcal.cli import main
+
+    user = tmp_path / "mine"
+    user.mkdir()
+    (user / "notes.txt").write_text("keep")
+    assert main(["codegen", "--model", "xfyz", "--model-only", "--out", str(user)]) == 2
+    assert (user / "notes.txt").read_text() == "keep" and len(list(user.iterdir())) == 1
+    f = tmp_path / "afile"
+    f.write_text("x")
+    assert main(["codegen", "--model", "xfyz", "--model-only", "--out", str(f)]) == 2
+    assert f.read_text() == "x"
+    err = capsys.readouterr().err
+    assert "not a volcal export" in err and "got a file" in err

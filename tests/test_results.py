@@ -375,6 +375,14 @@ def test_predict_cli_stdout_and_file(case, tmp_path, monkeypatch, capsys):
     np.testing.assert_allclose(written["dx_um"], exp["dx_um"], rtol=1e-12)
     assert file_hash(pts) == h_points and folder_hashes(out) == h_result
     assert sorted(p.name for p in v.parent.iterdir()) == ["v.csv"]
+    # an existing file is replaced only with --force
+    before = v.read_bytes()
+    assert run_cli(["predict", "--result", str(out), "--points", str(pts), "--out",
+                    str(v)], monkeypatch) == 2
+    assert v.read_bytes() == before
+    assert run_cli(["predict", "--result", str(out), "--points", str(pts), "--out", str(v),
+                    "--force"], monkeypatch) == 0
+    assert "u_dx_um" in pd.read_csv(v)
 
 
 def test_predict_cli_bad_input_exits_2(case, tmp_path, monkeypatch, capsys):

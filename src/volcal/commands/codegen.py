@@ -68,12 +68,31 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+def _check_out(args) -> None:
+    """The export folder, checked before anything is generated: never a file, never a
+    folder of other files (an export writes its own names into it), never the plan."""
+    from volcal.codegen.export import MANIFEST
+    from volcal.exceptions import InputError
+
+    out = args.out.resolve()
+    if out.exists() and not out.is_dir():
+        raise InputError("expected a folder for the export, got a file", source=str(out))
+    plan = getattr(args, "plan", None)
+    if plan is not None and Path(plan).resolve().parent == out:
+        raise InputError("the plan lies in the export folder, whose files an export "
+                         "replaces; choose another folder", source=str(out))
+    if out.is_dir() and any(out.iterdir()) and not (out / MANIFEST).is_file():
+        raise InputError("the folder holds files that are not a volcal export; choose a "
+                         "new or empty folder", source=str(out))
+
+
 def run(args: argparse.Namespace) -> int:
     from volcal.codegen import export_model, export_solver
     from volcal.exceptions import InputError
 
     if args.degree < 0:
         raise InputError(f"expected a degree >= 0, got {args.degree}", source="--degree")
+    _check_out(args)
     try:
         if args.model_only:
             if args.stations is not None:

@@ -73,6 +73,9 @@ def run(args: argparse.Namespace) -> int:
                              source="--out")
         if out.is_dir():
             raise InputError("expected a file name, got a folder", source="--out")
+        if out.exists() and not getattr(args, "force", False):
+            raise InputError("the file exists; choose another name or pass --force to "
+                             "replace it", source=str(out))
     log.info("loading %s", args.result)
     res = load_result(args.result)
     log.info("predicting at the poses of %s", args.points)
