@@ -494,7 +494,8 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
              scale_covariance: bool = False, station_method: str = "sqrt",
              point_method: str = "sqrt", verbose: bool = False,
              forms: dict[str, ErrorForm] | None = None, order_criterion: str = "bic",
-             cv_folds: int = 5, datum_mode: str = "minimal") -> IdentificationResult:
+             cv_folds: int = 5, datum_mode: str = "minimal",
+             progress: bool = False) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
     model: bundled model name, model file, spec or Machine; data: measurement table (CSV,
@@ -506,14 +507,16 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
 
     forms: error bases {error or axis name: ErrorForm} (:mod:`volcal.errors`);
     ``degree="auto"``: per-axis orders chosen by ``order_criterion`` (``"bic"`` or ``"cv"``
-    with ``cv_folds`` folds), see :mod:`volcal.order_selection`.
+    with ``cv_folds`` folds), see :mod:`volcal.order_selection` (``progress``: a progress
+    bar of its candidate fits on stderr; a single identification has none).
     """
     if degree == "auto":  # every other argument goes to each candidate fit
         opts = {k: v for k, v in locals().items() if k not in (
-            "model", "data", "stations", "degree", "order_criterion", "cv_folds")}
+            "model", "data", "stations", "degree", "order_criterion", "cv_folds",
+            "progress")}
         from volcal.order_selection import select_orders
         return select_orders(model, data, stations, criterion=order_criterion, folds=cv_folds,
-                             **opts)
+                             progress=progress, **opts)
     t_start = time.perf_counter()
     machine = model if isinstance(model, Machine) else Machine.from_model(model)
     spec = machine.spec

@@ -116,7 +116,8 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
                   candidates: Mapping[str, Iterable[int]] | None = None,
                   error_model: ErrorModel | None = None,
                   forms: Mapping[str, ErrorForm] | None = None, datum: str = "iso230",
-                  max_sweeps: int = 3, seed: int = 0, **identify_options: Any):
+                  max_sweeps: int = 3, seed: int = 0, progress: bool = False,
+                  **identify_options: Any):
     """Identify with per-axis orders chosen by ``criterion`` (module docstring).
 
     model, data, stations: as :func:`volcal.identify.identify`; criterion: ``"bic"`` or
@@ -124,7 +125,8 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
     of :data:`CANDIDATES`; error_model / forms / datum: the starting error model (kinds and
     starting orders; default Legendre degree 3, Fourier 3 on full-turn rotary axes, plus
     the model file's declarations); identify_options: passed to every fit (strategy,
-    budget, robust, ...).  Returns the :class:`~volcal.identify.IdentificationResult` of the
+    budget, robust, ...); progress: a progress bar of the candidate fits on stderr (their
+    number is not known in advance: the search stops when no order changes).  Returns the :class:`~volcal.identify.IdentificationResult` of the
     chosen orders with ``order_selection`` (DataFrame) set and a note.
     """
     from volcal.data import Measurements, load_measurements, load_stations
@@ -182,6 +184,8 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
 
     cache: dict[tuple, dict[str, Any]] = {}
     results: dict[tuple, Any] = {}
+    from tqdm import tqdm
+    bar = tqdm(desc="order selection", unit="fit", disable=not progress, leave=False)
 
     def fit(em: ErrorModel, m):
         return identify(machine, m, st_table, error_model=em, **identify_options)
@@ -226,6 +230,8 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
             row.update(value=math.inf, chi2=math.nan, k=0, n_readings=len(meas),
                        status=f"failed: {exc.status or exc}")
         log.info("order selection: %s -> %s %.6g", row["orders"], criterion, row["value"])
+        bar.update(1)
+        bar.set_postfix_str(row["orders"], refresh=False)
         cache[key] = row
         return row
 
@@ -263,6 +269,7 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
                                         "status"])
     table["chosen"] = table["orders"] == chosen_label
     res.order_selection = table
+    bar.close()
     n_fits = len(cache) * (k_folds if criterion == "cv" else 1) + (criterion == "cv")
     what = "BIC (chi2 + k ln N)" if criterion == "bic" else f"{k_folds}-fold cross-validation"
     res.notes.append(f"error-basis orders chosen per axis by {what}: "

@@ -143,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
                    robust=args.robust, reject_k=reject_k, exact=args.exact,
                    scale_covariance=args.scale_covariance,
                    station_method=args.station_method, point_method=args.point_method,
-                   verbose=getattr(args, "verbose", 0) > 1)
+                   verbose=getattr(args, "verbose", 0) > 1,
+                   progress=not getattr(args, "quiet", False))
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
     options = {"model": args.model, "strategy": args.strategy, "degree": degree,
                "basis": list(args.basis), "order_criterion": args.order_criterion,
