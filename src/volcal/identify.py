@@ -603,7 +603,7 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
     # travel at the measured tool offsets.
     base_fixed = fixed.copy()
     base_fixed[list(ident.pivots)] = False
-    _, first = Layout.poses.fget(layout)  # one reading of every distinct pose
+    _, first = layout.poses  # one reading of every distinct pose
     null_field, sets = ider.field_null_space(x, p, base_fixed, meas.q_internal[first],
                                              meas.tool[first])
     split_gauge(ident, nt, sets, pr.scale[:nt])

@@ -85,8 +85,6 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from volcal.analysis.report import analyze_data, analyze_plan
     from volcal.commands.simulate import _DEFAULT_TOOLS, _grid_counts
     from volcal.errors import ErrorForm, ErrorModel

@@ -249,6 +249,19 @@ def rms_um(v_mm: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(np.asarray(v_mm) ** 2, axis=1)))) * 1e3
 
 
+def table_residuals(fld: ErrorField, tables, ctx: "Context"
+                    ) -> tuple[float, list[tuple[float, np.ndarray]]]:
+    """What 1-D tables leave: (RMS um at the tables' tool offset, [(RMS um, tool offset)]
+    at every other tool offset of the plan), over the check poses."""
+    from volcal.compensation.grid import correction_residual
+
+    q = check_poses(fld)
+    at_table = rms_um(correction_residual(fld, tables, q, ctx.table_tool))
+    others = [(rms_um(correction_residual(fld, tables, q, t)), t) for t in ctx.tools
+              if np.abs(t - ctx.table_tool).max() > 1e-9]
+    return at_table, others
+
+
 def _builder(fmt: str):
     from importlib import import_module
     return import_module(f"volcal.compensation.{fmt}").build

@@ -51,7 +51,7 @@ import numpy as np
 
 from volcal.exceptions import InputError
 
-from . import Built, Context, check_poses, render_template, rms_um
+from . import Built, Context, render_template, table_residuals
 from .grid import (AxisTable, check_limit, correction_residual, correction_spacing,
                    correction_targets, fit_tables, uniform_nodes, workspace_sample)
 
@@ -251,10 +251,7 @@ def build(ctx: Context) -> Built:
     def residual(q, t):
         return correction_residual(fld, tables, q, t)
 
-    q_chk = check_poses(fld)
-    at_table = rms_um(residual(q_chk, ctx.table_tool))
-    others = [(rms_um(residual(q_chk, t)), t) for t in ctx.tools
-              if np.abs(t - ctx.table_tool).max() > 1e-9]
+    at_table, others = table_residuals(fld, tables, ctx)
     not_carried = [
         f"what 1-D tables and products of two tables cannot represent (errors coupling more "
         f"than two axes, or two axes other than through a lever arm) and the interpolation: "
