@@ -375,6 +375,9 @@ class Identifier:
             if strategy == "two-phase":
                 f1 = user_fixed | self.is_theta | self.is_frame
                 x[self.is_theta | self.is_frame] = 0.0
+                # the error parameters are held at zero: no datum condition is needed (and
+                # rows on held variables only would over-determine the NLP for IPOPT)
+                self.problem.set_datum(np.zeros(len(self.problem.conditions), bool))
                 out1 = step(x, f1)
                 outcomes.append(out1)
                 x = out1.x
