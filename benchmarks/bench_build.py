@@ -3,10 +3,10 @@
 Every measurement runs in a fresh Python process, so that module imports are paid (and
 reported) separately:
 
-* cold: an empty cache folder; the process imports volcal.machine (CasADi, NumPy), then
+* cold: an empty cache folder; the process imports volcal.model.machine (CasADi, NumPy), then
   SymPy with volcal's symbolic layer and lowering, then calls ``Machine.from_model`` (SymPy
   chain + lowering to CasADi + function creation + writing the cache entry);
-* cached: the cache folder the cold run filled; the process imports volcal.machine and calls
+* cached: the cache folder the cold run filled; the process imports volcal.model.machine and calls
   ``Machine.from_model``, which must load the entry without importing SymPy.
 
 "process" is the wall time of the whole child process seen from the parent (interpreter
@@ -35,15 +35,15 @@ HERE = Path(__file__).resolve().parent
 CHILD = r"""
 import json, sys, time
 t0 = time.perf_counter()
-import volcal.machine
+import volcal.model.machine
 t1 = time.perf_counter()
 out = {"import_core": t1 - t0}
 if sys.argv[2] == "cold":
-    import sympy, volcal.symbolic, volcal.lowering
+    import sympy, volcal.model.symbolic, volcal.model.lowering
     t2 = time.perf_counter()
     out["import_sympy"] = t2 - t1
     t1 = t2
-m = volcal.machine.Machine.from_model(sys.argv[1])
+m = volcal.model.machine.Machine.from_model(sys.argv[1])
 t3 = time.perf_counter()
 out.update(build=t3 - t1, from_cache=m.from_cache, n_axes=m.n_axes, n_errors=m.n_errors,
            sympy_loaded="sympy" in sys.modules)
@@ -69,7 +69,7 @@ def stat(values: list[float]) -> str:
 
 
 def run(repeats: int) -> str:
-    from volcal.spec import bundled_models
+    from volcal.model.spec import bundled_models
 
     load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     rows = []
@@ -102,8 +102,8 @@ def run(repeats: int) -> str:
                 f"{'<' if bi < 2 else '>='} 2 s target; cached load {load:.3f} s "
                 f"{'<' if load < 0.5 else '>='} 0.5 s target")
 
-    header = ["model", "axes", "errors", "cold: import volcal.machine", "cold: import SymPy",
-              "cold: build", "cold: process", "cached: import volcal.machine",
+    header = ["model", "axes", "errors", "cold: import volcal.model.machine", "cold: import SymPy",
+              "cold: build", "cold: process", "cached: import volcal.model.machine",
               "cached: load", "cached: process"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]

@@ -36,13 +36,13 @@ import casadi as ca
 import numpy as np
 import pandas as pd
 
-from volcal.codegen import export_solver, load
-from volcal.data import load_measurements
-from volcal.errors import ErrorModel
-from volcal.identify import initial_stations, identify
-from volcal.machine import Machine
-from volcal.plans import default_stations, grid_plan
-from volcal.simulate import draw_true_parameters, example, simulate
+from volcal.outputs.codegen import export_solver, load
+from volcal.measurement.tables import load_measurements
+from volcal.model.errors import ErrorModel
+from volcal.analysis.identify import initial_stations, identify
+from volcal.model.machine import Machine
+from volcal.measurement.plans import default_stations, grid_plan
+from volcal.measurement.simulate import draw_true_parameters, example, simulate
 
 HERE = Path(__file__).parent
 TOOLS = np.array([[0, 0, 0], [0, 0, -100.0], [80, 0, -100.0], [0, 80, -100.0]])
@@ -86,7 +86,7 @@ def bench(label, machine, df, repeat, workdir):
     t0 = time.perf_counter()
     res = identify(machine, df)
     row["identify_s"] = time.perf_counter() - t0
-    from volcal.codegen import define_solver
+    from volcal.outputs.codegen import define_solver
     dfn = define_solver(machine, df)
     ider, pr = dfn.identifier, dfn.problem
     meas = load_measurements(df, machine.spec)

@@ -18,9 +18,9 @@ from threadpoolctl import threadpool_limits
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_identify import simulated  # noqa: E402  (the tests' simulation setup)
 
-from volcal.data import load_measurements  # noqa: E402
-from volcal.identify import Identifier, initial_stations  # noqa: E402
-from volcal.problem import Layout  # noqa: E402
+from volcal.measurement.tables import load_measurements  # noqa: E402
+from volcal.analysis.identify import Identifier, initial_stations  # noqa: E402
+from volcal.problem.residuals import Layout  # noqa: E402
 
 
 def main() -> None:

@@ -24,13 +24,13 @@ import scipy.linalg as sla
 import scipy.optimize as so
 import scipy.sparse as sps
 
-from volcal.data import load_measurements
-from volcal.errors import ErrorModel
-from volcal.identify import Identifier, initial_stations
-from volcal.machine import Machine
-from volcal.plans import grid_plan
-from volcal.problem import Layout
-from volcal.simulate import example, simulate
+from volcal.measurement.tables import load_measurements
+from volcal.model.errors import ErrorModel
+from volcal.analysis.identify import Identifier, initial_stations
+from volcal.model.machine import Machine
+from volcal.measurement.plans import grid_plan
+from volcal.problem.residuals import Layout
+from volcal.measurement.simulate import example, simulate
 
 HERE = Path(__file__).parent
 
@@ -42,7 +42,7 @@ def make_data(n_points: int, seed: int = 0):
     # a grid with about n_poses poses over the example's travel, clear of the stations
     k = max(2, round((n_poses / 1.0) ** (1 / 3)))
     plan = grid_plan(ex.machine.spec, {"X": k + 1, "Y": k, "Z": k})
-    from volcal.simulate import _clear_plan
+    from volcal.measurement.simulate import _clear_plan
     plan = _clear_plan(ex.machine, plan, ex.tools, ex.stations, 50.0)
     sim = simulate(ex.machine, ex.error_model, ex.theta_true, ex.stations, plan, ex.tools,
                    ex.budget, seed)
@@ -105,10 +105,10 @@ t0 = time.perf_counter()
 import numpy as np, pandas as pd, scipy.optimize as so, scipy.linalg as sla, scipy.sparse as sps
 sys.path.insert(0, {bench!r})
 from bench_identify import setup, scipy_solve
-from volcal.simulate import example
+from volcal.measurement.simulate import example
 ex = example("mcv754")
-import volcal.simulate as s
-from volcal.data import load_measurements
+import volcal.measurement.simulate as s
+from volcal.measurement.tables import load_measurements
 df = pd.read_csv({data!r})
 class Sim: pass
 sim = Sim(); sim.measurements = df
@@ -123,7 +123,7 @@ def whole_process(sim, tmp: Path) -> tuple[float, float]:
     data = tmp / "measurements.csv"
     sim.measurements.to_csv(data, index=False)
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "volcal.cli", "-q", "identify", "--model",
+    subprocess.run([sys.executable, "-m", "volcal.cli.main", "-q", "identify", "--model",
                     "mcv754_wxyzt", "--data", str(data), "--out", str(tmp / "out"),
                     "--no-plots"], check=True)
     t_volcal = time.perf_counter() - t0
@@ -141,9 +141,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--no-process", action="store_true", help="skip the whole-process timing")
     args = ap.parse_args(argv)
-    # both sides on one BLAS thread, as the volcal command line runs (volcal.threads):
+    # both sides on one BLAS thread, as the volcal command line runs (volcal.base.threads):
     # threaded OpenBLAS is slower for these sizes on 2 cores, for scipy as for volcal
-    from volcal.threads import set_blas_threads
+    from volcal.base.threads import set_blas_threads
     set_blas_threads(1)
     rows = []
     for n in args.sizes:

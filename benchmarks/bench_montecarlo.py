@@ -47,9 +47,9 @@ def main(argv=None) -> int:
 
     import casadi as ca
 
-    from volcal.simulate import example
-    from volcal.threads import set_blas_threads
-    from volcal.uncertainty.montecarlo import monte_carlo, run_trials
+    from volcal.measurement.simulate import example
+    from volcal.base.threads import set_blas_threads
+    from volcal.analysis.uncertainty.montecarlo import monte_carlo, run_trials
 
     set_blas_threads(1)
     load0 = os.getloadavg()
@@ -115,7 +115,7 @@ def main(argv=None) -> int:
         return f, j
 
     pr = ider.problem
-    from volcal.uncertainty.engine import unpack_data
+    from volcal.analysis.uncertainty.engine import unpack_data
     qq, tool, _, w = unpack_data(pr.machine.n_axes, p)
 
     def casadi_fj(m):

@@ -22,8 +22,8 @@ import numpy as np
 import scipy
 from scipy.optimize import least_squares
 
-from volcal.data import load_stations
-from volcal.multilateration import multilaterate
+from volcal.measurement.tables import load_stations
+from volcal.measurement.multilateration import multilaterate
 
 # paper 000 Table 5 (the stations of the bundled example), mm
 STATIONS = load_stations(resources.files("volcal").joinpath("data", "mcv754_stations.csv")

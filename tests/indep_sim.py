@@ -2,7 +2,7 @@
 
 Written from the physics with numpy only: exact 4x4 homogeneous transforms and exact
 rotation matrices (Rodrigues' formula), no first-order truncation anywhere, and no use of
-volcal's model code (``volcal.symbolic``, ``machine``, ``errors``, ``simulate``, ``plans``).
+volcal's model code (``volcal.model.symbolic``, ``machine``, ``errors``, ``simulate``, ``plans``).
 The model files are read with :mod:`tomllib` for the travel, reference and centre of each
 axis only.  The truth it simulates is drawn from families that are *not* volcal's error
 bases and does not satisfy any datum convention.
@@ -38,7 +38,7 @@ Conventions (those of docs/conventions.md, restated here as this program impleme
   model uses Rx Ry Rz: the two differ at second order only.
 * Volumetric error = actual - nominal tool point, in the workpiece frame.
 * Units inside: mm and rad; rotary positions in deg in tables (``Geometry.to_internal``).
-* Readings: ``length = |station - actual point| - dead_length`` (volcal.data's meaning of
+* Readings: ``length = |station - actual point| - dead_length`` (volcal.measurement.tables's meaning of
   the dead length), stations fixed in the workpiece frame.
 
 Noise (paper 002, Table 1, read as volcal reads it: tabulated values in um, rectangular

@@ -16,14 +16,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-import volcal.cli
+import volcal.cli.main
 from volcal.analysis.adequacy import assess, assess_residuals, chi2_interval
-from volcal.errors import ErrorForm, ErrorModel
-from volcal.identify import identify
-from volcal.machine import Machine
-from volcal.plans import default_plan, default_stations, grid_plan, summary_grid
-from volcal.results import load_result, save_result, volumetric_grid_table
-from volcal.simulate import (draw_true_parameters, max_volumetric_error_um, parse_tools,
+from volcal.model.errors import ErrorForm, ErrorModel
+from volcal.analysis.identify import identify
+from volcal.model.machine import Machine
+from volcal.measurement.plans import default_plan, default_stations, grid_plan, summary_grid
+from volcal.outputs.results import load_result, save_result, volumetric_grid_table
+from volcal.measurement.simulate import (draw_true_parameters, max_volumetric_error_um, parse_tools,
                              simulate)
 
 TOOLS = np.array([[0, 0, 0], [0, 0, -100.0], [80, 0, -100.0], [0, 80, -100.0]])
@@ -186,13 +186,13 @@ def test_the_report_and_result_json_hold_the_verdict(xfyz, tmp_path):
 
 def test_identify_warns_on_the_terminal_when_the_model_does_not_fit(xfyz, tmp_path, caplog,
                                                                     capsys, monkeypatch):
-    monkeypatch.setattr(volcal.cli, "_COMMANDS", ["volcal.commands.identify"])
+    monkeypatch.setattr(volcal.cli.main, "_COMMANDS", ["volcal.cli.commands.identify"])
     meas = xfyz["sim"].measurements.copy()
     meas["sigma"] /= 3
     data = tmp_path / "m.csv"
     meas.to_csv(data, index=False)
     with caplog.at_level(logging.WARNING):
-        assert volcal.cli.main(["identify", "--model", "xfyz", "--data", str(data),
+        assert volcal.cli.main.main(["identify", "--model", "xfyz", "--data", str(data),
                                 "--degree", "2", "--no-plots",
                                 "--out", str(tmp_path / "r")]) == 0
     warns = [r for r in caplog.records if r.levelno == logging.WARNING
@@ -218,7 +218,7 @@ def test_the_5_axis_default_plan_identifies_everything_but_the_gauge(model):
     """The default plan (with `volcal simulate`'s default tool offsets and stations)
     leaves only the rigid motion between station frame and machine frame undetermined:
     no error parameter is unidentifiable."""
-    from volcal.analysis.report import analyze_plan
+    from volcal.outputs.analysis_report import analyze_plan
 
     machine = Machine.from_model(model)
     spec = machine.spec

@@ -8,13 +8,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal.analysis.report import analyze_plan, analyze_result
-from volcal.threads import blas_threads
+from volcal.outputs.analysis_report import analyze_plan, analyze_result
+from volcal.base.threads import blas_threads
 
 
 @pytest.fixture(scope="module")
 def ex():
-    from volcal.simulate import example
+    from volcal.measurement.simulate import example
     return example("mcv754")
 
 
@@ -80,7 +80,7 @@ def test_enough_offsets_identify_everything(ex):
 
 
 def test_too_few_positions_for_the_polynomial_degree(ex):
-    from volcal.plans import grid_plan
+    from volcal.measurement.plans import grid_plan
 
     plan = grid_plan(ex.machine.spec, {"X": 3, "Y": 5, "Z": 5})
     rep = _plan(ex, ex.tools, plan)
@@ -92,8 +92,8 @@ def test_too_few_positions_for_the_polynomial_degree(ex):
 
 
 def test_result_analysis_and_residual_scaling(ex):
-    from volcal.data import load_measurements
-    from volcal.identify import identify
+    from volcal.measurement.tables import load_measurements
+    from volcal.analysis.identify import identify
 
     sim = ex.simulate(3)
     meas = load_measurements(sim.measurements, ex.machine.spec)
@@ -113,7 +113,7 @@ def test_result_analysis_and_residual_scaling(ex):
 
 
 def test_analyze_command(tmp_path, capsys):
-    from volcal.cli import main
+    from volcal.cli.main import main
 
     out = tmp_path / "an"
     assert main(["analyze", "--example", "mcv754", "--tools", "0,0,0", "--out", str(out)]) == 0
@@ -139,8 +139,8 @@ def test_analyze_command(tmp_path, capsys):
 
 
 def test_analyze_a_result_folder(ex, tmp_path, capsys):
-    from volcal.cli import main
-    from volcal.simulate import save_simulation
+    from volcal.cli.main import main
+    from volcal.measurement.simulate import save_simulation
 
     save_simulation(ex.simulate(5), tmp_path / "sim")
     assert main(["identify", "--model", "mcv754_wxyzt", "--data",

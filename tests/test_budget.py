@@ -1,4 +1,4 @@
-"""Uncertainty budgets (volcal.uncertainty.budget): numbers, sampling, budget files."""
+"""Uncertainty budgets (volcal.measurement.budget): numbers, sampling, budget files."""
 from __future__ import annotations
 
 import math
@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from volcal.exceptions import InputError
-from volcal.spec import resolve_model
-from volcal.uncertainty import (PAPER001_DRIFT, Budget, DriftModel, Source, bundled_budgets,
+from volcal.base.exceptions import InputError
+from volcal.model.spec import resolve_model
+from volcal.measurement.budget import (PAPER001_DRIFT, Budget, DriftModel, Source, bundled_budgets,
                                 default_budget, load_budget)
 
 N = 100_000

@@ -11,9 +11,9 @@ import sys
 import numpy as np
 import pytest
 
-from volcal.cli import main
-from volcal.machine import Machine
-from volcal.spec import bundled_models
+from volcal.cli.main import main
+from volcal.model.machine import Machine
+from volcal.model.spec import bundled_models
 
 # independent counts: 6 component errors per axis; 3 squareness errors for three linear
 # axes; 4 location errors (2 offsets, 2 tilts) per rotary axis (ISO 230-7)
@@ -155,7 +155,7 @@ def test_show_bad_model_file(capsys, tmp_path):
 
 
 def test_models_listing_does_not_load_sympy():
-    code = ("import sys; from volcal.cli import main; rc = main(['models']); "
+    code = ("import sys; from volcal.cli.main import main; rc = main(['models']); "
             "assert rc == 0; assert 'sympy' not in sys.modules, 'sympy imported'")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr

@@ -12,10 +12,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal.codegen import export_model, export_solver, load
-from volcal.codegen.export import DEFAULT_OPTIONS
-from volcal.identify import identify
-from volcal.simulate import example
+from volcal.outputs.codegen import export_model, export_solver, load
+from volcal.outputs.codegen.export import DEFAULT_OPTIONS
+from volcal.analysis.identify import identify
+from volcal.measurement.simulate import example
 
 pytestmark = pytest.mark.skipif(shutil.which("gcc") is None or shutil.which("make") is None,
                                 reason="needs gcc and make")
@@ -324,10 +324,10 @@ def test_model_only_export(ex, tmp_path, python_result):
 
 
 def test_two_phase_strategy_agrees_with_tight_python(ex, data, tmp_path):
-    from volcal.codegen import define_solver
-    from volcal.data import load_measurements
-    from volcal.identify import initial_stations
-    from volcal.solve import NLPSolver
+    from volcal.outputs.codegen import define_solver
+    from volcal.measurement.tables import load_measurements
+    from volcal.analysis.identify import initial_stations
+    from volcal.solve.ipopt import NLPSolver
 
     df = data[0]
     info = export_solver(ex.model, df, tmp_path / "two", strategy="two-phase", cflags=CFLAGS)
@@ -350,7 +350,7 @@ def test_two_phase_strategy_agrees_with_tight_python(ex, data, tmp_path):
 
 
 def test_cli_codegen(exported, ex, data, capsys, tmp_path):
-    from volcal.cli import main
+    from volcal.cli.main import main
 
     plan = tmp_path / "plan.csv"
     data[0].to_csv(plan, index=False)

@@ -27,7 +27,7 @@ import pandas as pd
 import pytest
 
 from volcal import __version__
-from volcal.codegen import export_model, export_solver
+from volcal.outputs.codegen import export_model, export_solver
 
 GOLDEN = Path(__file__).parent / "golden" / "codegen"
 UPDATE = os.environ.get("VOLCAL_UPDATE_GOLDEN", "") not in ("", "0")
@@ -74,10 +74,10 @@ def measurements(tmp_path_factory):
     line)."""
     import numpy as np
 
-    from volcal.errors import ErrorForm, ErrorModel
-    from volcal.machine import Machine
-    from volcal.plans import default_stations, grid_plan
-    from volcal.simulate import draw_true_parameters, parse_tools, simulate
+    from volcal.model.errors import ErrorForm, ErrorModel
+    from volcal.model.machine import Machine
+    from volcal.measurement.plans import default_stations, grid_plan
+    from volcal.measurement.simulate import draw_true_parameters, parse_tools, simulate
 
     seed = 3
     machine = Machine.from_model("xfyz")

@@ -31,13 +31,13 @@ import indep_sim as ind
 import numpy as np
 import pytest
 
-from volcal.cli import main
-from volcal.compensation import LimitError, compensate
-from volcal.errors import ErrorModel
-from volcal.exceptions import InputError
-from volcal.identify import identify, predict_volumetric
-from volcal.machine import Machine
-from volcal.simulate import draw_true_parameters, example
+from volcal.cli.main import main
+from volcal.outputs.compensation import LimitError, compensate
+from volcal.model.errors import ErrorModel
+from volcal.base.exceptions import InputError
+from volcal.analysis.identify import identify, predict_volumetric
+from volcal.model.machine import Machine
+from volcal.measurement.simulate import draw_true_parameters, example
 
 TOOLS = np.array([[0, 0, 0], [0, 0, -100.0], [80, 0, -100.0], [0, 80, -100.0]])
 FIGURES: dict[str, str] = {}
@@ -570,7 +570,7 @@ def _tree_hash(folder: Path) -> str:
 
 
 def test_command_line(mcv, tmp_path, capsys):
-    from volcal.results import save_result
+    from volcal.outputs.results import save_result
     res_dir = save_result(mcv, tmp_path / "res", plots=False)
     before = _tree_hash(res_dir)
     out = tmp_path / "comp"

@@ -1,6 +1,6 @@
 """Coverage: volcal's 95 % intervals hold the truth about 95 % of the time.
 
-A small run of the check in :mod:`volcal.uncertainty.coverage` (the full run, 200
+A small run of the check in :mod:`volcal.analysis.uncertainty.coverage` (the full run, 200
 experiments, is ``studies/coverage/run.py``; its figures are in studies/coverage/README.md).
 Each experiment draws a new true error set and a new noise realisation of the bundled
 example, identifies it, and checks the linearised and Monte Carlo 95 % intervals of the
@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from volcal.uncertainty.coverage import CoverageSetup, run_coverage, summarise_coverage
+from volcal.analysis.uncertainty.coverage import CoverageSetup, run_coverage, summarise_coverage
 
 N_EXP = 30
 

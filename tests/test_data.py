@@ -1,4 +1,4 @@
-"""Loading and validation of measurement and stations tables (volcal.data)."""
+"""Loading and validation of measurement and stations tables (volcal.measurement.tables)."""
 from __future__ import annotations
 
 import re
@@ -8,10 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal.data import (MAX_LENGTH_MM, DataWarning, Measurements, load_measurements,
+from volcal.measurement.tables import (MAX_LENGTH_MM, DataWarning, Measurements, load_measurements,
                          load_stations)
-from volcal.exceptions import InputError
-from volcal.spec import resolve_model
+from volcal.base.exceptions import InputError
+from volcal.model.spec import resolve_model
 
 STATIONS = {"S1": (-300.0, -200.0, -400.0), "S2": (1000.0, -200.0, -350.0),
             "S3": (1000.0, 700.0, -450.0), "S4": (-300.0, 700.0, -300.0)}

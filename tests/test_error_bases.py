@@ -1,6 +1,6 @@
-"""Error bases (volcal.errors): Fourier for rotary axes, cubic B-splines, their declaration in
+"""Error bases (volcal.model.errors): Fourier for rotary axes, cubic B-splines, their declaration in
 model files, the API and the command line, the result round trip, and ``degree="auto"``
-(volcal.order_selection) on simulated data."""
+(volcal.analysis.order_selection) on simulated data."""
 from __future__ import annotations
 
 import warnings
@@ -10,9 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal.errors import ErrorForm, ErrorModel, bspline, fourier, parse_basis
-from volcal.exceptions import InputError
-from volcal.spec import (AxisSpec, MachineSpec, load_model_file, machine_from_dict,
+from volcal.model.errors import ErrorForm, ErrorModel, bspline, fourier, parse_basis
+from volcal.base.exceptions import InputError
+from volcal.model.spec import (AxisSpec, MachineSpec, load_model_file, machine_from_dict,
                          resolve_model, spec_to_dict)
 
 CXYZ = """
@@ -264,8 +264,8 @@ def test_spec_api_matches_files():
 
 
 def _simulate(machine, em, theta, plan, tools, seed=3, n_stations=4):
-    from volcal.plans import default_stations
-    from volcal.simulate import simulate
+    from volcal.measurement.plans import default_stations
+    from volcal.measurement.simulate import simulate
 
     stations = default_stations(machine.spec, n_stations, seed=seed, tools=tools)
     with warnings.catch_warnings():
@@ -275,11 +275,11 @@ def _simulate(machine, em, theta, plan, tools, seed=3, n_stations=4):
 
 @pytest.mark.filterwarnings("ignore:.*tool offset")
 def test_result_round_trip_with_fourier_and_bspline(tmp_path):
-    from volcal.identify import identify
-    from volcal.machine import Machine
-    from volcal.plans import grid_plan
-    from volcal.results import load_result, save_result
-    from volcal.simulate import draw_true_parameters
+    from volcal.analysis.identify import identify
+    from volcal.model.machine import Machine
+    from volcal.measurement.plans import grid_plan
+    from volcal.outputs.results import load_result, save_result
+    from volcal.measurement.simulate import draw_true_parameters
 
     spec = load(tmp_path, model_text(c_extra='basis = { kind = "fourier", degree = 2 }',
                                      x_extra='basis = { kind = "bspline", segments = 2 }'))
@@ -308,8 +308,8 @@ def test_result_round_trip_with_fourier_and_bspline(tmp_path):
 
 @pytest.fixture(scope="module")
 def xfyz_case():
-    from volcal.machine import Machine
-    from volcal.plans import grid_plan
+    from volcal.model.machine import Machine
+    from volcal.measurement.plans import grid_plan
 
     machine = Machine.from_model("xfyz")
     plan = grid_plan(machine.spec, {"X": 9, "Y": 2, "Z": 2})
@@ -319,7 +319,7 @@ def xfyz_case():
 def _truth(machine, high: bool) -> tuple[ErrorModel, np.ndarray]:
     """Linear error motions everywhere (a small, datum-consistent field); with ``high``
     also a 5th-order positioning and straightness error of X of several um."""
-    from volcal.simulate import draw_true_parameters
+    from volcal.measurement.simulate import draw_true_parameters
 
     em = ErrorModel(machine.spec, {"X": ErrorForm("poly", 5)}, default=ErrorForm("poly", 1))
     theta = draw_true_parameters(machine, em, np.random.default_rng(5), 20.0)
@@ -336,8 +336,8 @@ def _truth(machine, high: bool) -> tuple[ErrorModel, np.ndarray]:
 @pytest.mark.filterwarnings("ignore:.*tool offset")
 @pytest.mark.parametrize("high", [True, False])
 def test_degree_auto_follows_the_truth(xfyz_case, tmp_path, high):
-    from volcal.identify import identify
-    from volcal.results import save_result
+    from volcal.analysis.identify import identify
+    from volcal.outputs.results import save_result
 
     machine, plan = xfyz_case
     em_true, theta = _truth(machine, high)
@@ -366,9 +366,9 @@ def test_degree_auto_follows_the_truth(xfyz_case, tmp_path, high):
 
 @pytest.mark.filterwarnings("ignore:.*tool offset")
 def test_degree_auto_cross_validation(xfyz_case):
-    from volcal.order_selection import select_orders
+    from volcal.analysis.order_selection import select_orders
 
-    from volcal.plans import grid_plan
+    from volcal.measurement.plans import grid_plan
 
     machine, _ = xfyz_case
     em_true, theta = _truth(machine, True)
@@ -388,16 +388,16 @@ def test_degree_auto_cross_validation(xfyz_case):
 def test_cli_basis_and_degree_auto(xfyz_case, tmp_path, monkeypatch, capsys):
     import json
 
-    import volcal.cli
+    import volcal.cli.main
 
-    monkeypatch.setattr(volcal.cli, "_COMMANDS", ["volcal.commands.identify"])
+    monkeypatch.setattr(volcal.cli.main, "_COMMANDS", ["volcal.cli.commands.identify"])
     machine, plan = xfyz_case
     em_true, theta = _truth(machine, False)
     data = tmp_path / "m.csv"
     _simulate(machine, em_true, theta, plan, np.zeros((1, 3))).measurements.to_csv(
         data, index=False)
     out = tmp_path / "res"
-    code = volcal.cli.main(["identify", "--model", "xfyz", "--data", str(data), "--out",
+    code = volcal.cli.main.main(["identify", "--model", "xfyz", "--data", str(data), "--out",
                             str(out), "--no-plots", "--degree", "auto",
                             "--basis", "X=bspline:2", "--basis", "EXY=table:0,250,500"])
     assert code == 0, capsys.readouterr()
@@ -411,6 +411,6 @@ def test_cli_basis_and_degree_auto(xfyz_case, tmp_path, monkeypatch, capsys):
                          (["--degree", "three"], "--degree"),
                          (["--order-criterion", "cv"], "--degree auto"),
                          (["--basis", "Q=poly:2"], "unknown")):
-        code = volcal.cli.main(["identify", "--model", "xfyz", "--data", str(data), "--out",
+        code = volcal.cli.main.main(["identify", "--model", "xfyz", "--data", str(data), "--out",
                                 str(tmp_path / "bad"), "--no-plots", *argv])
         assert code == 2 and needle in capsys.readouterr().err, argv

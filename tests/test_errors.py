@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from numpy.polynomial import legendre as npleg
 
-from volcal.errors import ErrorForm, ErrorModel, legendre
-from volcal.exceptions import InputError
-from volcal.spec import resolve_model
+from volcal.model.errors import ErrorForm, ErrorModel, legendre
+from volcal.base.exceptions import InputError
+from volcal.model.spec import resolve_model
 
 
 @pytest.fixture(scope="module")

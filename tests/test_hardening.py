@@ -21,18 +21,18 @@ import numpy as np
 import pandas as pd
 import pytest
 
-import volcal.cli
-from volcal.data import DataWarning, load_measurements
-from volcal.exceptions import InputError
-from volcal.outputs import (MANIFEST, check_out_dir, folder_lock, output_policy,
+import volcal.cli.main
+from volcal.measurement.tables import DataWarning, load_measurements
+from volcal.base.exceptions import InputError
+from volcal.base.folders import (MANIFEST, check_out_dir, folder_lock, output_policy,
                             verify_manifest, write_folder)
-from volcal.spec import MAX_AXES, MAX_NESTING, load_model_file, resolve_model
+from volcal.model.spec import MAX_AXES, MAX_NESTING, load_model_file, resolve_model
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def main(argv):
-    return volcal.cli.main([str(a) for a in argv])
+    return volcal.cli.main.main([str(a) for a in argv])
 
 
 def digest(folder: Path) -> dict[str, str]:
@@ -155,7 +155,7 @@ def test_two_processes_writing_one_folder_and_sharing_the_cache(tmp_path):
     two did not overlap, the refusal of an existing output without --force)."""
     env = dict(os.environ, VOLCAL_CACHE_DIR=str(tmp_path / "cache"))
     out = tmp_path / "sim"
-    cmd = [sys.executable, "-m", "volcal.cli", "simulate", "--model", "trunnion_ac",
+    cmd = [sys.executable, "-m", "volcal.cli.main", "simulate", "--model", "trunnion_ac",
            "--grid", "3", "--seed", "1", "--out", str(out)]
     procs = [subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                               text=True) for _ in range(2)]
@@ -166,7 +166,7 @@ def test_two_processes_writing_one_folder_and_sharing_the_cache(tmp_path):
     assert ("another volcal process" in err or "--force" in err) and "Traceback" not in err
     verify_manifest(out, required=True)
     assert leftovers(tmp_path) == []
-    check = subprocess.run([sys.executable, "-c", "from volcal.machine import Machine; "
+    check = subprocess.run([sys.executable, "-c", "from volcal.model.machine import Machine; "
                             "print(Machine.from_model('trunnion_ac').from_cache)"],
                            env=env, capture_output=True, text=True)
     assert check.stdout.strip() == "True", check.stderr
@@ -313,7 +313,7 @@ def _alive(pid: int) -> bool:
 
 def _start_mc(tmp_path: Path):
     out = tmp_path / "mc"
-    p = subprocess.Popen([sys.executable, "-m", "volcal.cli", "mc", "--example", "mcv754",
+    p = subprocess.Popen([sys.executable, "-m", "volcal.cli.main", "mc", "--example", "mcv754",
                           "--trials", "100000", "--workers", "2", "--chunk-size", "50",
                           "--verify", "0", "--no-progress", "--no-plots", "--out", str(out)],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -374,7 +374,7 @@ def test_mc_workers_end_when_the_parent_is_killed(tmp_path):
 
 
 def test_radians_in_a_rotary_column_are_named():
-    from volcal.plans import grid_plan
+    from volcal.measurement.plans import grid_plan
     spec = resolve_model("trunnion_ac")
     plan = grid_plan(spec, 3)
     c_deg = np.linspace(-170, 170, len(plan))
@@ -479,7 +479,7 @@ _TABLE = None
 def _base_table() -> str:
     global _TABLE
     if _TABLE is None:
-        from volcal.plans import grid_plan
+        from volcal.measurement.plans import grid_plan
         spec = resolve_model("xfyz")
         plan = grid_plan(spec, 2)
         rows = [f"S{s},P{k},{r.X:g},{r.Y:g},{r.Z:g},0,0,-100,{1000 + 7 * k + s:.4f}"
@@ -501,7 +501,7 @@ def test_fuzz_measurement_tables(tmp_path, data):
         except InputError as exc:
             assert str(f) in str(exc)
         try:
-            from volcal.data import load_stations
+            from volcal.measurement.tables import load_stations
             load_stations(f)
         except InputError as exc:
             assert str(f) in str(exc)
@@ -528,7 +528,7 @@ def test_fuzz_model_files(tmp_path, data, capsys):
 def test_codegen_output_is_guarded(tmp_path, capsys):
     """The export folder is checked before anything is generated: a file, or a folder of
     the user's files, gets exit 2 and stays as it was."""
-    from volcal.cli import main
+    from volcal.cli.main import main
 
     user = tmp_path / "mine"
     user.mkdir()

@@ -25,9 +25,9 @@ import indep_sim as ind
 import numpy as np
 import pytest
 
-from volcal.errors import ErrorModel
-from volcal.identify import identify
-from volcal.machine import Machine
+from volcal.model.errors import ErrorModel
+from volcal.analysis.identify import identify
+from volcal.model.machine import Machine
 
 TOOLS = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0], [80.0, 0.0, 60.0], [0.0, 80.0, 60.0]])
 MODELS = ["mcv754_wxyzt", "trunnion_ac"]

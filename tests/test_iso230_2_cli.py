@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal.exceptions import InputError
+from volcal.base.exceptions import InputError
 from volcal.iso230_2 import OUTPUT_FILES, evaluate, example_path, write_report
 from volcal.iso230_2 import report as report_module
 from volcal.iso230_2.cli import add_parser
@@ -15,7 +15,7 @@ from volcal.iso230_2.cli import add_parser
 
 def run_cli(argv):
     """The command as `volcal` runs it (``--force`` as the command line's output policy)."""
-    from volcal.outputs import output_policy
+    from volcal.base.folders import output_policy
     force = "--force" in argv
     parser = argparse.ArgumentParser(prog="volcal")
     parser.add_argument("-q", "--quiet", action="store_true")
@@ -109,10 +109,10 @@ def test_bad_input_is_an_input_error_and_writes_nothing(tmp_path):
 
 
 def test_main_prints_the_error_and_exits_2(tmp_path, capsys, monkeypatch):
-    import volcal.cli
+    import volcal.cli.main
     # only this command: the others are written elsewhere and need not exist here
-    monkeypatch.setattr(volcal.cli, "_COMMANDS", ["volcal.iso230_2.cli"])
-    main = volcal.cli.main
+    monkeypatch.setattr(volcal.cli.main, "_COMMANDS", ["volcal.iso230_2.cli"])
+    main = volcal.cli.main.main
     data = tmp_path / "bad.csv"
     data.write_text("axis,target_mm,cycle,direction,deviation_um,actual_mm\nX,0,1,+,1,0\n")
     assert main(["iso230-2", str(data), "--out", str(tmp_path / "o")]) == 2

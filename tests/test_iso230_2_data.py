@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal.exceptions import InputError
+from volcal.base.exceptions import InputError
 from volcal.iso230_2 import evaluate, example_path, load_readings
 
 

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from volcal.exceptions import InputError
-from volcal.spec import bundled_models, load_model_file, resolve_model
+from volcal.base.exceptions import InputError
+from volcal.model.spec import bundled_models, load_model_file, resolve_model
 
 GOOD_AXES = """
 [[axis]]
@@ -148,7 +148,7 @@ def test_unknown_error_names(tmp_path, key, value, pattern):
 
 
 def test_error_selection_works(tmp_path):
-    from volcal.spec import error_symbols
+    from volcal.model.spec import error_symbols
     spec = load_model_file(write(tmp_path, model(GOOD_AXES + axis(
         errors='["EXZ", "EYZ", "EZZ"]', exclude='["EA0Z"]'))))
     names = [s.name for s in error_symbols(spec) if s.axis == "Z"]

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from volcal.machine import Machine
-from volcal.spec import bundled_models, resolve_model
+from volcal.model.machine import Machine
+from volcal.model.spec import bundled_models, resolve_model
 
 MODELS = sorted(bundled_models())
 ROOT = Path(__file__).resolve().parents[1]
@@ -92,7 +92,7 @@ def test_first_order_part_is_linear_in_errors(machines, name):
 
 @pytest.fixture(scope="module")
 def chains():
-    from volcal.symbolic import build_chain
+    from volcal.model.symbolic import build_chain
     return {name: build_chain(resolve_model(name)) for name in MODELS}
 
 

@@ -9,16 +9,16 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal.threads import blas_threads
-from volcal.uncertainty.evaluation import compare_with_reference, evaluation_factor
-from volcal.uncertainty.montecarlo import (contributions, monte_carlo, quantity_table,
+from volcal.base.threads import blas_threads
+from volcal.analysis.uncertainty.evaluation import compare_with_reference, evaluation_factor
+from volcal.analysis.uncertainty.montecarlo import (contributions, monte_carlo, quantity_table,
                                            run_trials, verify_against_ipopt)
 
 
 @pytest.fixture(scope="module")
 def example_mc():
     """The bundled example identified once, with a 2000-trial nonlinear Monte Carlo."""
-    from volcal.simulate import example
+    from volcal.measurement.simulate import example
 
     ex = example("mcv754")
     sim = ex.simulate()
@@ -195,7 +195,7 @@ def test_evaluation_factor():
 
 
 def test_mc_command_writes_results_and_resumes(tmp_path, capsys):
-    from volcal.cli import main
+    from volcal.cli.main import main
 
     out = tmp_path / "mc"
     ref = tmp_path / "ref.csv"
@@ -249,8 +249,8 @@ def test_drift_tool_and_station_inputs(example_mc):
     """Optional inputs: the budget's drift (one realisation per station over the time
     stamps), tool offset and fixed-station uncertainties: sampled, and their linearised
     covariance matches the Monte Carlo spread of the linear map."""
-    from volcal.uncertainty import PAPER001_DRIFT
-    from volcal.uncertainty.montecarlo import build_kernel
+    from volcal.measurement.budget import PAPER001_DRIFT
+    from volcal.analysis.uncertainty.montecarlo import build_kernel
 
     ex = example_mc["example"]
     ider, p = example_mc["identifier"], example_mc["p"]

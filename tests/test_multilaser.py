@@ -1,4 +1,4 @@
-"""Tests of volcal.multilaser (paper 001's three-laser instrument) and of the paper-001 study.
+"""Tests of volcal.analysis.multilaser (paper 001's three-laser instrument) and of the paper-001 study.
 
 Units: mm, rad; point errors in um.  The study is run in smoke mode (a few trials).
 """
@@ -15,7 +15,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from volcal import multilaser as ml
+from volcal.analysis import multilaser as ml
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "paper001"

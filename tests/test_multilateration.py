@@ -1,4 +1,4 @@
-"""Tests of volcal.multilateration on synthetic data with known truth (units: mm).
+"""Tests of volcal.measurement.multilateration on synthetic data with known truth (units: mm).
 
 Stations: the six LaserTRACER positions of paper 000 Table 5 (MCV 754), dead lengths of a few
 mm; points: a grid in the 754 x 500 x 550 mm working space with z in [-550, 0].
@@ -10,9 +10,9 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from volcal.data import load_stations
-from volcal.exceptions import InputError
-from volcal.multilateration import (
+from volcal.measurement.tables import load_stations
+from volcal.base.exceptions import InputError
+from volcal.measurement.multilateration import (
     calibrate_station,
     calibrate_stations,
     condition_numbers,

@@ -1,4 +1,4 @@
-"""The result folder of `volcal identify` (volcal.results), `volcal identify` and
+"""The result folder of `volcal identify` (volcal.outputs.results), `volcal identify` and
 `volcal predict`.
 
 One small simulated data set (model xfyz, Legendre degree 2, 4 x 3 x 3 poses, 4 tool
@@ -15,17 +15,17 @@ import numpy as np
 import pandas as pd
 import pytest
 
-import volcal.cli
-import volcal.results as results
-from volcal.errors import ErrorForm, ErrorModel
-from volcal.exceptions import InputError, SolverError
-from volcal.identify import IdentificationResult, identify
-from volcal.machine import Machine
-from volcal.plans import default_stations, grid_plan
-from volcal.results import (DATA_FILES, PLOT_FILES, RESULT_FILES, load_result, read_points,
+import volcal.cli.main
+import volcal.outputs.results as results
+from volcal.model.errors import ErrorForm, ErrorModel
+from volcal.base.exceptions import InputError, SolverError
+from volcal.analysis.identify import IdentificationResult, identify
+from volcal.model.machine import Machine
+from volcal.measurement.plans import default_stations, grid_plan
+from volcal.outputs.results import (DATA_FILES, PLOT_FILES, RESULT_FILES, load_result, read_points,
                             save_result)
-from volcal.simulate import draw_true_parameters, simulate
-from volcal.solve import SolveOutcome
+from volcal.measurement.simulate import draw_true_parameters, simulate
+from volcal.solve.ipopt import SolveOutcome
 
 TOOLS = np.array([[0, 0, 0], [0, 0, -100.0], [80, 0, -100.0], [0, 80, -100.0]])
 OUTLIER_INDEX = 37          # 0-based reading given a blunder in the robust CLI run
@@ -33,11 +33,11 @@ OUTLIER_MM = 0.05
 
 
 def run_cli(argv: list[str], monkeypatch) -> int:
-    """volcal.cli.main with only this file's commands registered (independent of the
+    """volcal.cli.main.main with only this file's commands registered (independent of the
     other commands' modules)."""
-    monkeypatch.setattr(volcal.cli, "_COMMANDS",
-                        ["volcal.commands.identify", "volcal.commands.predict"])
-    return volcal.cli.main(argv)
+    monkeypatch.setattr(volcal.cli.main, "_COMMANDS",
+                        ["volcal.cli.commands.identify", "volcal.cli.commands.predict"])
+    return volcal.cli.main.main(argv)
 
 
 def file_hash(path: Path) -> str:
@@ -458,13 +458,13 @@ def test_identify_cli_bad_input_and_options_exit_2(case, tmp_path, monkeypatch, 
 
 
 def test_identify_cli_solver_failure_exits_1(case, tmp_path, monkeypatch, capsys):
-    import volcal.identify
+    import volcal.analysis.identify
 
     def fail(*args, **kwargs):
         raise SolverError("identification (joint) did not converge",
                           status="Maximum_Iterations_Exceeded")
 
-    monkeypatch.setattr(volcal.identify, "identify", fail)
+    monkeypatch.setattr(volcal.analysis.identify, "identify", fail)
     out = tmp_path / "res"
     code = run_cli(["identify", "--model", "xfyz", "--data", str(case["data"]), "--out",
                     str(out)], monkeypatch)

@@ -9,7 +9,7 @@ import functools
 import indep_sim as ind
 import numpy as np
 
-from volcal.identify import identify
+from volcal.analysis.identify import identify
 
 MODEL = "mcv754_wxyzt"
 TOOLS = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0], [80.0, 0.0, 60.0]])

@@ -1,7 +1,7 @@
-"""The simulator (volcal.simulate), measurement plans (volcal.plans) and `volcal simulate`.
+"""The simulator (volcal.measurement.simulate), measurement plans (volcal.measurement.plans) and `volcal simulate`.
 
 The forward kinematics used as reference here is written from the conventions of
-volcal.symbolic.chain (docstring and _axis_factors) with plain numpy, independently of the
+volcal.model.symbolic.chain (docstring and _axis_factors) with plain numpy, independently of the
 SymPy/CasADi pipeline the simulator uses.
 """
 from __future__ import annotations
@@ -14,18 +14,18 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal import cli
-from volcal.data import DataWarning, load_measurements, load_stations
-from volcal.errors import ErrorModel
-from volcal.exceptions import InputError
-from volcal.machine import Machine
-from volcal.plans import (check_plan, default_stations, diagonal_plan, grid_plan, line_plan,
+from volcal.cli import main as cli
+from volcal.measurement.tables import DataWarning, load_measurements, load_stations
+from volcal.model.errors import ErrorModel
+from volcal.base.exceptions import InputError
+from volcal.model.machine import Machine
+from volcal.measurement.plans import (check_plan, default_stations, diagonal_plan, grid_plan, line_plan,
                           nominal_points, plan_from_csv)
-from volcal.simulate import (SIMULATION_FILES, Simulation, draw_true_parameters, example,
+from volcal.measurement.simulate import (SIMULATION_FILES, Simulation, draw_true_parameters, example,
                              load_true_parameters, max_volumetric_error_um, parse_tools,
                              save_simulation, simulate)
-from volcal.spec import bundled_models
-from volcal.uncertainty.budget import Budget, Source, load_budget
+from volcal.model.spec import bundled_models
+from volcal.measurement.budget import Budget, Source, load_budget
 
 # paper 000, Table 5, calculated values (mm)
 TABLE5 = {
@@ -446,7 +446,7 @@ def test_default_stations(model):
 @pytest.fixture
 def only_simulate(monkeypatch):
     # the CLI imports every registered command; test this one alone
-    monkeypatch.setattr(cli, "_COMMANDS", ["volcal.commands.simulate"])
+    monkeypatch.setattr(cli, "_COMMANDS", ["volcal.cli.commands.simulate"])
 
 
 def test_cli_example(tmp_path, only_simulate, capsys):
@@ -498,7 +498,7 @@ def test_parse_tools():
 
 
 def test_drift_and_noise_switches(mcv):
-    from volcal.uncertainty.budget import PAPER001_DRIFT
+    from volcal.measurement.budget import PAPER001_DRIFT
 
     b = load_budget("paper002").with_drift(PAPER001_DRIFT)
     kw = dict(machine=mcv.machine, error_model=mcv.error_model, theta_true=mcv.theta_true,
@@ -521,7 +521,7 @@ def test_drift_and_noise_switches(mcv):
 def test_sigma_projects_repeatability_on_the_beam_five_axis():
     # sigma's axis part uses d(distance)/dq of the nominal model: check it against central
     # differences of the independent kinematics on a 5-axis model with a rotary source
-    from volcal.simulate import _position_jacobian
+    from volcal.measurement.simulate import _position_jacobian
 
     machine = Machine.from_model("head_bc")
     spec = machine.spec

@@ -20,8 +20,8 @@ import dataclasses
 
 import sympy as sp
 
-from volcal.spec import error_symbols, resolve_model
-from volcal.symbolic import build_chain
+from volcal.model.spec import error_symbols, resolve_model
+from volcal.model.symbolic import build_chain
 
 x, y, z = sp.symbols("q_X q_Y q_Z", real=True)
 xp, yp, zp = sp.symbols("t_x t_y t_z", real=True)

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from volcal.compensation import compensate
-from volcal.identify import identify
-from volcal.simulate import example
+from volcal.outputs.compensation import compensate
+from volcal.analysis.identify import identify
+from volcal.measurement.simulate import example
 
 HERE = Path(__file__).resolve().parent
 

@@ -6,7 +6,7 @@ error), a new noise realisation of the bundled example's measurement (MCV 754, 6
 lies inside the linearised 95 % interval (estimate +- 1.96 u) and the Monte Carlo 95 %
 coverage interval of the volumetric error at 27 fixed poses (3 x 3 x 3 grid over the
 travel, tool offset 0), and inside estimate +- 1.96 u for the 75 error parameters.
-See volcal.uncertainty.coverage.
+See volcal.analysis.uncertainty.coverage.
 
     python studies/coverage/run.py                 # 200 experiments, 1000 MC trials each
     python studies/coverage/run.py --smoke         # 4 experiments, 200 MC trials
@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     if args.smoke:
         args.n, args.mc_trials = 4, 200
 
-    from volcal.uncertainty.coverage import CoverageSetup, run_coverage, summarise_coverage
+    from volcal.analysis.uncertainty.coverage import CoverageSetup, run_coverage, summarise_coverage
 
     setup = CoverageSetup.from_example("mcv754", mc_trials=args.mc_trials)
     t0 = time.perf_counter()

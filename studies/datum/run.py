@@ -31,9 +31,9 @@ sys.path.insert(0, str(HERE.parents[1] / "tests"))
 
 import indep_sim as ind  # noqa: E402  (the independent simulator lives with the tests)
 
-from volcal.errors import ErrorForm, ErrorModel  # noqa: E402
-from volcal.identify import identify  # noqa: E402
-from volcal.machine import Machine  # noqa: E402
+from volcal.model.errors import ErrorForm, ErrorModel  # noqa: E402
+from volcal.analysis.identify import identify  # noqa: E402
+from volcal.model.machine import Machine  # noqa: E402
 
 TOOLS = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0], [80.0, 0.0, 60.0], [0.0, 80.0, 60.0]])
 MODEL = "mcv754_wxyzt"

@@ -31,10 +31,10 @@ HERE = Path(__file__).parent
 
 
 def one_trial(ex, seed: int, cfg: dict) -> tuple[list[dict], list[dict]]:
-    from volcal.data import load_measurements
-    from volcal.identify import identify, rigid_fit
-    from volcal.multilateration import calibrate_stations, multilaterate
-    from volcal.simulate import simulate
+    from volcal.measurement.tables import load_measurements
+    from volcal.analysis.identify import identify, rigid_fit
+    from volcal.measurement.multilateration import calibrate_stations, multilaterate
+    from volcal.measurement.simulate import simulate
 
     tool = np.asarray(cfg["tool"], float)[None, :]
     sim = simulate(ex.machine, ex.error_model, ex.theta_true, ex.stations, ex.plan, tool,
@@ -118,7 +118,7 @@ def one_trial(ex, seed: int, cfg: dict) -> tuple[list[dict], list[dict]]:
 
 
 def run(trials: int, out: Path, cfg: dict, progress: bool = True) -> dict[str, pd.DataFrame]:
-    from volcal.simulate import example
+    from volcal.measurement.simulate import example
 
     ex = example(cfg["example"])
     st, pt = [], []

@@ -5,7 +5,7 @@ Monte Carlo of section 5 of Aguado et al. 2021 (IOP Conf. Ser. Mater. Sci. Eng. 
 vibration f(t) of eq. (2), and the multilateration strategies of Table 1 (sphere
 intersection, points-only, two-phase, joint) at initial accuracies 100 / 95 / 90 %, plus
 our variants.  Everything is configured in config.toml; the model and the solvers are in
-:mod:`volcal.multilaser`.
+:mod:`volcal.analysis.multilaser`.
 
     python studies/paper001/run.py [--smoke] [--trials N] [--workers K] [--out DIR]
                                    [--config FILE] [--scenarios NAME ...]
@@ -42,7 +42,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from volcal import multilaser as ml  # noqa: E402
+from volcal.analysis import multilaser as ml  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 
@@ -61,7 +61,7 @@ def run_scenario(cfg: dict, scenario: str, trials: int, workers: int = 1, *,
     """Run trials 0..trials-1 of one scenario; returns stacked arrays (trial order).
 
     workers = 1 runs in this process; more use a ProcessPoolExecutor (spawn) whose
-    initializer builds one :class:`volcal.multilaser.StudyRunner` (one IPOPT build) per
+    initializer builds one :class:`volcal.analysis.multilaser.StudyRunner` (one IPOPT build) per
     worker."""
     from tqdm import tqdm
 

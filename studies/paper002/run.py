@@ -37,9 +37,9 @@ def load_config(path: Path = HERE / "config.toml") -> dict:
 
 def build(cfg: dict):
     """(machine, spec, stations, plan, tools, budget, truth functions)."""
-    from volcal.machine import Machine
-    from volcal.spec import machine_from_dict
-    from volcal.uncertainty.budget import load_budget
+    from volcal.model.machine import Machine
+    from volcal.model.spec import machine_from_dict
+    from volcal.measurement.budget import load_budget
 
     spec = machine_from_dict(cfg["model"], where="config.toml [model]")
     machine = Machine.from_model(spec)
@@ -58,7 +58,7 @@ def build(cfg: dict):
 
 def truth_functions(spec, truth: dict) -> dict:
     """Error functions of the internal axis position (mm, rad): see config.toml [truth]."""
-    from volcal.spec import error_symbols
+    from volcal.model.spec import error_symbols
 
     funcs = {}
     for s in error_symbols(spec):
@@ -86,7 +86,7 @@ def truth_functions(spec, truth: dict) -> dict:
 
 
 def error_model(spec, variant: str, grids: dict):
-    from volcal.errors import ErrorForm, ErrorModel
+    from volcal.model.errors import ErrorForm, ErrorModel
 
     if variant == "poly3":
         return ErrorModel(spec, default=ErrorForm("poly", 3), datum="iso230")
@@ -106,14 +106,14 @@ def main(argv=None) -> int:
     ap.add_argument("--no-plots", action="store_true")
     args = ap.parse_args(argv)
 
-    from volcal.analysis.report import analyze_plan
-    from volcal.data import load_measurements
-    from volcal.errors import ErrorForm, ErrorModel
-    from volcal.simulate import simulate
-    from volcal.threads import set_blas_threads
-    from volcal.uncertainty.evaluation import evaluation_factor
-    from volcal.uncertainty.mc_report import default_quantities, plot_contributions
-    from volcal.uncertainty.montecarlo import (MCResult, contributions, monte_carlo,
+    from volcal.outputs.analysis_report import analyze_plan
+    from volcal.measurement.tables import load_measurements
+    from volcal.model.errors import ErrorForm, ErrorModel
+    from volcal.measurement.simulate import simulate
+    from volcal.base.threads import set_blas_threads
+    from volcal.analysis.uncertainty.evaluation import evaluation_factor
+    from volcal.outputs.mc_report import default_quantities, plot_contributions
+    from volcal.analysis.uncertainty.montecarlo import (MCResult, contributions, monte_carlo,
                                                quantity_table, run_trials)
 
     set_blas_threads(1)
@@ -146,8 +146,8 @@ def main(argv=None) -> int:
     rep = analyze_plan(machine, plan, stations, tools, budget, error_model=em_true,
                        theta=theta_true)
     (out / "analysis_plan.txt").write_text(rep.summary(top=6) + "\n")
-    from volcal.machine import Machine
-    from volcal.spec import machine_from_dict
+    from volcal.model.machine import Machine
+    from volcal.model.spec import machine_from_dict
     full = dict(cfg["model"])
     full["name"] = "paper002_xyz21"
     full["axis"] = [{k: v for k, v in a.items() if k != "exclude"} for a in full["axis"]]
@@ -242,7 +242,7 @@ def main(argv=None) -> int:
             plot_contributions(long, total, out / f"fig5_{variant}.png",
                                f"paper 002 Fig. 5 equivalent ({variant}): U (k = 2) of the "
                                "errors by input sources", label="{}")
-            from volcal.uncertainty.mc_report import _plot_volumetric_U
+            from volcal.outputs.mc_report import _plot_volumetric_U
             _plot_volumetric_U(vol, k.volmap.points, out / f"volumetric_U_{variant}.png")
         ag = mc.agreement()
         summary["variants"][variant] = {

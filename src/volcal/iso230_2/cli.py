@@ -63,7 +63,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from volcal.exceptions import InputError
+    from volcal.base.exceptions import InputError
 
     if args.example and args.data:
         raise InputError("give either DATA.csv or --example, not both", source="arguments")
@@ -80,7 +80,7 @@ def run(args) -> int:
     out = Path(args.out) if args.out else Path.cwd() / f"{Path(data).stem}_iso230_2"
     quiet = getattr(args, "quiet", False)
     # the output folder before any computing
-    from volcal.outputs import check_out_dir
+    from volcal.base.folders import check_out_dir
     if args.plane:
         from .plane import PLANE_FILES as _files
     else:

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from volcal.exceptions import InputError
+from volcal.base.exceptions import InputError
 
 __all__ = ["AxisUnits", "LINEAR", "ROTARY", "AxisReadings", "load_readings"]
 
@@ -141,7 +141,7 @@ def _read_csv(path: Path) -> tuple[pd.DataFrame, np.ndarray]:
 def load_readings(data, *, source: str | None = None) -> list[AxisReadings]:
     """Validate a readings table (CSV path or DataFrame) and return one object per axis.
 
-    Raises :class:`volcal.exceptions.InputError` naming the source, row and column of the
+    Raises :class:`volcal.base.exceptions.InputError` naming the source, row and column of the
     first problem.  The input (file or DataFrame) is never modified.
     """
     if isinstance(data, pd.DataFrame):

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from volcal.exceptions import InputError
+from volcal.base.exceptions import InputError
 
 from .data import LINEAR, AxisReadings, load_readings
 from .model import TYPE_A_METHODS, PolynomialModel, fit_axis_model

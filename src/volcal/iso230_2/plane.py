@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from volcal.exceptions import InputError
+from volcal.base.exceptions import InputError
 
-from volcal.outputs import check_out_dir, write_folder
+from volcal.base.folders import check_out_dir, write_folder
 from .model import TYPE_A_METHODS, gls, to_raw_matrix, type_a_uncertainty
 
 __all__ = ["PlaneModel", "fit_plane", "PlaneReadings", "load_plane", "PlaneResult",

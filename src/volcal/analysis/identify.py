@@ -1,0 +1,644 @@
+"""Identification: from a machine model and length readings to its geometric errors.
+
+:class:`Identifier` holds what depends only on the model and the layout of the data (the
+NLP, the IPOPT solver, the error model): build it once, then :meth:`Identifier.run` any
+number of data sets of that layout (Monte Carlo, studies).  :func:`identify` is the
+one-call front end used by the CLI.
+
+Strategies (all on the same problem and solver, differing only in which variables are
+free and which constraints are active):
+
+``joint``       error parameters, stations, dead lengths together (one-step);
+``two-phase``   stations and dead lengths on nominal points first (errors held at zero),
+                then the errors with the stations fixed; a rigid motion of the station set
+                is free in phase two so that the frame mismatch of phase one is absorbed;
+``points-only`` stations fixed at known positions (stations table) or at the analytical
+                linear solution (paper 002 eq. 12-20), only errors (+ frame motion) solved;
+``classic``     the calibrate -> multilaterate -> fit pipeline of :mod:`volcal.analysis.classic`.
+
+Unidentifiable directions are found from the Jacobian at the start point (names in
+:attr:`IdentificationResult.identifiability`), held at zero, and reported; their standard
+uncertainties are NaN and ``identifiable`` is False in the parameter table.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+
+from volcal.analysis import (FieldNullSpace, Identifiability, analyse_jacobian,
+                             constrained_covariance, field_null_space, split_gauge)
+from volcal.analysis.identifiability import FieldSets
+from volcal.analysis.identifiability import rigid_columns
+from volcal.model.datum import condition_table, null_space, select_conditions
+from volcal.measurement.tables import Measurements, load_measurements, load_stations
+from volcal.model.errors import Datum, ErrorForm, ErrorModel
+from volcal.base.exceptions import InputError, SolverError
+from volcal.measurement.instruments import SequentialMultilateration
+from volcal.model.machine import Machine
+from volcal.problem.residuals import IdentificationProblem, Layout
+from volcal.solve.ipopt import NLPSolver, SolveOutcome, polish
+from volcal.model.spec import MachineSpec
+from volcal.measurement.budget import Budget, load_budget
+from volcal.base.units import report_factors, report_unit
+
+log = logging.getLogger(__name__)
+
+Strategy = Literal["joint", "two-phase", "points-only", "classic"]
+STRATEGIES: tuple[str, ...] = ("joint", "two-phase", "points-only", "classic")
+
+
+@dataclass
+class IdentificationResult:
+    """Everything an identification produced (values in mm / rad unless a name says)."""
+
+    machine: Machine
+    error_model: ErrorModel
+    strategy: str
+    theta: np.ndarray
+    cov_theta: np.ndarray
+    identifiable: np.ndarray
+    stations: pd.DataFrame
+    frame: np.ndarray
+    residuals: pd.DataFrame
+    identifiability: Identifiability | None
+    outcomes: list[SolveOutcome]
+    conditions: dict[str, float]
+    rejected: pd.DataFrame
+    seconds: float
+    sigma_source: str
+    notes: list[str] = field(default_factory=list)
+    #: every candidate datum condition, whether it was imposed, and its value (um / urad)
+    datum: pd.DataFrame | None = None
+    #: how the null directions of the data act on the volumetric error (see ``predict``)
+    null_space: FieldNullSpace | None = None
+
+    @property
+    def success(self) -> bool:
+        return all(o.success for o in self.outcomes)
+
+    @property
+    def status(self) -> str:
+        return "; ".join(o.status for o in self.outcomes)
+
+    @property
+    def adequacy(self):
+        """Does the model fit the data? chi2/dof against its 99.9 % interval and, when
+        outside, the likely cause (:func:`volcal.analysis.adequacy.assess`)."""
+        from volcal.analysis.adequacy import assess
+        return assess(self)
+
+    @property
+    def residual_rms_um(self) -> float:
+        r = self.residuals.loc[~self.residuals["rejected"], "residual_um"]
+        return float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan")
+
+    def parameters(self) -> pd.DataFrame:
+        """name, value, unit, std, identifiable (values in um / urad)."""
+        units = self.error_model.param_units
+        f = report_factors(units)
+        std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
+        std[~self.identifiable] = np.nan
+        return pd.DataFrame({
+            "name": self.error_model.param_names,
+            "value": self.theta * f,
+            "unit": [report_unit(u) for u in units],
+            "std": std,
+            "identifiable": self.identifiable,
+        })
+
+    def predict(self, q_internal: np.ndarray, tool: np.ndarray | None = None, *,
+                with_uncertainty: bool = True) -> pd.DataFrame:
+        """Volumetric error (um) at poses q (N, n_axes; mm, rad) with tool offsets (N, 3)."""
+        return predict_volumetric(self.machine, self.error_model, self.theta,
+                                  self.cov_theta if with_uncertainty else None, q_internal, tool,
+                                  null_space=self.null_space)
+
+
+def field_jacobian(machine: Machine, em: ErrorModel, theta: np.ndarray, q: np.ndarray,
+                   tool: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(nominal points (N, 3) mm, volumetric errors (N, 3) mm, G (N, 3, n_params) their
+    derivative wrt the error parameters) of the first-order model at poses q (N, n_axes;
+    mm, rad) and tool offsets (N, 3) mm."""
+    q = np.atleast_2d(np.asarray(q, float))
+    tool = np.zeros((len(q), 3)) if tool is None else np.broadcast_to(tool, (len(q), 3))
+    e = em.values(q, theta)
+    p0, dp, Je = machine.evaluate(q, tool, e)
+    return p0, dp, np.matmul(Je, em.basis(q))  # (N, 3, n_errors) @ (N, n_errors, n_params)
+
+
+def predict_volumetric(machine: Machine, em: ErrorModel, theta: np.ndarray,
+                       cov_theta: np.ndarray | None, q: np.ndarray,
+                       tool: np.ndarray | None = None, *,
+                       null_space: FieldNullSpace | None = None) -> pd.DataFrame:
+    """dx_um, dy_um, dz_um (and u_dx_um ... standard uncertainties when a covariance is
+    given) of the first-order model at poses q (N, n_axes; mm, rad) and tools (N, 3) mm.
+
+    With the fit's ``null_space``, a column ``determined`` says per pose whether its error
+    follows from the data (up to the rigid motion no multilateration sees); where it does
+    not (it depends on a combination the data cannot see, e.g. at a tool offset far from
+    those measured), the value is the datum's choice and the uncertainties are NaN."""
+    p0, dp, G = field_jacobian(machine, em, theta, q, tool)
+    out = pd.DataFrame(dp * 1e3, columns=["dx_um", "dy_um", "dz_um"])
+    det = (null_space.determined(G, p0) if null_space is not None
+           else np.ones(len(out), bool))
+    if cov_theta is not None:
+        # held variables (NaN rows) contribute nothing where the pose is determined: their
+        # value is a convention there; elsewhere the uncertainty is unknown, never zero
+        cov = np.nan_to_num(cov_theta)
+        var = np.sum((G @ cov) * G, axis=2)
+        u = np.sqrt(np.clip(var, 0, None)) * 1e3
+        u[~det] = np.nan
+        out[["u_dx_um", "u_dy_um", "u_dz_um"]] = u
+    if null_space is not None:
+        out["determined"] = det
+    return out
+
+
+def _halton(n: int, d: int) -> np.ndarray:
+    """The first n points (after 0) of the d-dimensional Halton sequence in [0, 1)^d (radical
+    inverses in the first d primes): deterministic and low-discrepancy."""
+    primes = [2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53, 59, 61, 67, 71]
+    if d > len(primes):
+        raise ValueError(f"at most {len(primes)} dimensions")
+    out = np.zeros((n, d))
+    idx = np.arange(1, n + 1)
+    for j in range(d):
+        b, k, f = primes[j], idx.copy(), np.ones(n)
+        while np.any(k > 0):
+            f /= b
+            out[:, j] += f * (k % b)
+            k //= b
+    return out
+
+
+def declared_poses(spec: MachineSpec, n_poses: int = 256) -> np.ndarray:
+    """Poses (N, n_axes; mm, rad) spanning the declared travel of every axis: the corners of
+    the travel box (up to 64) and a Halton sequence inside it.  A low-discrepancy sequence
+    rather than a grid, so that it never aliases with a regular measurement plan (a grid of
+    4 angles over a full turn sees sin(t) - sin(2t) as zero, a Halton sample does not)."""
+    n_ax = len(spec.axes)
+    lo = np.array([np.deg2rad(a.travel[0]) if a.is_rotary else a.travel[0] for a in spec.axes])
+    hi = np.array([np.deg2rad(a.travel[1]) if a.is_rotary else a.travel[1] for a in spec.axes])
+    u = _halton(n_poses, n_ax)
+    if n_ax <= 6:
+        u = np.vstack([np.array(list(np.ndindex(*([2] * n_ax))), float), u])
+    return lo + u * (hi - lo)
+
+
+def field_sets(machine: Machine, em: ErrorModel, theta: np.ndarray, q_meas: np.ndarray,
+               tools_meas: np.ndarray) -> FieldSets:
+    """The measured set (the data's poses and tool offsets) and the declared set (a Halton
+    sample of the travel at every measured tool offset) with their nominal points (mm) and
+    d(volumetric error)/d(theta) (see :class:`volcal.analysis.identifiability.FieldSets`)."""
+    q = declared_poses(machine.spec)
+    tools = np.unique(np.atleast_2d(np.asarray(tools_meas, float)), axis=0)
+    Q = np.repeat(q, len(tools), axis=0)
+    T = np.tile(tools, (len(q), 1))
+    p_d, _, G_d = field_jacobian(machine, em, theta, Q, T)
+    p_m, _, G_m = field_jacobian(machine, em, theta, q_meas, tools_meas)
+    return FieldSets(G_m, p_m, G_d, p_d)
+
+
+def rigid_fit(points: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Best-fit small rigid motion (a, w) with d ~ a + w x points, least squares.
+    Returns (params (6,), residual d - fit). Multilateration cannot see this motion."""
+    A = rigid_columns(points)
+    d = np.asarray(d, float).ravel()
+    sol = np.linalg.lstsq(A, d, rcond=None)[0]
+    return sol, (d - A @ sol).reshape(-1, 3)
+
+
+# ---------------------------------------------------------------------------------------
+
+
+class Identifier:
+    """Model + error model + layout -> a reusable solver (see the module docstring)."""
+
+    def __init__(self, machine: Machine, error_model: ErrorModel, layout: Layout, *,
+                 exact: bool = False, hessian: str = "gauss-newton", verbose: bool = False,
+                 datum_mode: str = "minimal"):
+        self.machine = machine
+        self.error_model = error_model
+        if datum_mode not in ("minimal", "impose-all"):
+            raise InputError(f"datum_mode must be 'minimal' or 'impose-all', got {datum_mode!r}")
+        #: "minimal": impose only candidate conditions that remove a null direction;
+        #: "impose-all": every ISO 230 condition (comparison only, see select_datum)
+        self.datum_mode = datum_mode
+        self.instrument = SequentialMultilateration()
+        self.layout = layout
+        t0 = time.perf_counter()
+        self.problem = IdentificationProblem(machine, error_model, self.instrument, layout,
+                                             exact=exact)
+        self.solver = NLPSolver(self.problem, hessian=hessian, verbose=verbose)
+        self.build_seconds = time.perf_counter() - t0
+        n = self.problem.n_x
+        nt, ss = self.problem.n_theta, self.problem.station_slice()
+        self.is_theta = np.zeros(n, bool)
+        self.is_theta[:nt] = True
+        self.is_station = np.zeros(n, bool)
+        self.is_station[ss] = True
+        self.is_frame = ~(self.is_theta | self.is_station)
+        # which variable to hold when a direction is unidentifiable: the frame motion first
+        # (it duplicates the stations), then error parameters, highest polynomial order
+        # first (holding it keeps the identified curves smooth), stations last
+        order = np.zeros(n)
+        for k, name in enumerate(error_model.param_names):
+            order[k] = error_model.param_order[k]  # Legendre degree / harmonic number
+        self.prefer = np.where(self.is_frame, 4.0, np.where(self.is_theta, 1.0 + 0.1 * order, 0.0))
+
+    # ---- pieces ---------------------------------------------------------------------
+    def jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened residuals and Jacobian wrt the scaled variables at physical x.  The
+        last evaluation is kept: the datum selection, the analysis and the covariance ask
+        for the same point in turn, and the dense Jacobian is the expensive part."""
+        key = (np.asarray(x, float).tobytes(), np.asarray(p, float).tobytes())
+        if getattr(self, "_jac_key", None) != key:
+            r, J = self.problem.jacobian(self.problem.to_scaled(x), p)
+            r, J = r.full().ravel(), J.full()
+            r.flags.writeable = J.flags.writeable = False  # shared: read-only
+            self._jac_key, self._jac = key, (r, J)
+        return self._jac
+
+    def analyse(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray,
+                constrained: bool = True) -> Identifiability:
+        _, J = self.jacobian(x, p)
+        C = self._scaled_constraints() if constrained else None
+        return analyse_jacobian(J, self.problem.names, C, fixed=fixed, prefer=self.prefer)
+
+    def select_datum(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+        """Put in force the candidate datum conditions that remove a null direction of the
+        Jacobian at x (physical) with ``fixed`` held (:func:`volcal.model.datum.select_conditions`);
+        returns the mask over the candidates."""
+        pr = self.problem
+        Call = np.zeros((pr.C_all.shape[0], pr.n_x))
+        Call[:, :pr.n_theta] = pr.C_all * pr.scale[None, :pr.n_theta]
+        if Call.shape[0] == 0:
+            pr.set_datum(np.zeros(0, bool))
+            return pr.datum_active
+        if self.datum_mode == "impose-all":
+            # every ISO 230 condition on the component error motions plus the tool's zero
+            # position and orientation held at zero, dependent rows dropped: what an
+            # ISO 230 datum imposed regardless of the data does (kept for comparison,
+            # studies/datum; it can constrain what the data determine)
+            from volcal.model.errors import _independent_rows
+            keep = np.array([c.klass != "location" for c in pr.conditions])
+            rows = np.flatnonzero(keep)
+            act = np.zeros(len(keep), bool)
+            act[rows[_independent_rows(pr.C_all[rows])]] = True
+            pr.set_datum(act)
+            return pr.datum_active
+        _, J = self.jacobian(x, p)
+        pr.set_datum(select_conditions(J, Call, fixed))
+        return pr.datum_active
+
+    def field_null_space(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray,
+                         q_meas: np.ndarray, tools_meas: np.ndarray
+                         ) -> tuple[FieldNullSpace, FieldSets]:
+        """How the null directions of the full Jacobian (no datum; ``fixed`` held) act on
+        the volumetric error.
+
+        The null space is taken at x with the error parameters at zero: there the
+        first-order and the exact model have the same Jacobian and the gauge of the model
+        is exact (at theta != 0 the first-order model represents a rigid motion of the
+        cloud only to first order, which turns exact null directions into weak ones).  The
+        measured set is the data's distinct (pose, tool offset) pairs q_meas (N, n_axes;
+        mm, rad), tools_meas (N, 3) mm; the declared set a Halton sample of the travel of
+        every axis at each measured tool offset."""
+        pr = self.problem
+        nt = pr.n_theta
+        x0 = np.array(x, float)
+        x0[:nt] = 0.0
+        _, J = self.jacobian(x0, p)
+        free, d, N = null_space(J, fixed)
+        dirs = np.zeros((pr.n_x, N.shape[1]))
+        dirs[free] = N * d[:, None]
+        theta_dirs = dirs[:nt] * pr.scale[:nt, None]
+        sets = field_sets(self.machine, self.error_model, x[:nt], q_meas, tools_meas)
+        return field_null_space(theta_dirs, sets), sets
+
+    def _scaled_constraints(self) -> np.ndarray:
+        pr = self.problem
+        C = np.zeros((pr.C.shape[0], pr.n_x))
+        C[:, :pr.n_theta] = pr.C * pr.scale[None, :pr.n_theta]
+        return C
+
+    def covariance(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+        """Linearised covariance of x (physical units) under the datum constraints, with
+        fixed variables NaN."""
+        _, J = self.jacobian(x, p)
+        cov_s = constrained_covariance(J, self._scaled_constraints(), fixed=fixed)
+        s = self.problem.scale
+        return cov_s * s[:, None] * s[None, :]
+
+
+    # ---- strategies -----------------------------------------------------------------
+    def run(self, strategy: str, x0: np.ndarray, p: np.ndarray, *,
+            user_fixed: np.ndarray | None = None, solve: bool = True
+            ) -> tuple[np.ndarray, list[SolveOutcome], np.ndarray, Identifiability]:
+        """Solve with a strategy from x0 (physical). Returns (x, outcomes, fixed mask,
+        identifiability of the final phase)."""
+        n = self.problem.n_x
+        user_fixed = np.zeros(n, bool) if user_fixed is None else user_fixed
+        outcomes: list[SolveOutcome] = []
+
+        def step(x, fixed) -> SolveOutcome:
+            if solve:
+                out = self.solver.solve(x, p, fixed=fixed)
+                if out.success:
+                    out.x, out.polish_steps, out.polish_f = polish(self.problem, out.x, p,
+                                                                   fixed)
+                return out
+            # a plan without data (export-time analysis): keep the start point
+            return SolveOutcome(np.array(x, float), float("nan"), "not solved", True, 0, 0.0)
+
+        self.phase_conditions: dict[str, float] = {}
+        if strategy == "joint":
+            self.select_datum(x0, p, user_fixed)
+            ident = self.analyse(x0, p, user_fixed)
+            # hold one variable per null direction (the pivot); the others involved stay
+            # free and are reported as not individually identifiable
+            fixed = user_fixed.copy()
+            fixed[ident.pivots] = True
+            x0 = np.where(fixed & ~user_fixed & ~self.is_station, 0.0, x0)
+            out = step(x0, fixed)
+            outcomes.append(out)
+            return out.x, outcomes, fixed, ident
+        if strategy in ("two-phase", "points-only"):
+            x = x0.copy()
+            if strategy == "two-phase":
+                f1 = user_fixed | self.is_theta | self.is_frame
+                x[self.is_theta | self.is_frame] = 0.0
+                # the error parameters are held at zero: no datum condition is needed (and
+                # rows on held variables only would over-determine the NLP for IPOPT)
+                self.problem.set_datum(np.zeros(len(self.problem.conditions), bool))
+                out1 = step(x, f1)
+                outcomes.append(out1)
+                x = out1.x
+                # the conditioning of the system phase one solved (stations alone)
+                ident1 = self.analyse(x, p, f1, constrained=False)
+                self.phase_conditions = {"phase1_jacobian_scaled": ident1.condition,
+                                         "phase1_jacobian_unscaled": ident1.condition_unscaled}
+            f2 = user_fixed | self.is_station
+            self.select_datum(x, p, f2)
+            ident = self.analyse(x, p, f2)
+            f2 = f2.copy()
+            f2[ident.pivots] = True
+            x = np.where(f2 & ~self.is_station & ~user_fixed, 0.0, x)
+            out2 = step(x, f2)
+            outcomes.append(out2)
+            return out2.x, outcomes, f2, ident
+        raise InputError(f"unknown strategy {strategy!r}; expected one of {STRATEGIES}")
+
+
+# ---------------------------------------------------------------------------------------
+
+
+def reading_sigma(machine: Machine, budget: Budget, meas: Measurements,
+                  stations_xyz: np.ndarray) -> np.ndarray:
+    """Standard uncertainty (mm) of each reading from the budget: the length part combined
+    with the axis repeatability projected on the beam direction (unit vector station ->
+    nominal point); rotary repeatability enters through d(point)/d(angle)."""
+    q, t = meas.q_internal, meas.tool
+    p0, _, _ = machine.evaluate(q, t, np.zeros(machine.n_errors))
+    S = stations_xyz[meas.station_index]
+    u = p0 - S
+    L = np.linalg.norm(u, axis=1)
+    u /= L[:, None]
+    var = budget.length_sigma(meas.length) ** 2
+    h = 1e-6
+    for k, a in enumerate(machine.spec.axes):
+        sig = budget.axis_sigma(a.name)
+        if not sig:
+            continue
+        dq = np.zeros_like(q)
+        dq[:, k] = h
+        p1, _, _ = machine.evaluate(q + dq, t, np.zeros(machine.n_errors))
+        dpdq = (p1 - p0) / h
+        var = var + (np.einsum("ni,ni->n", u, dpdq) * sig) ** 2
+    return np.sqrt(var)
+
+
+def initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFrame | None
+                     ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Start values of the stations: (K, 4) x, y, z, dead length (mm) in the order of
+    ``meas.station_ids``, the mask of stations held fixed (K,), and notes.  From the
+    stations table where given, else paper 002's linear solution refined by the sqrt
+    residual (paper 000 Case A) on the nominal points."""
+    from volcal.measurement.multilateration import calibrate_stations
+
+    notes = []
+    K = len(meas.station_ids)
+    est = np.full((K, 4), np.nan)
+    fixed = np.zeros(K, bool)
+    if stations is not None:
+        tab = stations.set_index("station")
+        for k, sid in enumerate(meas.station_ids):
+            if sid in tab.index:
+                row = tab.loc[sid]
+                est[k, :3] = [row["x_mm"], row["y_mm"], row["z_mm"]]
+                est[k, 3] = row["dead_length_mm"]
+                fixed[k] = bool(row["fixed"])
+        # ids that do not match are never silently ignored (load_measurements warns)
+        described = [str(s) for s in tab.index]
+        if not set(described) & set(meas.station_ids):
+            raise InputError(f"no station of the data ({', '.join(meas.station_ids[:8])}) is "
+                             f"described in the stations table ({', '.join(described[:8])}); "
+                             "station ids must match exactly", source="stations table")
+        unused = [s for s in described if s not in meas.station_ids]
+        if unused:
+            notes.append(f"stations table entries without readings ignored: "
+                         f"{', '.join(unused)}")
+    missing = np.isnan(est[:, 0])
+    if missing.any():
+        p0, _, _ = machine.evaluate(meas.q_internal, meas.tool, np.zeros(machine.n_errors))
+        sel = np.isin(meas.station_index, np.flatnonzero(missing))
+        ids = np.asarray(meas.station_ids, dtype=object)[meas.station_index[sel]]
+        cal = calibrate_stations(ids, p0[sel], meas.length[sel], method="sqrt")
+        for sid, pos, d, ok, st in zip(cal.stations, cal.positions, cal.dead_lengths,
+                                       cal.converged, cal.status):
+            k = meas.station_ids.index(str(sid))
+            if not ok:
+                raise SolverError(f"could not locate station {sid} from the nominal points",
+                                  status=str(st))
+            est[k, :3], est[k, 3] = pos, d
+        notes.append("station start values: paper 002 linear solution refined by the "
+                     "sqrt residual (paper 000 Case A) on nominal points")
+    return est, fixed, notes
+
+
+def build_error_model(spec: MachineSpec, *, degree: int = 3, datum: Datum = "iso230",
+                      forms: dict[str, ErrorForm] | None = None) -> ErrorModel:
+    """The error model of ``spec``: ``forms`` ({error or axis name: ErrorForm}), then the
+    model file's bases, then Legendre of ``degree`` (Fourier of ``degree`` on full-turn
+    rotary axes); see :class:`volcal.model.errors.ErrorModel`."""
+    return ErrorModel(spec, forms, default=ErrorForm("poly", degree), datum=datum)
+
+
+def identify(*args, **kwargs) -> IdentificationResult:
+    """Identify the geometric errors of a machine (see :func:`_identify` for the
+    arguments); runs with one BLAS thread (see :mod:`volcal.base.threads`)."""
+    from volcal.base.threads import blas_threads
+    with blas_threads(1):
+        return _identify(*args, **kwargs)
+
+
+def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.DataFrame | Measurements,
+             stations: str | Path | pd.DataFrame | None = None, *, strategy: str = "joint",
+             degree: int = 3, datum: Datum = "iso230", error_model: ErrorModel | None = None,
+             budget: str | Path | Budget = "paper002", robust: bool = False,
+             reject_k: float = 4.0, exact: bool = False, hessian: str = "gauss-newton",
+             scale_covariance: bool = False, station_method: str = "sqrt",
+             point_method: str = "sqrt", verbose: bool = False,
+             forms: dict[str, ErrorForm] | None = None, order_criterion: str = "bic",
+             cv_folds: int = 5, datum_mode: str = "minimal",
+             progress: bool = False) -> IdentificationResult:
+    """Identify the geometric errors of a machine from length readings.
+
+    model: bundled model name, model file, spec or Machine; data: measurement table (CSV,
+    DataFrame or validated Measurements); stations: optional stations table (start values,
+    or known positions where ``fixed``). Readings without ``sigma`` are weighted by the
+    budget. ``robust`` rejects readings whose normalised residual exceeds ``reject_k``
+    robust standard deviations and re-solves (the rejected readings are listed).
+    Raises SolverError when IPOPT does not succeed.
+
+    forms: error bases {error or axis name: ErrorForm} (:mod:`volcal.model.errors`);
+    ``degree="auto"``: per-axis orders chosen by ``order_criterion`` (``"bic"`` or ``"cv"``
+    with ``cv_folds`` folds), see :mod:`volcal.analysis.order_selection` (``progress``: a progress
+    bar of its candidate fits on stderr; a single identification has none).
+    """
+    if degree == "auto":  # every other argument goes to each candidate fit
+        opts = {k: v for k, v in locals().items() if k not in (
+            "model", "data", "stations", "degree", "order_criterion", "cv_folds",
+            "progress")}
+        from volcal.analysis.order_selection import select_orders
+        return select_orders(model, data, stations, criterion=order_criterion, folds=cv_folds,
+                             progress=progress, **opts)
+    t_start = time.perf_counter()
+    machine = model if isinstance(model, Machine) else Machine.from_model(model)
+    spec = machine.spec
+    st_table = None
+    if stations is not None:
+        st_table = stations if isinstance(stations, pd.DataFrame) and "x_mm" in stations \
+            and "dead_length_given" in stations else load_stations(stations)
+    meas = data if isinstance(data, Measurements) else load_measurements(
+        data, spec, stations=st_table)
+    em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
+    bud = budget if isinstance(budget, Budget) else load_budget(budget)
+    if strategy not in STRATEGIES:
+        raise InputError(f"unknown strategy {strategy!r}; expected one of {list(STRATEGIES)}")
+
+    st0, st_fixed, notes = initial_stations(machine, meas, st_table)
+    sigma = meas.sigma.copy()
+    no_sigma = ~np.isfinite(sigma)
+    if no_sigma.any():  # the budget only where the table gives no sigma
+        sigma[no_sigma] = reading_sigma(machine, bud, meas, st0[:, :3])[no_sigma]
+    sigma_source = "table" if not no_sigma.any() else (
+        f"budget {bud.name}" if no_sigma.all() else f"table and budget {bud.name}")
+
+    if strategy == "classic":
+        from volcal.analysis.classic import classic_pipeline
+        return classic_pipeline(machine, em, meas, st0, sigma, station_method=station_method,
+                                point_method=point_method, t_start=t_start,
+                                sigma_source=sigma_source, notes=notes)
+
+    layout = Layout.from_measurements(meas)
+    ider = Identifier(machine, em, layout, exact=exact, hessian=hessian, verbose=verbose,
+                      datum_mode=datum_mode)
+    pr = ider.problem
+    weights = 1.0 / sigma
+    x0 = pr.pack_x(np.zeros(em.n_params), st0)
+    user_fixed = np.zeros(pr.n_x, bool)
+    for k in np.flatnonzero(st_fixed):
+        user_fixed[pr.n_theta + 4 * k: pr.n_theta + 4 * k + 4] = True
+    if strategy == "points-only" and not st_fixed.all():
+        user_fixed[ider.is_station] = True
+        notes.append("points-only: stations held at their start values "
+                     "(given table or analytical solution)")
+
+    rejected = np.zeros(len(meas), bool)
+    for round_ in range(12 if robust else 1):
+        p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
+        x, outcomes, fixed, ident = ider.run(strategy, x0, p, user_fixed=user_fixed)
+        r = pr.residual(pr.to_scaled(x), pr.pack_data(
+            meas.q_internal, meas.tool, meas.length, weights)).full().ravel()
+        if not robust:
+            break
+        # data snooping with re-admission: a blunder spreads into its neighbours' residuals
+        # while it is in the fit, so reject only the clearly worst ones per round and take
+        # back readings that fit again once the blunders are out
+        ok = ~rejected
+        scale = max(1.4826 * np.median(np.abs(r[ok] - np.median(r[ok]))), 1.0)
+        limit = reject_k * scale
+        worst = np.max(np.abs(r[ok])) if ok.any() else 0.0
+        new = ok & (np.abs(r) > limit) & (np.abs(r) >= 0.5 * worst)
+        back = rejected & (np.abs(r) <= limit)
+        if not new.any() and not back.any():
+            break
+        rejected = (rejected | new) & ~back
+        log.info("robust round %d: rejected %d, re-admitted %d readings", round_ + 1,
+                 int(new.sum()), int(back.sum()))
+
+    for o in outcomes:
+        if not o.success:
+            raise SolverError(f"identification ({strategy}) did not converge after "
+                              f"{o.iterations} iterations", status=o.status)
+
+    p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
+    cov = ider.covariance(x, p, fixed)
+    resid_w = r
+    dof = max(int((~rejected).sum()) - int((~fixed).sum()) + pr.C.shape[0], 1)
+    chi2 = float(np.sum(resid_w[~rejected] ** 2) / dof)
+    if scale_covariance:
+        cov = cov * chi2
+        notes.append(f"covariance scaled by the residual variance factor {chi2:.3g}")
+    theta, st, frame = pr.unpack_x(x)
+    nt = pr.n_theta
+    cov_theta = cov[:nt, :nt]
+    # The null space of the final phase without datum or pivots: which directions only move
+    # the field rigidly (gauge) and which change it (unidentifiable), over the declared
+    # travel at the measured tool offsets.
+    base_fixed = fixed.copy()
+    base_fixed[list(ident.pivots)] = False
+    _, first = layout.poses  # one reading of every distinct pose
+    null_field, sets = ider.field_null_space(x, p, base_fixed, meas.q_internal[first],
+                                             meas.tool[first])
+    split_gauge(ident, nt, sets, pr.scale[:nt])
+    # a parameter taking part in an unidentifiable direction has no value of its own: its
+    # value depends on which variable was held (reported), so it gets no uncertainty
+    identifiable = ~ident.unidentifiable[:nt]
+    datum_table = condition_table(pr.conditions, pr.datum_active, theta)
+    n_not = int((~datum_table["imposed"]).sum())
+    if n_not:
+        notes.append(f"datum `{em.datum}`: {int(datum_table['imposed'].sum())} of "
+                     f"{len(datum_table)} conditions imposed; the other {n_not} would have "
+                     "constrained what the data determine and take the values the data give "
+                     "(datum.csv)")
+    stations_out = pd.DataFrame({
+        "station": meas.station_ids, "x_mm": st[:, 0], "y_mm": st[:, 1], "z_mm": st[:, 2],
+        "dead_length_mm": st[:, 3],
+        "std_x_um": np.sqrt(np.abs(np.diag(cov)[ider.is_station][0::4])) * 1e3,
+        "std_y_um": np.sqrt(np.abs(np.diag(cov)[ider.is_station][1::4])) * 1e3,
+        "std_z_um": np.sqrt(np.abs(np.diag(cov)[ider.is_station][2::4])) * 1e3,
+        "std_dead_length_um": np.sqrt(np.abs(np.diag(cov)[ider.is_station][3::4])) * 1e3,
+        "fixed": st_fixed if strategy != "points-only" else True,
+    })
+    residuals = meas.table.copy()
+    residuals["residual_um"] = resid_w * sigma * 1e3
+    residuals["normalised_residual"] = resid_w
+    residuals["rejected"] = rejected
+    rej = residuals.loc[rejected].assign(row=meas.rows[rejected])
+    conditions = {**ider.phase_conditions,
+                  "jacobian_scaled": ident.condition,
+                  "jacobian_unscaled": ident.condition_unscaled,
+                  "chi2_per_dof": chi2}
+    return IdentificationResult(machine, em, strategy, theta, cov_theta, identifiable,
+                                stations_out, frame, residuals, ident, outcomes, conditions,
+                                rej, time.perf_counter() - t_start, sigma_source, notes,
+                                datum_table, null_field)

@@ -1,0 +1,1 @@
+"""volcal.cli.main layer."""

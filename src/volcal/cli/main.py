@@ -1,0 +1,148 @@
+"""The ``volcal`` command line.
+
+Each subcommand lives next to the code it drives and registers itself through an
+``add_parser(subparsers)`` function listed in ``_COMMANDS``; the handler it sets as
+``func`` returns a process exit code.  Exit codes: 0 success, 1 a computation that ran
+but failed (solver did not converge, ...), 2 bad usage or bad input.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+# module path of each command's ``add_parser``; kept as strings so that ``volcal --help``
+# does not import CasADi or SymPy.
+_COMMANDS = [
+    "volcal.cli.commands.models",
+    "volcal.iso230_2.cli",
+    "volcal.cli.commands.simulate",
+    "volcal.cli.commands.demo",
+    "volcal.cli.commands.identify",
+    "volcal.cli.commands.predict",
+    "volcal.cli.commands.codegen",
+    "volcal.cli.commands.analyze",
+    "volcal.cli.commands.mc",
+    "volcal.cli.commands.compensate",
+]
+
+
+from volcal.base.exceptions import InputError, SolverError
+
+
+class UserError(Exception):
+    """An error caused by the user's input: printed without a traceback, exit code 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="volcal",
+        description="Identify machine-tool geometric errors from multilateration length data.",
+    )
+    parser.add_argument("-q", "--quiet", action="store_true", help="print only errors")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more output (repeat for debug output)")
+    from volcal import __version__
+    parser.add_argument("--version", action="version", version=f"volcal {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for modname in _COMMANDS:
+        importlib.import_module(modname).add_parser(sub)
+    # -q / -v also after the command name (`volcal identify ... -q`); SUPPRESS keeps a
+    # value given before the command when the command line does not repeat it
+    for cmd in sub.choices.values():
+        cmd.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                         help="print only errors")
+        cmd.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS,
+                         help="more output (repeat for debug output)")
+        if "--force" not in cmd._option_string_actions:
+            cmd.add_argument("--force", action="store_true", default=False,
+                             help="replace an earlier output of this command in the output "
+                                  "folder (never an input or a folder volcal did not write)")
+    return parser
+
+
+_SIGNALLED = False
+
+
+def _terminate(signum, frame):  # pragma: no cover - exercised through a subprocess
+    # SIGTERM takes the same path as Ctrl-C: finally blocks remove temporary folders and
+    # stop worker processes
+    global _SIGNALLED
+    _SIGNALLED = True
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def _exit_soon(code: int, seconds: float = 10.0) -> None:  # pragma: no cover - subprocess
+    """After a signal, the process must end even if a library's exit handler waits on a
+    worker that was stopped mid-task: a daemon thread ends it after ``seconds``."""
+    import os
+    import threading
+    import time
+
+    def later() -> None:
+        time.sleep(seconds)
+        sys.stderr.flush()
+        os._exit(code)
+
+    threading.Thread(target=later, daemon=True).start()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.ERROR if args.quiet else (logging.DEBUG if args.verbose > 1 else
+                                              logging.INFO if args.verbose else logging.WARNING)
+    logging.basicConfig(level=level, format="%(levelname)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    # small dense problems: one BLAS thread is much faster than a contended pool
+    from volcal.base.threads import set_blas_threads
+    set_blas_threads(1)
+    import signal
+    import threading
+
+    from volcal.base.folders import output_policy
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminate)
+        prev_int = signal.getsignal(signal.SIGINT)
+        if prev_int is signal.default_int_handler:
+            signal.signal(signal.SIGINT, _terminate)
+    else:  # pragma: no cover
+        previous = prev_int = None
+    try:
+        with output_policy(bool(getattr(args, "force", False))):
+            return int(args.func(args) or 0)
+    except (UserError, InputError, FileNotFoundError) as exc:
+        # Validation errors carry file/row/column in their message: no traceback.
+        print(f"volcal {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except SolverError as exc:
+        print(f"volcal {args.command}: solver failed: {exc}", file=sys.stderr)
+        return 1
+    except BrokenPipeError:
+        # output piped into e.g. `head`, which closed early: not an error of ours
+        sys.stderr.close()
+        return 0
+    except OSError as exc:
+        # read-only folder, a file where a folder is expected, a full disk, ...
+        where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+        print(f"volcal {args.command}: error: {exc.strerror or exc}{where}; nothing was "
+              "written", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"volcal {args.command}: interrupted; no partial output was left behind",
+              file=sys.stderr)
+        if _SIGNALLED:
+            _exit_soon(130)
+        return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+        if prev_int is not None:
+            signal.signal(signal.SIGINT, prev_int)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

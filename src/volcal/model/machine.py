@@ -1,0 +1,175 @@
+"""A machine: its topology plus compiled CasADi functions of the tool point.
+
+Building runs the symbolic layer once and lowers it; the resulting functions are
+serialised to an on-disk cache keyed on the topology's content hash and the versions of
+volcal and CasADi, so that a second run loads them without touching SymPy.
+
+Function signatures (all inputs column vectors; lengths mm, angles rad):
+
+``tool_point(q[n_axes], t[3], e[n_errors]) -> (p[3], dp[3], J[3 x n_errors])``
+    first-order model: actual tool point, volumetric error p - p_nominal, and dp/de.
+``tool_point_exact(q, t, e) -> (p, dp, J)``
+    the same with exact rotations (no truncation); used by the simulator.
+``nominal(q, t) -> p0[3]``
+"""
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from volcal import __version__
+from volcal.model.spec import ErrorSymbol, MachineSpec, error_symbols, resolve_model
+
+log = logging.getLogger(__name__)
+
+_FUNCTIONS = ("tool_point", "tool_point_exact", "nominal")
+
+
+# Bumped whenever the symbolic chain changes what a built function computes, so that a
+# cache entry of an older chain is never loaded (2: tool zero position and orientation).
+CHAIN_SCHEMA = 2
+
+
+def cache_dir() -> Path:
+    """Folder of the build cache: ``$VOLCAL_CACHE_DIR`` or ``$XDG_CACHE_HOME/volcal``."""
+    env = os.environ.get("VOLCAL_CACHE_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "volcal"
+
+
+def _build_functions(spec: MachineSpec) -> dict[str, ca.Function]:
+    # SymPy is imported here only: a cached machine never loads it.
+    from volcal.model.lowering import to_casadi
+    from volcal.model.symbolic import build_chain
+
+    ch = build_chain(spec)
+    q = ca.SX.sym("q", len(ch.q))
+    t = ca.SX.sym("t", 3)
+    e = ca.SX.sym("e", len(ch.e))
+    symmap = {s: q[k] for k, s in enumerate(ch.q)}
+    symmap.update({s: t[k] for k, s in enumerate(ch.t)})
+    symmap.update({s: e[k] for k, s in enumerate(ch.e)})
+    p0 = ca.vertcat(*to_casadi(ch.nominal, symmap))
+    d1 = ca.vertcat(*to_casadi(ch.first_order, symmap))
+    px = ca.vertcat(*to_casadi(ch.exact, symmap))
+    opts = {"cse": True}
+    names_in = ["q", "t", "e"]
+    names_out = ["p", "dp", "J"]
+    return {
+        "tool_point": ca.Function("tool_point", [q, t, e], [p0 + d1, d1, ca.jacobian(d1, e)],
+                                  names_in, names_out, opts),
+        "tool_point_exact": ca.Function("tool_point_exact", [q, t, e],
+                                        [px, px - p0, ca.jacobian(px, e)],
+                                        names_in, names_out, opts),
+        "nominal": ca.Function("nominal", [q, t], [p0], ["q", "t"], ["p"], opts),
+    }
+
+
+@dataclass
+class Machine:
+    """A topology with its compiled tool-point functions (see the module docstring)."""
+
+    spec: MachineSpec
+    functions: dict[str, ca.Function] = field(repr=False)
+    errors: list[ErrorSymbol] = field(repr=False)
+    build_seconds: float = 0.0
+    from_cache: bool = False
+
+    @classmethod
+    def from_model(cls, model: str | Path | MachineSpec, *, use_cache: bool = True) -> "Machine":
+        """Build (or load from the cache) the machine of a bundled name, file or spec."""
+        spec = resolve_model(model)
+        t0 = time.perf_counter()
+        # the name only makes the entry readable; the content hash is the key
+        safe = "".join(c if c.isalnum() or c in "_-" else "_" for c in spec.name)[:40]
+        key = (f"{safe}-{spec.fingerprint()}-v{__version__}-s{CHAIN_SCHEMA}"
+               f"-ca{ca.__version__}")
+        path = cache_dir() / f"{key}.casadi"
+        funcs = None
+        if use_cache and path.exists():
+            try:
+                funcs = _load(path)
+            except Exception as exc:  # a corrupt cache entry is rebuilt, never trusted
+                log.warning("ignoring unreadable cache entry %s: %s", path, exc)
+        from_cache = funcs is not None
+        if funcs is None:
+            funcs = _build_functions(spec)
+            if use_cache:
+                try:
+                    _save(path, funcs)
+                except OSError as exc:  # a read-only or full cache costs speed, not the run
+                    log.warning("could not write the model cache entry %s: %s", path,
+                                exc.strerror or exc)
+        return cls(spec, funcs, error_symbols(spec), time.perf_counter() - t0, from_cache)
+
+    # ---- convenience -------------------------------------------------------------------
+    @property
+    def axis_names(self) -> list[str]:
+        return self.spec.axis_names
+
+    @property
+    def error_names(self) -> list[str]:
+        return [s.name for s in self.errors]
+
+    @property
+    def n_axes(self) -> int:
+        return len(self.spec.axes)
+
+    @property
+    def n_errors(self) -> int:
+        return len(self.errors)
+
+    def __getitem__(self, name: str) -> ca.Function:
+        return self.functions[name]
+
+    def axis_to_internal(self, q: np.ndarray) -> np.ndarray:
+        """File units (mm, deg) -> internal units (mm, rad), along the last dimension."""
+        q = np.array(q, dtype=float, copy=True)
+        for k, a in enumerate(self.spec.axes):
+            if a.is_rotary:
+                q[..., k] = np.deg2rad(q[..., k])
+        return q
+
+    def evaluate(self, q: np.ndarray, t: np.ndarray, e: np.ndarray, *, exact: bool = False):
+        """Batch evaluation. q: (N, n_axes) internal units; t: (N, 3) or (3,); e: (N, n_err)
+        or (n_err,). Returns (p, dp, J) as arrays (N, 3), (N, 3), (N, 3, n_err)."""
+        q = np.atleast_2d(np.asarray(q, float))
+        n = q.shape[0]
+        t = np.broadcast_to(np.asarray(t, float), (n, 3))
+        e = np.broadcast_to(np.asarray(e, float), (n, self.n_errors))
+        f = self.functions["tool_point_exact" if exact else "tool_point"].map(n)
+        p, dp, J = (v.full() for v in f(q.T, t.T, e.T))
+        # map stacks the (3, n_err) blocks side by side: column a * n_err + b
+        J = np.asarray(J).reshape(3, n, self.n_errors).transpose(1, 0, 2) \
+            if self.n_errors else np.zeros((n, 3, 0))
+        return np.asarray(p).T, np.asarray(dp).T, J
+
+
+def _save(path: Path, funcs: dict[str, ca.Function]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ser = ca.StringSerializer()
+    for name in _FUNCTIONS:
+        ser.pack(funcs[name])
+    # write-then-rename: a concurrent reader never sees a half-written entry
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(ser.encode())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _load(path: Path) -> dict[str, ca.Function]:
+    de = ca.StringDeserializer(path.read_text())
+    return {name: de.unpack() for name in _FUNCTIONS}

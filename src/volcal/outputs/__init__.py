@@ -1,0 +1,1 @@
+"""volcal.base.folders layer."""

@@ -1,0 +1,1 @@
+"""volcal.problem.residuals layer."""

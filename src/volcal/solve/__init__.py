@@ -1,0 +1,1 @@
+"""volcal.solve.ipopt layer."""

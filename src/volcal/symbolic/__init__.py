@@ -1,9 +1,0 @@
-"""The symbolic layer: the only part of volcal that imports SymPy.
-
-``dual`` holds first-order dual matrices (eps^2 = 0), ``transforms`` the elementary
-homogeneous transforms, ``chain`` turns a :class:`~volcal.spec.MachineSpec` into the
-first-order and the exact tool-point expressions.
-"""
-from volcal.symbolic.chain import ChainExpressions, build_chain
-
-__all__ = ["ChainExpressions", "build_chain"]
