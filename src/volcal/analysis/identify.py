@@ -39,7 +39,7 @@ from volcal.model.datum import condition_table, null_space, select_conditions
 from volcal.measurement.tables import Measurements, load_measurements, load_stations
 from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.base.exceptions import InputError, SolverError
-from volcal.measurement.instruments import SequentialMultilateration
+from volcal.measurement.instruments import Instrument, get_instrument
 from volcal.model.machine import Machine
 from volcal.problem.residuals import IdentificationProblem, Layout
 from volcal.solve.ipopt import NLPSolver, SolveOutcome, polish
@@ -223,7 +223,7 @@ class Identifier:
 
     def __init__(self, machine: Machine, error_model: ErrorModel, layout: Layout, *,
                  exact: bool = False, hessian: str = "gauss-newton", verbose: bool = False,
-                 datum_mode: str = "minimal"):
+                 datum_mode: str = "minimal", instrument: str | Instrument | None = None):
         self.machine = machine
         self.error_model = error_model
         if datum_mode not in ("minimal", "impose-all"):
@@ -231,7 +231,7 @@ class Identifier:
         #: "minimal": impose only candidate conditions that remove a null direction;
         #: "impose-all": every ISO 230 condition (comparison only, see select_datum)
         self.datum_mode = datum_mode
-        self.instrument = SequentialMultilateration()
+        self.instrument = get_instrument(instrument)
         self.layout = layout
         t0 = time.perf_counter()
         self.problem = IdentificationProblem(machine, error_model, self.instrument, layout,
@@ -252,6 +252,22 @@ class Identifier:
         for k, name in enumerate(error_model.param_names):
             order[k] = error_model.param_order[k]  # Legendre degree / harmonic number
         self.prefer = np.where(self.is_frame, 4.0, np.where(self.is_theta, 1.0 + 0.1 * order, 0.0))
+
+    def station_fixed(self, station_fixed: np.ndarray) -> np.ndarray:
+        """The mask over x of the held station parameters: every parameter of the stations
+        where ``station_fixed`` (K,) is True, and those the instrument's own convention
+        holds (e.g. the frame of a multi-laser head)."""
+        pr, ins = self.problem, self.instrument
+        nps = ins.n_station_params
+        fixed = np.zeros(pr.n_x, bool)
+        ids = self.layout.station_ids or tuple(f"station{k}" for k in range(self.layout.n_stations))
+        for k, sid in enumerate(ids):
+            base = pr.n_theta + nps * k
+            if k < len(station_fixed) and station_fixed[k]:
+                fixed[base:base + nps] = True
+            for name in ins.held_station_params(sid):
+                fixed[base + ins.station_param_names.index(name)] = True
+        return fixed
 
     # ---- pieces ---------------------------------------------------------------------
     def jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -401,16 +417,21 @@ class Identifier:
 
 
 def reading_sigma(machine: Machine, budget: Budget, meas: Measurements,
-                  stations_xyz: np.ndarray) -> np.ndarray:
+                  stations: np.ndarray, instrument: str | Instrument | None = None
+                  ) -> np.ndarray:
     """Standard uncertainty (mm) of each reading from the budget: the length part combined
-    with the axis repeatability projected on the beam direction (unit vector station ->
-    nominal point); rotary repeatability enters through d(point)/d(angle)."""
+    with the axis repeatabilities carried to the reading through d(reading)/d(point) of the
+    instrument (for a tracker, the beam direction) and d(point)/d(axis) of the machine.
+
+    stations: the station parameters (K, n_station_params) (for the tracker (K, 3)
+    positions suffice: the gradient does not depend on the dead length)."""
+    ins = get_instrument(instrument)
     q, t = meas.q_internal, meas.tool
     p0, _, _ = machine.evaluate(q, t, np.zeros(machine.n_errors))
-    S = stations_xyz[meas.station_index]
-    u = p0 - S
-    L = np.linalg.norm(u, axis=1)
-    u /= L[:, None]
+    S = np.zeros((len(stations), ins.n_station_params))
+    given = np.asarray(stations, float)
+    S[:, :given.shape[1]] = given
+    _, grad = ins.evaluate(p0, S[meas.station_index])  # (N, 3) d reading / d point
     var = budget.length_sigma(meas.length) ** 2
     h = 1e-6
     for k, a in enumerate(machine.spec.axes):
@@ -421,30 +442,36 @@ def reading_sigma(machine: Machine, budget: Budget, meas: Measurements,
         dq[:, k] = h
         p1, _, _ = machine.evaluate(q + dq, t, np.zeros(machine.n_errors))
         dpdq = (p1 - p0) / h
-        var = var + (np.einsum("ni,ni->n", u, dpdq) * sig) ** 2
+        var = var + (np.einsum("ni,ni->n", grad, dpdq) * sig) ** 2
     return np.sqrt(var)
 
 
-def initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFrame | None
+def initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFrame | None,
+                     instrument: str | Instrument | None = None
                      ) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Start values of the stations: (K, 4) x, y, z, dead length (mm) in the order of
-    ``meas.station_ids``, the mask of stations held fixed (K,), and notes.  From the
-    stations table where given, else paper 002's linear solution refined by the sqrt
-    residual (paper 000 Case A) on the nominal points."""
-    from volcal.measurement.multilateration import calibrate_stations
-
+    """Start values of the stations: (K, n_station_params) in the order of
+    ``meas.station_ids`` (for the tracker x, y, z, dead length in mm), the mask of stations
+    held fixed (K,), and notes.  From the stations table where given (its columns are the
+    instrument's station parameter names), else the instrument's own start values from the
+    nominal points."""
+    ins = get_instrument(instrument)
     notes = []
     K = len(meas.station_ids)
-    est = np.full((K, 4), np.nan)
+    est = np.full((K, ins.n_station_params), np.nan)
     fixed = np.zeros(K, bool)
     if stations is not None:
         tab = stations.set_index("station")
+        cols = list(ins.station_param_names)
+        missing_cols = [c for c in cols if c not in tab.columns]
+        if missing_cols:
+            raise InputError(f"the stations table has no column {', '.join(missing_cols)} "
+                             f"(the {ins.name} instrument's station parameters are "
+                             f"{', '.join(cols)})", source="stations table")
         for k, sid in enumerate(meas.station_ids):
             if sid in tab.index:
                 row = tab.loc[sid]
-                est[k, :3] = [row["x_mm"], row["y_mm"], row["z_mm"]]
-                est[k, 3] = row["dead_length_mm"]
-                fixed[k] = bool(row["fixed"])
+                est[k] = [row[c] for c in cols]
+                fixed[k] = bool(row["fixed"]) if "fixed" in tab.columns else False
         # ids that do not match are never silently ignored (load_measurements warns)
         described = [str(s) for s in tab.index]
         if not set(described) & set(meas.station_ids):
@@ -459,17 +486,11 @@ def initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFram
     if missing.any():
         p0, _, _ = machine.evaluate(meas.q_internal, meas.tool, np.zeros(machine.n_errors))
         sel = np.isin(meas.station_index, np.flatnonzero(missing))
-        ids = np.asarray(meas.station_ids, dtype=object)[meas.station_index[sel]]
-        cal = calibrate_stations(ids, p0[sel], meas.length[sel], method="sqrt")
-        for sid, pos, d, ok, st in zip(cal.stations, cal.positions, cal.dead_lengths,
-                                       cal.converged, cal.status):
-            k = meas.station_ids.index(str(sid))
-            if not ok:
-                raise SolverError(f"could not locate station {sid} from the nominal points",
-                                  status=str(st))
-            est[k, :3], est[k, 3] = pos, d
-        notes.append("station start values: paper 002 linear solution refined by the "
-                     "sqrt residual (paper 000 Case A) on nominal points")
+        ids = [meas.station_ids[k] for k in np.flatnonzero(missing)]
+        local = {k: i for i, k in enumerate(np.flatnonzero(missing))}
+        idx = np.array([local[k] for k in meas.station_index[sel]], int)
+        est[missing] = ins.start_values(ids, idx, p0[sel], meas.length[sel])
+        notes.append(ins.start_note())
     return est, fixed, notes
 
 
@@ -498,7 +519,8 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
              point_method: str = "sqrt", verbose: bool = False,
              forms: dict[str, ErrorForm] | None = None, order_criterion: str = "bic",
              cv_folds: int = 5, datum_mode: str = "minimal",
-             progress: bool = False) -> IdentificationResult:
+             progress: bool = False, instrument: str | Instrument | None = None
+             ) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
     model: bundled model name, model file, spec or Machine; data: measurement table (CSV,
@@ -512,6 +534,9 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
     ``degree="auto"``: per-axis orders chosen by ``order_criterion`` (``"bic"`` or ``"cv"``
     with ``cv_folds`` folds), see :mod:`volcal.analysis.order_selection` (``progress``: a progress
     bar of its candidate fits on stderr; a single identification has none).
+
+    instrument: the observation model (:mod:`volcal.measurement.instruments`; a name such
+    as ``"tracker"`` (default) or ``"multilaser"``, or an :class:`Instrument` object).
     """
     if degree == "auto":  # every other argument goes to each candidate fit
         opts = {k: v for k, v in locals().items() if k not in (
@@ -527,22 +552,26 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
     if stations is not None:
         st_table = stations if isinstance(stations, pd.DataFrame) and "x_mm" in stations \
             and "dead_length_given" in stations else load_stations(stations)
+    ins = get_instrument(instrument)
     meas = data if isinstance(data, Measurements) else load_measurements(
-        data, spec, stations=st_table)
+        data, spec, stations=st_table, relative_lengths=not ins.positive_readings)
     em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
     bud = budget if isinstance(budget, Budget) else load_budget(budget)
     if strategy not in STRATEGIES:
         raise InputError(f"unknown strategy {strategy!r}; expected one of {list(STRATEGIES)}")
 
-    st0, st_fixed, notes = initial_stations(machine, meas, st_table)
+    st0, st_fixed, notes = initial_stations(machine, meas, st_table, ins)
     sigma = meas.sigma.copy()
     no_sigma = ~np.isfinite(sigma)
     if no_sigma.any():  # the budget only where the table gives no sigma
-        sigma[no_sigma] = reading_sigma(machine, bud, meas, st0[:, :3])[no_sigma]
+        sigma[no_sigma] = reading_sigma(machine, bud, meas, st0, ins)[no_sigma]
     sigma_source = "table" if not no_sigma.any() else (
         f"budget {bud.name}" if no_sigma.all() else f"table and budget {bud.name}")
 
     if strategy == "classic":
+        if ins.name != "tracker":
+            raise InputError(f"the classic pipeline calibrates tracker stations; it does not "
+                             f"apply to the {ins.name} instrument")
         from volcal.analysis.classic import classic_pipeline
         return classic_pipeline(machine, em, meas, st0, sigma, station_method=station_method,
                                 point_method=point_method, t_start=t_start,
@@ -550,13 +579,11 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
 
     layout = Layout.from_measurements(meas)
     ider = Identifier(machine, em, layout, exact=exact, hessian=hessian, verbose=verbose,
-                      datum_mode=datum_mode)
+                      datum_mode=datum_mode, instrument=ins)
     pr = ider.problem
     weights = 1.0 / sigma
     x0 = pr.pack_x(np.zeros(em.n_params), st0)
-    user_fixed = np.zeros(pr.n_x, bool)
-    for k in np.flatnonzero(st_fixed):
-        user_fixed[pr.n_theta + 4 * k: pr.n_theta + 4 * k + 4] = True
+    user_fixed = ider.station_fixed(st_fixed)
     if strategy == "points-only" and not st_fixed.all():
         user_fixed[ider.is_station] = True
         notes.append("points-only: stations held at their start values "
@@ -620,15 +647,18 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
                      f"{len(datum_table)} conditions imposed; the other {n_not} would have "
                      "constrained what the data determine and take the values the data give "
                      "(datum.csv)")
-    stations_out = pd.DataFrame({
-        "station": meas.station_ids, "x_mm": st[:, 0], "y_mm": st[:, 1], "z_mm": st[:, 2],
-        "dead_length_mm": st[:, 3],
-        "std_x_um": np.sqrt(np.abs(np.diag(cov)[ider.is_station][0::4])) * 1e3,
-        "std_y_um": np.sqrt(np.abs(np.diag(cov)[ider.is_station][1::4])) * 1e3,
-        "std_z_um": np.sqrt(np.abs(np.diag(cov)[ider.is_station][2::4])) * 1e3,
-        "std_dead_length_um": np.sqrt(np.abs(np.diag(cov)[ider.is_station][3::4])) * 1e3,
-        "fixed": st_fixed if strategy != "points-only" else True,
-    })
+    nps = ins.n_station_params
+    var_st = np.abs(np.diag(cov)[ider.is_station]).reshape(-1, nps) if nps else None
+    stations_out = pd.DataFrame({"station": meas.station_ids})
+    for j, name in enumerate(ins.station_param_names):
+        stations_out[name] = st[:, j]
+    for j, name in enumerate(ins.station_param_names):
+        unit = ins.station_param_units[j]
+        f, rep = (1e3, "um") if unit == "mm" else ((1e6, "urad") if unit == "rad" else (1.0, ""))
+        base = name[:-len(unit) - 1] if name.endswith("_" + unit) else name
+        col = f"std_{base}_{rep}" if rep else f"std_{base}"
+        stations_out[col] = np.sqrt(var_st[:, j]) * f
+    stations_out["fixed"] = st_fixed if strategy != "points-only" else True
     residuals = meas.table.copy()
     residuals["residual_um"] = resid_w * sigma * 1e3
     residuals["normalised_residual"] = resid_w

@@ -114,7 +114,7 @@ import casadi as ca
 import numpy as np
 
 from volcal.analysis import analyse_jacobian
-from volcal.measurement.instruments import InstrumentBase
+from volcal.measurement.instruments.multilaser import FRAME_NAMES, MultiLaserInstrument
 from volcal.measurement.multilateration import multilaterate
 from volcal.measurement.budget import PAPER001_DRIFT, DriftModel
 
@@ -128,8 +128,6 @@ __all__ = [
 ]
 
 LASERS = ("laser1", "laser2", "laser3")
-FRAME_NAMES = ("frame_tx_mm", "frame_ty_mm", "frame_tz_mm",
-               "frame_rx_rad", "frame_ry_rad", "frame_rz_rad")
 GEOMETRY_NAMES = ("x1_mm", "x2_mm", "y2_mm")
 OFFSET_NAMES = ("offset1_mm", "offset2_mm", "offset3_mm")
 STRATEGIES = ("sphere", "points-only", "two-phase", "joint")
@@ -149,16 +147,6 @@ def rotation_matrix(r: Sequence[float]) -> np.ndarray:
     Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
     Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
     return Rz @ Ry @ Rx
-
-
-def _rotation_sx(r):
-    """The same rotation for CasADi symbols (3,)."""
-    cx, sx, cy, sy, cz, sz = (ca.cos(r[0]), ca.sin(r[0]), ca.cos(r[1]), ca.sin(r[1]),
-                              ca.cos(r[2]), ca.sin(r[2]))
-    Rx = ca.blockcat([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    Ry = ca.blockcat([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    Rz = ca.blockcat([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return ca.mtimes([Rz, Ry, Rx])
 
 
 def laser_origins(geometry: Sequence[float]) -> np.ndarray:
@@ -193,39 +181,6 @@ def distances_from_geometry(geometry: Sequence[float]) -> np.ndarray:
 
 # --------------------------------------------------------------------------------------
 # observation model as a volcal instrument (per-station params + global params)
-
-
-@dataclass(frozen=True)
-class MultiLaserInstrument(InstrumentBase):
-    """The HPTI as a volcal observation model (same protocol as
-    :class:`volcal.measurement.instruments.SequentialMultilateration`).
-
-    Station = laser.  Per laser: its origin ``x, y, z`` in the instrument frame (mm) and its
-    length offset (mm); global: ``instrument_T_machine`` (tx, ty, tz mm; rx, ry, rz rad,
-    exact rotation).  ``reading = ||R P + t - Q|| - offset``.  The ICRS convention of the
-    paper fixes laser1.x/y/z, laser2.y/z and laser3.z at 0 (:meth:`icrs_fixed`); then
-    x1 = laser2.x, x2 = laser3.x, y2 = laser3.y.
-    """
-
-    name: str = "multilaser"
-    station_param_names: tuple[str, ...] = ("x_mm", "y_mm", "z_mm", "offset_mm")
-    global_param_names: tuple[str, ...] = FRAME_NAMES
-
-    @staticmethod
-    def to_instrument(point, glob):
-        """Machine point (3,) -> instrument frame, CasADi."""
-        return ca.mtimes(_rotation_sx(glob[3:6]), point) + glob[0:3]
-
-    def reading(self, point, station, glob):
-        """Model of one reading (mm) of the laser ``station`` for the machine point."""
-        diff = self.to_instrument(point, glob) - station[0:3]
-        return ca.sqrt(ca.sumsqr(diff)) - station[3]
-
-    @staticmethod
-    def icrs_fixed() -> dict[str, tuple[str, ...]]:
-        """Station parameters the ICRS convention fixes at 0 (per laser)."""
-        return {"laser1": ("x_mm", "y_mm", "z_mm"), "laser2": ("y_mm", "z_mm"),
-                "laser3": ("z_mm",)}
 
 
 # --------------------------------------------------------------------------------------

@@ -174,7 +174,7 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
         sig = meas.sigma.copy()
         miss = ~np.isfinite(sig)
         if miss.any():
-            sig[miss] = reading_sigma(machine, bud, meas, st0[:, :3])[miss]
+            sig[miss] = reading_sigma(machine, bud, meas, st0)[miss]
         n_pts = len(meas.point_ids)
         k_folds = min(int(folds), n_pts)
         perm = np.random.default_rng(seed).permutation(n_pts)

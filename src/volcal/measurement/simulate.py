@@ -56,6 +56,7 @@ from volcal import __version__
 from volcal.model.errors import ErrorModel, legendre
 from volcal.base.exceptions import InputError
 from volcal.model.machine import Machine
+from volcal.measurement.instruments import SequentialMultilateration
 from volcal.measurement.budget import ANGLE_UNITS, LENGTH_UNITS, Budget, load_budget
 from volcal.base.units import REPORT
 
@@ -520,10 +521,13 @@ def simulate(machine: Machine | str, error_model: ErrorModel | None, theta_true:
     q_act = q_cmd[idx_i] + dq
     e_act = _error_values(em, q_act, theta)
     P, _, _ = machine.evaluate(q_act, tools[idx_k], e_act, exact=True)
+    # the readings from the instrument's one reading function (the model identify fits)
+    tracker = SequentialMultilateration()
     Q = st[["x_mm", "y_mm", "z_mm"]].to_numpy(dtype=float)
     dead = st["dead_length_mm"].to_numpy(dtype=float)
-    dist = np.linalg.norm(P - Q[idx_s], axis=1)
-    length = dist - dead[idx_s]
+    st_params = np.column_stack([Q, dead])
+    length, _ = tracker.evaluate(P, st_params[idx_s])
+    dist = length + dead[idx_s]
     if "length" in sources:
         length = length + budget.sample_length_errors(dist, g_len)
     if drift:
@@ -547,9 +551,8 @@ def simulate(machine: Machine | str, error_model: ErrorModel | None, theta_true:
     t_pt = np.repeat(tools, N, axis=0)
     P0 = np.asarray(machine["nominal"].map(N * K)(q_pt.T, t_pt.T)).T
     Jq = _position_jacobian(machine, q_pt, t_pt)
-    beam = P0[idx_pt] - Q[idx_s]
-    L0 = np.linalg.norm(beam, axis=1)
-    u = beam / np.maximum(L0, 1e-12)[:, None]
+    L0, u = tracker.evaluate(P0[idx_pt], st_params[idx_s])  # u: d reading / d point
+    L0 = L0 + dead[idx_s]
     g = np.einsum("ri,rij->rj", u, Jq[idx_pt])
     u_axes = np.array([budget.axis_sigma(a) for a in names])
     sigma = np.sqrt(budget.length_sigma(L0) ** 2 + ((g * u_axes) ** 2).sum(axis=1))

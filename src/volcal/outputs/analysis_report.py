@@ -690,11 +690,8 @@ def analyze_plan(model, plan: pd.DataFrame, stations, tools=None, budget="paper0
     st = sim.stations[["x_mm", "y_mm", "z_mm", "dead_length_mm"]].to_numpy(float)
     x = pr.pack_x(th, st)
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, 1.0 / meas.sigma)
-    user_fixed = np.zeros(pr.n_x, bool)
-    for k, f in enumerate(np.asarray(sim.stations.get("fixed", np.zeros(len(st), bool)),
-                                     bool)):
-        if f:
-            user_fixed[pr.n_theta + 4 * k: pr.n_theta + 4 * k + 4] = True
+    user_fixed = ider.station_fixed(np.asarray(sim.stations.get("fixed", np.zeros(len(st), bool)),
+                                               bool))
     notes = [f"plan: {len(plan)} poses x {len(tools)} tool offset(s) x {len(st)} stations; "
              f"budget {bud.name}; readings noise-free at the "
              f"{'given' if theta is not None else 'zero'} error parameters"]

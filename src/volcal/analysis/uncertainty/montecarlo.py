@@ -162,9 +162,7 @@ def fixed_mask(ider, result) -> np.ndarray:
     fixed = np.zeros(n, bool)
     if result.identifiability is not None:
         fixed[list(result.identifiability.pivots)] = True
-    st_fixed = np.asarray(result.stations["fixed"], bool)
-    for k in np.flatnonzero(st_fixed):
-        fixed[ider.problem.n_theta + 4 * k: ider.problem.n_theta + 4 * k + 4] = True
+    fixed |= ider.station_fixed(np.asarray(result.stations["fixed"], bool))
     if result.strategy in ("two-phase", "points-only"):
         fixed[ider.is_station] = True
     return fixed

@@ -389,9 +389,7 @@ def _define(machine: Machine, meas, has_lengths: bool, st_table: pd.DataFrame | 
         sigma = S.analysis_sigma(machine, bud, dataclasses.replace(meas, length=length), st0)
     p = pr.pack_data(meas.q_internal, meas.tool, length, 1.0 / sigma)
     x0 = pr.pack_x(np.zeros(em.n_params), st0)
-    user_fixed = np.zeros(pr.n_x, bool)
-    for k in np.flatnonzero(st_fixed):
-        user_fixed[pr.n_theta + 4 * k: pr.n_theta + 4 * k + 4] = True
+    user_fixed = ider.station_fixed(st_fixed)
     if strategy == "points-only":
         user_fixed[ider.is_station] = True
         notes.append("points-only: stations held at their start values")

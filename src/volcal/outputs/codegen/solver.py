@@ -423,7 +423,7 @@ def analysis_sigma(machine: Machine, budget: Budget, meas, st0: np.ndarray) -> n
     sigma = np.array(meas.sigma, float)
     bad = ~np.isfinite(sigma)
     if bad.any():
-        sigma[bad] = reading_sigma(machine, budget, meas, st0[:, :3])[bad]
+        sigma[bad] = reading_sigma(machine, budget, meas, st0)[bad]
     return sigma
 
 

@@ -1,0 +1,45 @@
+"""Observation models behind one interface (:class:`Instrument`), and their registry.
+
+``get_instrument("tracker")`` (the default, sequential multilateration) or
+``"multilaser"`` (paper 001's head); :func:`register` adds one (a class in one file).
+"""
+from __future__ import annotations
+
+from volcal.base.exceptions import InputError
+from volcal.measurement.instruments.base import Instrument
+from volcal.measurement.instruments.multilaser import MultiLaserInstrument
+from volcal.measurement.instruments.tracker import SequentialMultilateration
+
+__all__ = ["Instrument", "SequentialMultilateration", "MultiLaserInstrument", "register",
+           "get_instrument", "instruments"]
+
+_REGISTRY: dict[str, type[Instrument]] = {
+    "tracker": SequentialMultilateration,
+    "multilaser": MultiLaserInstrument,
+}
+
+
+def register(cls: type[Instrument]) -> type[Instrument]:
+    """Register an :class:`Instrument` subclass under its ``name`` (usable as a decorator)."""
+    if not (isinstance(cls, type) and issubclass(cls, Instrument)):
+        raise TypeError(f"{cls!r} is not an Instrument subclass")
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def instruments() -> list[str]:
+    """Names of the registered instruments."""
+    return sorted(_REGISTRY)
+
+
+def get_instrument(instrument: str | Instrument | None = None) -> Instrument:
+    """An instrument object from a name (or the object itself; None: the tracker)."""
+    if instrument is None:
+        return SequentialMultilateration()
+    if isinstance(instrument, Instrument):
+        return instrument
+    try:
+        return _REGISTRY[str(instrument)]()
+    except KeyError:
+        raise InputError(f"unknown instrument {instrument!r}; expected one of "
+                         f"{', '.join(instruments())}") from None
