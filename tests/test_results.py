@@ -25,7 +25,7 @@ from volcal.measurement.plans import default_stations, grid_plan
 from volcal.outputs.results import (DATA_FILES, PLOT_FILES, RESULT_FILES, load_result, read_points,
                             save_result)
 from volcal.measurement.simulate import draw_true_parameters, simulate
-from volcal.solve.ipopt import SolveOutcome
+from volcal.solve.outcome import SolveOutcome
 
 TOOLS = np.array([[0, 0, 0], [0, 0, -100.0], [80, 0, -100.0], [0, 80, -100.0]])
 OUTLIER_INDEX = 37          # 0-based reading given a blunder in the robust CLI run

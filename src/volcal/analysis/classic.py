@@ -25,7 +25,7 @@ from volcal.analysis.identifiability import rigid_columns
 from volcal.model.datum import candidate_conditions, condition_table, select_conditions
 from volcal.model.machine import Machine
 from volcal.measurement.multilateration import calibrate_stations, multilaterate
-from volcal.solve.ipopt import SolveOutcome
+from volcal.solve.outcome import SolveOutcome
 from volcal.base.units import solver_scale
 
 

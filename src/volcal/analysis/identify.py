@@ -26,7 +26,6 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import pandas as pd
@@ -42,15 +41,19 @@ from volcal.base.exceptions import InputError, SolverError
 from volcal.measurement.instruments import Instrument, get_instrument
 from volcal.model.machine import Machine
 from volcal.problem.residuals import IdentificationProblem, Layout
-from volcal.solve.ipopt import NLPSolver, SolveOutcome, polish
+from volcal.problem.strategies import (ClassicPipeline, PhasedStrategy, Strategy,
+                                       get_strategy, strategies)
+from volcal.solve.gauss_newton import GaussNewtonSolver, polish
+from volcal.solve.ipopt import NLPSolver
+from volcal.solve.outcome import SolveOutcome
 from volcal.model.spec import MachineSpec
 from volcal.measurement.budget import Budget, load_budget
 from volcal.base.units import report_factors, report_unit
 
 log = logging.getLogger(__name__)
 
-Strategy = Literal["joint", "two-phase", "points-only", "classic"]
-STRATEGIES: tuple[str, ...] = ("joint", "two-phase", "points-only", "classic")
+STRATEGIES: tuple[str, ...] = tuple(strategies())
+SOLVERS: tuple[str, ...] = ("ipopt", "gauss-newton")
 
 
 @dataclass
@@ -223,7 +226,8 @@ class Identifier:
 
     def __init__(self, machine: Machine, error_model: ErrorModel, layout: Layout, *,
                  exact: bool = False, hessian: str = "gauss-newton", verbose: bool = False,
-                 datum_mode: str = "minimal", instrument: str | Instrument | None = None):
+                 datum_mode: str = "minimal", instrument: str | Instrument | None = None,
+                 solver: str = "ipopt"):
         self.machine = machine
         self.error_model = error_model
         if datum_mode not in ("minimal", "impose-all"):
@@ -236,7 +240,14 @@ class Identifier:
         t0 = time.perf_counter()
         self.problem = IdentificationProblem(machine, error_model, self.instrument, layout,
                                              exact=exact)
-        self.solver = NLPSolver(self.problem, hessian=hessian, verbose=verbose)
+        if solver not in SOLVERS:
+            raise InputError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
+        #: "ipopt" (default): IPOPT then a few Gauss-Newton polish steps; "gauss-newton":
+        #: Levenberg-Marquardt with the datum eliminated (volcal.solve.gauss_newton)
+        self.solver_name = solver
+        self.gauss_newton = GaussNewtonSolver(self.problem)
+        self.solver = (NLPSolver(self.problem, hessian=hessian, verbose=verbose)
+                       if solver == "ipopt" else self.gauss_newton)
         self.build_seconds = time.perf_counter() - t0
         n = self.problem.n_x
         nt, ss = self.problem.n_theta, self.problem.station_slice()
@@ -355,11 +366,24 @@ class Identifier:
 
 
     # ---- strategies -----------------------------------------------------------------
-    def run(self, strategy: str, x0: np.ndarray, p: np.ndarray, *,
+    def group_mask(self, groups) -> np.ndarray:
+        """The mask over x of variable groups (``"errors"``, ``"stations"``, ``"frame"``)."""
+        masks = {"errors": self.is_theta, "stations": self.is_station, "frame": self.is_frame}
+        out = np.zeros(self.problem.n_x, bool)
+        for g in groups:
+            out |= masks[g]
+        return out
+
+    def run(self, strategy: str | Strategy, x0: np.ndarray, p: np.ndarray, *,
             user_fixed: np.ndarray | None = None, solve: bool = True
             ) -> tuple[np.ndarray, list[SolveOutcome], np.ndarray, Identifiability]:
-        """Solve with a strategy from x0 (physical). Returns (x, outcomes, fixed mask,
-        identifiability of the final phase)."""
+        """Solve with a strategy (:mod:`volcal.problem.strategies`) from x0 (physical), phase
+        by phase on the one problem and solver.  Returns (x, outcomes, held mask of the last
+        phase, identifiability of the last phase that analysed it)."""
+        strat = get_strategy(strategy)
+        if not isinstance(strat, PhasedStrategy):
+            raise InputError(f"the {strat.name} strategy does not solve the joint problem; "
+                             "run it through identify()")
         n = self.problem.n_x
         user_fixed = np.zeros(n, bool) if user_fixed is None else user_fixed
         outcomes: list[SolveOutcome] = []
@@ -367,50 +391,47 @@ class Identifier:
         def step(x, fixed) -> SolveOutcome:
             if solve:
                 out = self.solver.solve(x, p, fixed=fixed)
-                if out.success:
-                    out.x, out.polish_steps, out.polish_f = polish(self.problem, out.x, p,
-                                                                   fixed)
+                if out.success and self.solver is not self.gauss_newton:
+                    out.x, out.polish_steps, out.polish_f = polish(self.gauss_newton, out.x,
+                                                                   p, fixed)
                 return out
             # a plan without data (export-time analysis): keep the start point
             return SolveOutcome(np.array(x, float), float("nan"), "not solved", True, 0, 0.0)
 
         self.phase_conditions: dict[str, float] = {}
-        if strategy == "joint":
-            self.select_datum(x0, p, user_fixed)
-            ident = self.analyse(x0, p, user_fixed)
-            # hold one variable per null direction (the pivot); the others involved stay
-            # free and are reported as not individually identifiable
-            fixed = user_fixed.copy()
-            fixed[ident.pivots] = True
-            x0 = np.where(fixed & ~user_fixed & ~self.is_station, 0.0, x0)
-            out = step(x0, fixed)
-            outcomes.append(out)
-            return out.x, outcomes, fixed, ident
-        if strategy in ("two-phase", "points-only"):
-            x = x0.copy()
-            if strategy == "two-phase":
-                f1 = user_fixed | self.is_theta | self.is_frame
-                x[self.is_theta | self.is_frame] = 0.0
-                # the error parameters are held at zero: no datum condition is needed (and
-                # rows on held variables only would over-determine the NLP for IPOPT)
+        x = np.array(x0, float)
+        fixed, ident = user_fixed, None
+        for ph in strat.phases:
+            held = user_fixed | self.group_mask(ph.hold)
+            x = np.where(self.group_mask(ph.zero), 0.0, x)
+            if ph.datum:
+                self.select_datum(x, p, held)
+            else:
+                # the error parameters are held: no datum condition is needed (rows on held
+                # variables only would over-determine the NLP for IPOPT)
                 self.problem.set_datum(np.zeros(len(self.problem.conditions), bool))
-                out1 = step(x, f1)
-                outcomes.append(out1)
-                x = out1.x
-                # the conditioning of the system phase one solved (stations alone)
-                ident1 = self.analyse(x, p, f1, constrained=False)
-                self.phase_conditions = {"phase1_jacobian_scaled": ident1.condition,
-                                         "phase1_jacobian_unscaled": ident1.condition_unscaled}
-            f2 = user_fixed | self.is_station
-            self.select_datum(x, p, f2)
-            ident = self.analyse(x, p, f2)
-            f2 = f2.copy()
-            f2[ident.pivots] = True
-            x = np.where(f2 & ~self.is_station & ~user_fixed, 0.0, x)
-            out2 = step(x, f2)
-            outcomes.append(out2)
-            return out2.x, outcomes, f2, ident
-        raise InputError(f"unknown strategy {strategy!r}; expected one of {STRATEGIES}")
+            fixed = held.copy()
+            if ph.pivots:
+                ident = self.analyse(x, p, held)
+                # hold one variable per null direction (the pivot), at zero unless it is a
+                # station; the others involved stay free and are reported as not
+                # individually identifiable
+                pivot = np.zeros(n, bool)
+                pivot[list(ident.pivots)] = True
+                fixed |= pivot
+                x = np.where(pivot & ~held & ~self.is_station, 0.0, x)
+            out = step(x, fixed)
+            outcomes.append(out)
+            x = out.x
+            if ph.report:
+                # the conditioning of the system this phase solved
+                rep = self.analyse(x, p, held, constrained=False)
+                self.phase_conditions.update({
+                    f"{ph.report}_jacobian_scaled": rep.condition,
+                    f"{ph.report}_jacobian_unscaled": rep.condition_unscaled})
+        if ident is None:
+            ident = self.analyse(x, p, fixed)
+        return x, outcomes, fixed, ident
 
 
 # ---------------------------------------------------------------------------------------
@@ -519,8 +540,8 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
              point_method: str = "sqrt", verbose: bool = False,
              forms: dict[str, ErrorForm] | None = None, order_criterion: str = "bic",
              cv_folds: int = 5, datum_mode: str = "minimal",
-             progress: bool = False, instrument: str | Instrument | None = None
-             ) -> IdentificationResult:
+             progress: bool = False, instrument: str | Instrument | None = None,
+             solver: str = "ipopt") -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
     model: bundled model name, model file, spec or Machine; data: measurement table (CSV,
@@ -535,6 +556,9 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
     with ``cv_folds`` folds), see :mod:`volcal.analysis.order_selection` (``progress``: a progress
     bar of its candidate fits on stderr; a single identification has none).
 
+    solver: ``"ipopt"`` (default) or ``"gauss-newton"`` (:mod:`volcal.solve`); both reach
+    the same minimiser.
+
     instrument: the observation model (:mod:`volcal.measurement.instruments`; a name such
     as ``"tracker"`` (default) or ``"multilaser"``, or an :class:`Instrument` object).
     """
@@ -548,17 +572,20 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
     t_start = time.perf_counter()
     machine = model if isinstance(model, Machine) else Machine.from_model(model)
     spec = machine.spec
+    ins = get_instrument(instrument)
     st_table = None
     if stations is not None:
-        st_table = stations if isinstance(stations, pd.DataFrame) and "x_mm" in stations \
-            and "dead_length_given" in stations else load_stations(stations)
-    ins = get_instrument(instrument)
+        # the tracker's stations table is validated by its reader; another instrument's
+        # table is a DataFrame whose columns are its station parameters
+        given = isinstance(stations, pd.DataFrame) and (
+            ins.name != "tracker" or ("x_mm" in stations and "dead_length_given" in stations))
+        st_table = stations if given else load_stations(stations)
     meas = data if isinstance(data, Measurements) else load_measurements(
         data, spec, stations=st_table, relative_lengths=not ins.positive_readings)
     em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
     bud = budget if isinstance(budget, Budget) else load_budget(budget)
-    if strategy not in STRATEGIES:
-        raise InputError(f"unknown strategy {strategy!r}; expected one of {list(STRATEGIES)}")
+    strat = get_strategy(strategy, station_method=station_method, point_method=point_method)
+    strategy = strat.name
 
     st0, st_fixed, notes = initial_stations(machine, meas, st_table, ins)
     sigma = meas.sigma.copy()
@@ -568,31 +595,32 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
     sigma_source = "table" if not no_sigma.any() else (
         f"budget {bud.name}" if no_sigma.all() else f"table and budget {bud.name}")
 
-    if strategy == "classic":
+    if isinstance(strat, ClassicPipeline):
         if ins.name != "tracker":
             raise InputError(f"the classic pipeline calibrates tracker stations; it does not "
                              f"apply to the {ins.name} instrument")
         from volcal.analysis.classic import classic_pipeline
-        return classic_pipeline(machine, em, meas, st0, sigma, station_method=station_method,
-                                point_method=point_method, t_start=t_start,
+        return classic_pipeline(machine, em, meas, st0, sigma,
+                                station_method=strat.station_method,
+                                point_method=strat.point_method, t_start=t_start,
                                 sigma_source=sigma_source, notes=notes)
 
     layout = Layout.from_measurements(meas)
     ider = Identifier(machine, em, layout, exact=exact, hessian=hessian, verbose=verbose,
-                      datum_mode=datum_mode, instrument=ins)
+                      datum_mode=datum_mode, instrument=ins, solver=solver)
     pr = ider.problem
     weights = 1.0 / sigma
     x0 = pr.pack_x(np.zeros(em.n_params), st0)
     user_fixed = ider.station_fixed(st_fixed)
-    if strategy == "points-only" and not st_fixed.all():
+    if isinstance(strat, PhasedStrategy) and strat.hold_stations and not st_fixed.all():
         user_fixed[ider.is_station] = True
-        notes.append("points-only: stations held at their start values "
+        notes.append(f"{strat.name}: stations held at their start values "
                      "(given table or analytical solution)")
 
     rejected = np.zeros(len(meas), bool)
     for round_ in range(12 if robust else 1):
         p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
-        x, outcomes, fixed, ident = ider.run(strategy, x0, p, user_fixed=user_fixed)
+        x, outcomes, fixed, ident = ider.run(strat, x0, p, user_fixed=user_fixed)
         r = pr.residual(pr.to_scaled(x), pr.pack_data(
             meas.q_internal, meas.tool, meas.length, weights)).full().ravel()
         if not robust:
@@ -658,7 +686,7 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
         base = name[:-len(unit) - 1] if name.endswith("_" + unit) else name
         col = f"std_{base}_{rep}" if rep else f"std_{base}"
         stations_out[col] = np.sqrt(var_st[:, j]) * f
-    stations_out["fixed"] = st_fixed if strategy != "points-only" else True
+    stations_out["fixed"] = True if getattr(strat, "hold_stations", False) else st_fixed
     residuals = meas.table.copy()
     residuals["residual_um"] = resid_w * sigma * 1e3
     residuals["normalised_residual"] = resid_w

@@ -7,29 +7,13 @@ squares it converges in a handful of iterations and costs half of the exact Hess
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-
 import casadi as ca
 import numpy as np
 
 from volcal.problem.residuals import IdentificationProblem
+from volcal.solve.outcome import SolveOutcome
 
 _OK = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
-
-
-@dataclass
-class SolveOutcome:
-    """What one IPOPT solve returned: x, the objective 0.5 ||r||^2, status and effort."""
-
-    x: np.ndarray
-    f: float
-    status: str
-    success: bool
-    iterations: int
-    seconds: float
-    #: Gauss-Newton steps :func:`polish` took after IPOPT, and the objective it reached
-    polish_steps: int = 0
-    polish_f: float = float("nan")
 
 
 class NLPSolver:
@@ -81,46 +65,3 @@ class NLPSolver:
         x = self.problem.from_scaled(sol["x"].full())
         ok = status in _OK and bool(np.all(np.isfinite(x)))
         return SolveOutcome(x, float(sol["f"]), status, ok, int(st.get("iter_count", -1)), dt)
-
-
-def polish(problem: IdentificationProblem, x: np.ndarray, p: np.ndarray,
-           fixed: np.ndarray | None = None, *, steps: int = 3
-           ) -> tuple[np.ndarray, int, float]:
-    """A few Gauss-Newton steps from IPOPT's answer x (physical units) under the datum in
-    force, with ``fixed`` variables held.
-
-    IPOPT stops once the gradient of the whitened sum of squares is at rounding level, which
-    leaves the sum of squares about 1e-7 relative above its minimum; the minimiser is then
-    datum-dependent at that level.  Near the minimum Gauss-Newton converges fast, so a few
-    steps bring every datum and strategy to the same minimum (1e-10 relative) for the price
-    of a Jacobian each.  A step is kept only when it lowers the sum of squares.  Returns
-    (x, steps kept, objective 0.5 ||r||^2 at x)."""
-    import scipy.linalg as sla
-
-    n = problem.n_x
-    fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
-    free = np.flatnonzero(~fixed)
-    nt = problem.n_theta
-    C = np.zeros((problem.C.shape[0], n))
-    C[:, :nt] = problem.C * problem.scale[None, :nt]
-    Cf = C[:, free]
-    Cf = Cf[np.linalg.norm(Cf, axis=1) > 0]
-    Z = sla.null_space(Cf) if Cf.shape[0] else np.eye(len(free))
-    xs = problem.to_scaled(x)
-    r, J = problem.jacobian(xs, p)
-    r, J = r.full().ravel(), J.full()
-    f = float(r @ r)
-    kept = 0
-    for _ in range(steps):
-        A = J[:, free] @ Z
-        y = np.linalg.lstsq(A, -r, rcond=None)[0]
-        trial = xs.copy()
-        trial[free] += Z @ y
-        r1, J1 = problem.jacobian(trial, p)
-        r1 = r1.full().ravel()
-        f1 = float(r1 @ r1)
-        if not np.isfinite(f1) or f1 >= f:
-            break
-        xs, r, J, f = trial, r1, J1.full(), f1
-        kept += 1
-    return problem.from_scaled(xs), kept, 0.5 * f

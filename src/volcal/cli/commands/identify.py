@@ -21,7 +21,9 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 # kept here (not imported from volcal.analysis.identify) so that `volcal --help` stays light
-_STRATEGIES = ("joint", "two-phase", "points-only", "classic")
+from volcal.problem.strategies import strategies as _strategies
+
+_STRATEGIES = tuple(_strategies())
 _DATUMS = ("iso230", "reference", "none")
 
 
@@ -80,6 +82,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--point-method", default="sqrt",
                    choices=["sqrt", "squared", "linear", "linear_taylor"],
                    help="classic strategy: point multilateration method")
+    p.add_argument("--solver", default="ipopt", choices=["ipopt", "gauss-newton"],
+                   help="ipopt (default, followed by Gauss-Newton polish steps) or "
+                        "gauss-newton (Levenberg-Marquardt with the datum eliminated); both "
+                        "reach the same minimiser")
+    p.add_argument("--instrument", default="tracker", metavar="NAME",
+                   help="observation model: tracker (default; sequential multilateration) "
+                        "or multilaser (paper 001's head); see volcal.measurement.instruments")
     p.add_argument("--exact", action="store_true",
                    help="exact rotations in the model instead of the first-order one")
     p.add_argument("--scale-covariance", action="store_true",
@@ -144,7 +153,8 @@ def run(args: argparse.Namespace) -> int:
                    scale_covariance=args.scale_covariance,
                    station_method=args.station_method, point_method=args.point_method,
                    verbose=getattr(args, "verbose", 0) > 1,
-                   progress=not getattr(args, "quiet", False))
+                   progress=not getattr(args, "quiet", False), solver=args.solver,
+                   instrument=args.instrument)
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
     options = {"model": args.model, "strategy": args.strategy, "degree": degree,
                "basis": list(args.basis), "order_criterion": args.order_criterion,
@@ -152,6 +162,7 @@ def run(args: argparse.Namespace) -> int:
                "reject_k": reject_k, "exact": args.exact,
                "scale_covariance": args.scale_covariance,
                "station_method": args.station_method, "point_method": args.point_method,
+               "solver": args.solver, "instrument": args.instrument,
                "stations": str(args.stations) if args.stations else None}
     path = save_result(res, out, data_name=str(args.data), plots=not args.no_plots,
                        options=options)

@@ -1,0 +1,174 @@
+"""Gauss-Newton / Levenberg-Marquardt on the identification problem, with the datum
+eliminated, written in CasADi.
+
+The NLP of :class:`volcal.problem.residuals.IdentificationProblem` is a nonlinear least-
+squares problem with *linear* equality constraints (the datum, C theta = 0) and held
+variables.  Both are eliminated exactly: with Z an orthonormal basis of the null space of
+the constraints restricted to the free variables (zero rows for held ones), every step is
+dx = Z dz and a feasible start stays feasible.  The step solves the reduced normal
+equations
+
+    (Z^T H Z + mu diag(Z^T H Z)) dz = -Z^T J^T r,      H = J^T J
+
+from the problem's one ``gram`` Function (r, J^T r and J^T J assembled from the
+Jacobian's structure), so the residual model is the same one IPOPT sees.  ``mu`` is the
+Levenberg-Marquardt damping (Marquardt's diagonal scaling), 0 for a pure Gauss-Newton
+step; it is raised when a step does not lower the sum of squares and lowered when it does.
+
+The step is a single CasADi Function of (x, p, Z, mu) with no Python inside (it can be
+serialised for worker processes and generated as C); only the accept/reject loop and the
+stopping test are Python.  At the fixed point the reduced gradient Z^T J^T r is zero, which
+is the KKT condition of the constrained problem: the minimiser is the one IPOPT finds.
+"""
+from __future__ import annotations
+
+import time
+
+import casadi as ca
+import numpy as np
+import scipy.linalg as sla
+
+from volcal.problem.residuals import IdentificationProblem
+from volcal.solve.outcome import SolveOutcome
+
+
+def feasible_basis(problem: IdentificationProblem, fixed: np.ndarray | None
+                   ) -> np.ndarray:
+    """Z (n_x, n_z): orthonormal basis of the steps that keep the datum in force and the
+    held variables where they are (scaled variables)."""
+    n, nt = problem.n_x, problem.n_theta
+    fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
+    free = np.flatnonzero(~fixed)
+    C = np.zeros((problem.C.shape[0], n))
+    C[:, :nt] = problem.C * problem.scale[None, :nt]
+    Cf = C[:, free]
+    Cf = Cf[np.linalg.norm(Cf, axis=1) > 0]
+    Zf = sla.null_space(Cf) if Cf.shape[0] else np.eye(len(free))
+    Z = np.zeros((n, Zf.shape[1]))
+    Z[free] = Zf
+    return Z
+
+
+def project_feasible(problem: IdentificationProblem, xs: np.ndarray,
+                     fixed: np.ndarray | None) -> np.ndarray:
+    """The closest point to xs (scaled) that satisfies the datum in force, moving free
+    variables only."""
+    n, nt = problem.n_x, problem.n_theta
+    fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
+    C = np.zeros((problem.C.shape[0], n))
+    C[:, :nt] = problem.C * problem.scale[None, :nt]
+    if C.shape[0] == 0:
+        return np.array(xs, float)
+    Cf = C[:, ~fixed]
+    viol = C @ xs
+    out = np.array(xs, float)
+    out[~fixed] -= np.linalg.lstsq(Cf, viol, rcond=None)[0]
+    return out
+
+
+class GaussNewtonSolver:
+    """Gauss-Newton / Levenberg-Marquardt for an :class:`IdentificationProblem`, built once
+    per problem and reused for any data of its layout (see the module docstring)."""
+
+    def __init__(self, problem: IdentificationProblem, *, max_iter: int = 50,
+                 step_tol: float = 1e-9, damping: float = 0.0):
+        self.problem = problem
+        self.max_iter = max_iter
+        #: stop once the largest step is below this (scaled units: 1 = 1 um or 1 urad)
+        self.step_tol = step_tol
+        #: initial Levenberg-Marquardt damping (0: start with pure Gauss-Newton steps)
+        self.damping = damping
+        self._steps: dict[int, ca.Function] = {}
+
+    def step_function(self, n_z: int) -> ca.Function:
+        """``step(x, p, Z, mu) -> (f, dx, kkt, pred)`` for a null-space basis of n_z columns:
+        f = 0.5 ||r||^2 at x, the damped step dx = Z dz, kkt = ||Z^T J^T r||_inf and the
+        reduction of f the local model predicts for dx."""
+        f = self._steps.get(n_z)
+        if f is None:
+            pr = self.problem
+            x = ca.MX.sym("x", pr.n_x)
+            p = ca.MX.sym("p", pr.nlp["p"].shape[0])
+            Z = ca.MX.sym("Z", pr.n_x, n_z)
+            mu = ca.MX.sym("mu")
+            r, g, H = pr.gram(x, p)
+            Hz = ca.mtimes(Z.T, ca.mtimes(H, Z))
+            gz = ca.mtimes(Z.T, g)
+            A = Hz + mu * ca.diag(ca.fmax(ca.diag(Hz), 1e-12))
+            dz = -ca.solve(A, gz, "qr") if n_z else ca.MX(0, 1)
+            dx = ca.mtimes(Z, dz)
+            pred = -(ca.dot(gz, dz) + 0.5 * ca.dot(dz, ca.mtimes(Hz, dz))) if n_z else 0
+            kkt = ca.mmax(ca.fabs(gz)) if n_z else 0
+            f = ca.Function(f"gn_step_{n_z}", [x, p, Z, mu],
+                            [0.5 * ca.sumsqr(r), dx, kkt, pred],
+                            ["x", "p", "Z", "mu"], ["f", "dx", "kkt", "pred"])
+            self._steps[n_z] = f
+        return f
+
+    def objective(self, xs: np.ndarray, p: np.ndarray) -> float:
+        r = self.problem.residual(xs, p).full().ravel()
+        return 0.5 * float(r @ r)
+
+    def solve(self, x0: np.ndarray, p: np.ndarray, *, fixed: np.ndarray | None = None,
+              max_iter: int | None = None, damping: float | None = None) -> SolveOutcome:
+        """Solve from x0 (physical units) with data p, ``fixed`` variables held at x0.
+        x0 is first projected onto the datum.  Returns x in physical units."""
+        pr = self.problem
+        t0 = time.perf_counter()
+        Z = feasible_basis(pr, fixed)
+        step = self.step_function(Z.shape[1])
+        xs = project_feasible(pr, pr.to_scaled(x0), fixed)
+        mu = self.damping if damping is None else damping
+        max_iter = self.max_iter if max_iter is None else max_iter
+        status, it = "Maximum_Iterations_Exceeded", 0
+        f, size = float("nan"), float("inf")
+        for it in range(1, max_iter + 1):
+            f, dx, kkt, pred = (v.full() for v in step(xs, p, Z, mu))
+            f, dx, pred = f.item(), dx.ravel(), pred.item()
+            if not np.all(np.isfinite(dx)):
+                status = "Invalid_Number_Detected"
+                break
+            size = float(np.max(np.abs(dx))) if dx.size else 0.0
+            if size <= self.step_tol:
+                status = "Solve_Succeeded"  # the Gauss-Newton step is at rounding level
+                break
+            f_new = self.objective(xs + dx, p)
+            # below the rounding level of f (flat directions of a large-residual fit) the
+            # sum of squares cannot judge a step; the gradient-based model still can
+            flat = 1e-13 * max(f, 1.0)
+            if np.isfinite(f_new) and (f_new < f or (pred < flat and f_new <= f + flat)):
+                xs = xs + dx
+                # Nielsen's rule: relax the damping when the model predicted well
+                rho = (f - f_new) / pred if pred > 0 else 0.0
+                mu = mu * max(1 / 3, 1 - (2 * rho - 1) ** 3) if mu else 0.0
+                f = f_new
+            else:
+                mu = max(2 * mu, 1e-6) if mu else 1e-6
+                if mu > 1e12:
+                    status = "Search_Direction_Becomes_Too_Small"
+                    break
+        else:
+            if size <= 1e-6:  # 1e-6 um: far below any uncertainty, not at rounding level
+                status = "Solved_To_Acceptable_Level"
+        x = pr.from_scaled(xs)
+        ok = status in ("Solve_Succeeded", "Solved_To_Acceptable_Level") and bool(
+            np.all(np.isfinite(x)))
+        return SolveOutcome(x, f, status, ok, it, time.perf_counter() - t0)
+
+
+def polish(solver: GaussNewtonSolver, x: np.ndarray, p: np.ndarray,
+           fixed: np.ndarray | None = None, *, steps: int = 10
+           ) -> tuple[np.ndarray, int, float]:
+    """A few Gauss-Newton steps from IPOPT's answer x (physical units) under the datum in
+    force, with ``fixed`` variables held.
+
+    IPOPT stops once the gradient of the whitened sum of squares is at rounding level, which
+    leaves the sum of squares about 1e-7 relative above its minimum; the minimiser is then
+    datum-dependent at that level.  Near the minimum Gauss-Newton converges fast, so a few
+    steps bring every datum and strategy to the same minimum (1e-10 relative) for the price
+    of a Jacobian each.  A step is kept only when it lowers the sum of squares.  Returns
+    (x, steps taken, objective 0.5 ||r||^2 at x)."""
+    out = solver.solve(x, p, fixed=fixed, max_iter=steps + 1, damping=0.0)
+    if not np.all(np.isfinite(out.x)):
+        return np.array(x, float), 0, float("nan")
+    return out.x, max(out.iterations - 1, 0), out.f
