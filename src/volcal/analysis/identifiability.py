@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 
+from volcal.base.linalg import scale_columns
+
 
 @dataclass
 class Identifiability:
@@ -132,18 +134,15 @@ def scaled_constrained_svd(J: np.ndarray, C: np.ndarray | None = None,
     """The factorisation behind :func:`analyse_jacobian` (see :class:`ScaledSVD`)."""
     J = np.asarray(J, float)
     m, n = J.shape
-    fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
-    free = np.flatnonzero(~fixed)
-    Jf = J[:, free]
-    norms = np.linalg.norm(Jf, axis=0)
-    d = 1.0 / np.where(norms == 0, 1.0, norms)
+    free, d, A = scale_columns(J, fixed)
+    norms = np.where(d == 1.0, np.linalg.norm(J[:, free], axis=0), 1.0 / d)
     Cf = np.zeros((0, len(free))) if C is None or len(C) == 0 else np.asarray(C, float)[:, free]
     Cs = Cf * d
     Cs = Cs[np.linalg.norm(Cs, axis=1) > 0] if Cs.shape[0] else Cs
     Z = sla.null_space(Cs) if Cs.shape[0] else np.eye(len(free))
     # One QR of the tall scaled Jacobian; everything else works on its small R factor
     # (J Z and J diag(norms) Z have the singular values of R Z and R diag(norms) Z).
-    R = _r_factor(Jf * d)
+    R = _r_factor(A)
     _, s, Vt = np.linalg.svd(R @ Z, full_matrices=True)
     s_full = np.zeros(Z.shape[1])
     s_full[:len(s)] = s

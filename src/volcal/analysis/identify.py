@@ -57,6 +57,28 @@ SOLVERS: tuple[str, ...] = ("ipopt", "gauss-newton")
 
 
 @dataclass
+class SolverState:
+    """What downstream steps (analyze, Monte Carlo, predict, the C export) need to continue
+    from an identification without rebuilding guesses: the unknowns x (physical units, the
+    order of :class:`~volcal.problem.residuals.IdentificationProblem`), the held variables,
+    the weights 1/sigma of every reading (0: rejected), the datum conditions in force, the
+    solver and instrument names, and the fingerprint of the problem they belong to."""
+
+    x: np.ndarray
+    fixed: np.ndarray
+    weights: np.ndarray
+    datum_active: np.ndarray
+    names: list[str]
+    solver: str
+    instrument: str
+    fingerprint: str
+
+    def matches(self, problem: IdentificationProblem) -> bool:
+        """Does this state belong to ``problem`` (same structure)?"""
+        return self.fingerprint == problem.fingerprint()
+
+
+@dataclass
 class IdentificationResult:
     """Everything an identification produced (values in mm / rad unless a name says)."""
 
@@ -80,6 +102,8 @@ class IdentificationResult:
     datum: pd.DataFrame | None = None
     #: how the null directions of the data act on the volumetric error (see ``predict``)
     null_space: FieldNullSpace | None = None
+    #: the solver state (unknowns, held set, weights, datum, fingerprint)
+    state: SolverState | None = None
 
     @property
     def success(self) -> bool:
@@ -696,7 +720,10 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
                   "jacobian_scaled": ident.condition,
                   "jacobian_unscaled": ident.condition_unscaled,
                   "chi2_per_dof": chi2}
+    state = SolverState(np.array(x, float), fixed.copy(),
+                        np.where(rejected, 0.0, weights), pr.datum_active.copy(),
+                        list(pr.names), ider.solver_name, ins.name, pr.fingerprint())
     return IdentificationResult(machine, em, strategy, theta, cov_theta, identifiable,
                                 stations_out, frame, residuals, ident, outcomes, conditions,
                                 rej, time.perf_counter() - t_start, sigma_source, notes,
-                                datum_table, null_field)
+                                datum_table, null_field, state)

@@ -287,6 +287,23 @@ def _scaled_solve(A: np.ndarray, b: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return x
 
 
+def _taylor_step(diff: np.ndarray, w: np.ndarray, target: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One weighted Gauss-Newton (Taylor) step of a batch of range problems: for each
+    problem b the unknown X_b with ranges ||X_b - A_bm|| ~ target_bm (weights w_bm, 0 drops a
+    range), linearised at the current X_b where diff = X_b - A_bm (B, M, 3).  Returns (the
+    step (B, 3), the condition numbers of the normal matrices (B,), which steps are usable:
+    a normal matrix that is not singular)."""
+    t = np.linalg.norm(diff, axis=-1)
+    a = diff / np.where(t > 0, t, 1.0)[..., None] * w[..., None]
+    res = (target - t) * w
+    At = np.einsum("bmi,bmj->bij", a, a)
+    bt = np.einsum("bmi,bm->bi", a, res)
+    ct, _, cts = condition_numbers(At)
+    good = np.isfinite(cts) & (cts < SINGULAR_CONDITION)
+    return _scaled_solve(At, bt, good), ct, good
+
+
 def _geometry(anchors: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Rank (0-3) of the affine hull of the masked anchors (B, M, 3): 3 = spans space,
     2 = coplanar, 1 = collinear, 0 = one point (or none)."""
@@ -704,16 +721,9 @@ def calibrate_stations(station_index: Sequence[Any] | np.ndarray, points: np.nda
         if method == "linear_taylor" and np.any(good):
             idx = np.flatnonzero(good)
             Q0 = pos[idx]
-            diff = Q0[:, None, :] - P[idx]
-            t = np.linalg.norm(diff, axis=-1)
-            a = diff / np.where(t > 0, t, 1.0)[..., None] * (W[idx] * mask[idx])[..., None]
-            res = (dl[idx][:, None] + L[idx] - t) * W[idx] * mask[idx]
-            At = np.einsum("kmi,kmj->kij", a, a)
-            bt = np.einsum("kmi,km->ki", a, res)
-            ct, _, cts = condition_numbers(At)
+            dQ, ct, gt = _taylor_step(Q0[:, None, :] - P[idx], W[idx] * mask[idx],
+                                      dl[idx][:, None] + L[idx])
             cond_t[idx] = ct
-            gt = np.isfinite(cts) & (cts < SINGULAR_CONDITION)
-            dQ = _scaled_solve(At, bt, gt)
             pos[idx[gt]] = Q0[gt] + dQ[gt]
             iters[idx[gt]] = 1
             for j in np.flatnonzero(~gt):
@@ -1076,16 +1086,8 @@ def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.nd
         if method == "linear_taylor" and np.any(conv):
             idx = np.flatnonzero(conv)
             P0 = pts[idx]
-            diff = P0[:, None, :] - Q[None]
-            t = np.linalg.norm(diff, axis=-1)
-            a = diff / np.where(t > 0, t, 1.0)[..., None] * W[idx][..., None]
-            res = (rho[idx] - t) * W[idx]
-            At = np.einsum("nki,nkj->nij", a, a)
-            bt = np.einsum("nki,nk->ni", a, res)
-            ct, _, cts = condition_numbers(At)
+            dP, ct, gt = _taylor_step(P0[:, None, :] - Q[None], W[idx], rho[idx])
             cond_t[idx] = ct
-            gt = np.isfinite(cts) & (cts < SINGULAR_CONDITION)
-            dP = _scaled_solve(At, bt, gt)
             pts[idx[gt]] = P0[gt] + dP[gt]
             iters[idx[gt]] = 1
             conv[idx[~gt]] = False

@@ -39,6 +39,7 @@ from typing import Literal
 import numpy as np
 import scipy.linalg as sla
 
+from volcal.base.linalg import scale_columns
 from volcal.base.units import report_factor, report_unit
 
 DatumName = Literal["iso230", "reference", "none"]
@@ -116,14 +117,8 @@ def null_space(J: np.ndarray, fixed: np.ndarray | None = None
 
     Returns (free indices, d, N): a null direction in the free variables is ``d * N[:, j]``
     (N orthonormal, (n_free, k)).  Rank tolerance max(m, n) eps s_max (DESIGN.md)."""
-    J = np.asarray(J, float)
-    m, n = J.shape
-    fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
-    free = np.flatnonzero(~fixed)
-    Jf = J[:, free]
-    norms = np.linalg.norm(Jf, axis=0)
-    d = 1.0 / np.where(norms == 0, 1.0, norms)
-    A = Jf * d
+    m, n = np.shape(J)
+    free, d, A = scale_columns(J, fixed)
     # one QR of the tall matrix, then the SVD of its small R factor
     R = sla.qr(A, mode="r", check_finite=False)[0][:len(free)] if m > len(free) else A
     _, s, Vt = np.linalg.svd(R, full_matrices=True)

@@ -72,7 +72,7 @@ from volcal.model.errors import ErrorForm, ErrorModel
 from volcal.base.exceptions import InputError
 from volcal.analysis.adequacy import assess, plot_residuals_vs_axes
 from volcal.analysis.identifiability import FieldNullSpace
-from volcal.analysis.identify import IdentificationResult, predict_volumetric
+from volcal.analysis.identify import IdentificationResult, SolverState, predict_volumetric
 from volcal.model.machine import Machine
 from volcal.model.spec import MachineSpec, machine_from_dict, spec_to_dict
 from volcal.base.units import REPORT
@@ -88,7 +88,8 @@ __all__ = [
 #: ``format`` marker of result.json
 RESULT_FORMAT = "volcal-identification-result"
 #: version of the result.json layout this module writes and reads
-RESULT_FORMAT_VERSION = 2  # 2: datum conditions and the null space's action on the field
+RESULT_FORMAT_VERSION = 3  # 2: datum conditions and the null space's action on the field
+# 3: solver_state.npz (unknowns, held set, weights, datum in force, problem fingerprint)
 DATA_FILES = ("parameters.csv", "stations.csv", "residuals.csv", "datum.csv",
               "component_errors.csv",
               "volumetric_grid.csv", "report.md", "result.json")
@@ -96,7 +97,7 @@ PLOT_FILES = ("component_errors.png", "volumetric_map.png", "residuals.png",
               "residuals_vs_axes.png")
 RESULT_FILES = DATA_FILES + PLOT_FILES
 #: written only by some runs (``order_selection.csv``: ``--degree auto``)
-OPTIONAL_FILES = ("order_selection.csv",)
+OPTIONAL_FILES = ("order_selection.csv", "solver_state.npz")
 
 #: positions per linear axis of the volumetric grid
 GRID_POINTS = 7
@@ -392,6 +393,8 @@ class LoadedResult:
     identifiable: np.ndarray = field(repr=False)
     meta: dict[str, Any] = field(repr=False)
     null_space: FieldNullSpace | None = field(default=None, repr=False)
+    #: the solver state saved with the result (format 3; None for older folders)
+    state: SolverState | None = field(default=None, repr=False)
 
     @property
     def datum(self) -> pd.DataFrame | None:
@@ -493,7 +496,30 @@ def load_result(path: str | Path) -> LoadedResult:
     if len(identifiable) != len(theta) or not np.all(np.isfinite(theta)):
         raise InputError("theta / identifiable are inconsistent or not finite", source=str(file))
     machine = Machine.from_model(spec)
-    return LoadedResult(folder, machine, em, theta, cov, identifiable, doc, null_space)
+    state = _load_state(folder / "solver_state.npz") if (folder / "solver_state.npz").exists() \
+        else None
+    return LoadedResult(folder, machine, em, theta, cov, identifiable, doc, null_space, state)
+
+
+def _save_state(state: SolverState, path: Path) -> None:
+    """The solver state as plain arrays (no pickled objects)."""
+    with open(path, "wb") as fh:
+        np.savez(fh, x=state.x, fixed=state.fixed, weights=state.weights,
+                 datum_active=state.datum_active, names=np.array(state.names, dtype=str),
+                 solver=np.array(state.solver), instrument=np.array(state.instrument),
+                 fingerprint=np.array(state.fingerprint))
+
+
+def _load_state(path: Path) -> SolverState:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return SolverState(np.array(z["x"], float), np.array(z["fixed"], bool),
+                               np.array(z["weights"], float), np.array(z["datum_active"], bool),
+                               [str(s) for s in z["names"]], str(z["solver"]),
+                               str(z["instrument"]), str(z["fingerprint"]))
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(f"unreadable solver state ({type(exc).__name__}: {exc})",
+                         source=str(path)) from None
 
 
 # --------------------------------------------------------------------------------------
@@ -1047,6 +1073,8 @@ def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name:
         result.stations.to_csv(tmp / "stations.csv", index=False)
         result.residuals.to_csv(tmp / "residuals.csv", index=False)
         _write_order_selection(result, tmp)
+        if result.state is not None:
+            _save_state(result.state, tmp / "solver_state.npz")
         if result.datum is not None:
             result.datum.rename(columns={"value": "value_in_unit"}).to_csv(
                 tmp / "datum.csv", index=False)

@@ -241,6 +241,21 @@ class IdentificationProblem:
         self.names += list(ins.global_param_names)
         self.units += list(ins.global_param_units)
 
+    def fingerprint(self) -> str:
+        """A hash of the problem's structure: unknowns (names), the datum candidates, the
+        layout (station and pose of every reading), the instrument and the model variant.
+        A saved solver state applies to a rebuilt problem only when the fingerprints
+        agree."""
+        import hashlib
+        h = hashlib.sha256()
+        for part in (self.machine.spec.name, self.instrument.name, str(self.exact),
+                     "|".join(self.names)):
+            h.update(part.encode())
+        h.update(np.ascontiguousarray(self.C_all, float).tobytes())
+        h.update(np.ascontiguousarray(self.layout.station_index, np.int64).tobytes())
+        h.update(np.ascontiguousarray(self.layout.poses[0], np.int64).tobytes())
+        return h.hexdigest()[:16]
+
     # ---- the datum in force ------------------------------------------------------------
     @property
     def C(self) -> np.ndarray:

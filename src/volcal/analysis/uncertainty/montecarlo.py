@@ -157,6 +157,11 @@ def fixed_mask(ider, result) -> np.ndarray:
     its null space, stations given as fixed, and for the two-step strategies all stations.
     The datum the identification imposed is put in force on ``ider`` as well: the held set
     and the datum belong together."""
+    state = getattr(result, "state", None)
+    if state is not None and state.matches(ider.problem):
+        # the result carries what the identification held and imposed: nothing to guess
+        ider.problem.set_datum(np.asarray(state.datum_active, bool))
+        return np.asarray(state.fixed, bool).copy()
     restore_datum(ider, result)
     n = ider.problem.n_x
     fixed = np.zeros(n, bool)
@@ -175,6 +180,9 @@ def identification_data(result, meas, budget=None) -> tuple[np.ndarray, np.ndarr
     residual is 0 fall back on the table or the budget."""
     from volcal.analysis.identify import reading_sigma
 
+    state = getattr(result, "state", None)
+    if state is not None and len(state.weights) == len(meas):
+        return np.array(state.x, float), np.array(state.weights, float)
     res = result.residuals
     r_um = res["residual_um"].to_numpy(float)
     z = res["normalised_residual"].to_numpy(float)
