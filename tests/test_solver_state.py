@@ -4,8 +4,8 @@ and used by Monte Carlo instead of reconstructing the held set and the weights."
 from __future__ import annotations
 
 import numpy as np
-
 from test_identify import simulated
+
 from volcal.analysis.identify import Identifier, identify
 from volcal.analysis.uncertainty.montecarlo import fixed_mask, identification_data
 from volcal.measurement.tables import load_measurements
@@ -39,4 +39,5 @@ def test_state_round_trips_and_is_used(tmp_path):
     # another layout (fewer readings) does not match
     sub = sim.measurements.iloc[: len(sim.measurements) // 2]
     meas2 = load_measurements(sub, machine.spec)
-    assert not loaded.state.matches(Identifier(machine, em, Layout.from_measurements(meas2)).problem)
+    other = Identifier(machine, em, Layout.from_measurements(meas2)).problem
+    assert not loaded.state.matches(other)

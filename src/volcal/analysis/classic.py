@@ -18,22 +18,23 @@ import pandas as pd
 import scipy.linalg as sla
 
 from volcal.analysis import analyse_jacobian
-from volcal.measurement.tables import Measurements
-from volcal.model.errors import ErrorModel
-from volcal.base.exceptions import SolverError
 from volcal.analysis.identifiability import rigid_columns
-from volcal.model.datum import candidate_conditions, condition_table, select_conditions
-from volcal.model.machine import Machine
-from volcal.measurement.multilateration import calibrate_stations, multilaterate
-from volcal.solve.outcome import SolveOutcome
+from volcal.base.exceptions import SolverError
 from volcal.base.units import solver_scale
+from volcal.measurement.multilateration import calibrate_stations, multilaterate
+from volcal.measurement.tables import Measurements
+from volcal.model.datum import candidate_conditions, condition_table, select_conditions
+from volcal.model.errors import ErrorModel
+from volcal.model.machine import Machine
+from volcal.solve.outcome import SolveOutcome
 
 
 def classic_pipeline(machine: Machine, em: ErrorModel, meas: Measurements, st0: np.ndarray,
                      sigma: np.ndarray, *, station_method: str = "sqrt",
                      point_method: str = "sqrt", t_start: float | None = None,
                      sigma_source: str = "", notes: list[str] | None = None):
-    """Run the classic pipeline; returns an :class:`~volcal.analysis.identify.IdentificationResult`."""
+    """Run the classic pipeline; returns an
+    :class:`~volcal.analysis.identify.IdentificationResult`."""
     from volcal.analysis.identify import IdentificationResult
 
     t_start = time.perf_counter() if t_start is None else t_start

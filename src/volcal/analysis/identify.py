@@ -30,25 +30,35 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from volcal.analysis import (FieldNullSpace, Identifiability, analyse_jacobian,
-                             constrained_covariance, field_null_space, split_gauge)
-from volcal.analysis.identifiability import FieldSets
-from volcal.analysis.identifiability import rigid_columns
-from volcal.model.datum import condition_table, null_space, select_conditions
-from volcal.measurement.tables import Measurements, load_measurements, load_stations
-from volcal.model.errors import Datum, ErrorForm, ErrorModel
+from volcal.analysis import (
+    FieldNullSpace,
+    Identifiability,
+    analyse_jacobian,
+    constrained_covariance,
+    field_null_space,
+    split_gauge,
+)
+from volcal.analysis.identifiability import FieldSets, rigid_columns
 from volcal.base.exceptions import InputError, SolverError
+from volcal.base.units import report_factors, report_unit
+from volcal.measurement.budget import Budget, load_budget
 from volcal.measurement.instruments import Instrument, get_instrument
+from volcal.measurement.tables import Measurements, load_measurements, load_stations
+from volcal.model.datum import condition_table, null_space, select_conditions
+from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.model.machine import Machine
+from volcal.model.spec import MachineSpec
 from volcal.problem.residuals import IdentificationProblem, Layout
-from volcal.problem.strategies import (ClassicPipeline, PhasedStrategy, Strategy,
-                                       get_strategy, strategies)
+from volcal.problem.strategies import (
+    ClassicPipeline,
+    PhasedStrategy,
+    Strategy,
+    get_strategy,
+    strategies,
+)
 from volcal.solve.gauss_newton import GaussNewtonSolver, polish
 from volcal.solve.ipopt import NLPSolver
 from volcal.solve.outcome import SolveOutcome
-from volcal.model.spec import MachineSpec
-from volcal.measurement.budget import Budget, load_budget
-from volcal.base.units import report_factors, report_unit
 
 log = logging.getLogger(__name__)
 
@@ -284,7 +294,7 @@ class Identifier:
         # (it duplicates the stations), then error parameters, highest polynomial order
         # first (holding it keeps the identified curves smooth), stations last
         order = np.zeros(n)
-        for k, name in enumerate(error_model.param_names):
+        for k in range(len(error_model.param_names)):
             order[k] = error_model.param_order[k]  # Legendre degree / harmonic number
         self.prefer = np.where(self.is_frame, 4.0, np.where(self.is_theta, 1.0 + 0.1 * order, 0.0))
 
@@ -555,7 +565,8 @@ def identify(*args, **kwargs) -> IdentificationResult:
         return _identify(*args, **kwargs)
 
 
-def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.DataFrame | Measurements,
+def _identify(model: str | Path | MachineSpec | Machine,
+              data: str | Path | pd.DataFrame | Measurements,
              stations: str | Path | pd.DataFrame | None = None, *, strategy: str = "joint",
              degree: int = 3, datum: Datum = "iso230", error_model: ErrorModel | None = None,
              budget: str | Path | Budget = "paper002", robust: bool = False,
@@ -700,7 +711,7 @@ def _identify(model: str | Path | MachineSpec | Machine, data: str | Path | pd.D
                      "constrained what the data determine and take the values the data give "
                      "(datum.csv)")
     nps = ins.n_station_params
-    var_st = np.abs(np.diag(cov)[ider.is_station]).reshape(-1, nps) if nps else None
+    var_st = np.abs(np.diag(cov)[ider.is_station]).reshape(-1, max(nps, 1))
     stations_out = pd.DataFrame({"station": meas.station_ids})
     for j, name in enumerate(ins.station_param_names):
         stations_out[name] = st[:, j]

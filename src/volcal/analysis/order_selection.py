@@ -46,8 +46,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from volcal.model.errors import ErrorForm, ErrorModel
 from volcal.base.exceptions import InputError, SolverError
+from volcal.model.errors import Datum, ErrorForm, ErrorModel
 
 log = logging.getLogger(__name__)
 
@@ -94,7 +94,7 @@ def with_orders(em: ErrorModel, orders: Mapping[str, int]) -> ErrorModel:
 
 
 def _n_params(kind: str, n: int) -> int:
-    return _with_order(ErrorForm(kind), n).n_params
+    return _with_order(ErrorForm(kind), n).n_params  # type: ignore[arg-type]  # kind from BASIS_KINDS
 
 
 def _distinct_positions(meas, spec) -> dict[str, int]:
@@ -115,7 +115,7 @@ def _label(orders: Mapping[str, int], kinds: Mapping[str, str]) -> str:
 def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: int = 5,
                   candidates: Mapping[str, Iterable[int]] | None = None,
                   error_model: ErrorModel | None = None,
-                  forms: Mapping[str, ErrorForm] | None = None, datum: str = "iso230",
+                  forms: Mapping[str, ErrorForm] | None = None, datum: Datum = "iso230",
                   max_sweeps: int = 3, seed: int = 0, progress: bool = False,
                   **identify_options: Any):
     """Identify with per-axis orders chosen by ``criterion`` (module docstring).
@@ -126,13 +126,19 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
     starting orders; default Legendre degree 3, Fourier 3 on full-turn rotary axes, plus
     the model file's declarations); identify_options: passed to every fit (strategy,
     budget, robust, ...); progress: a progress bar of the candidate fits on stderr (their
-    number is not known in advance: the search stops when no order changes).  Returns the :class:`~volcal.analysis.identify.IdentificationResult` of the
-    chosen orders with ``order_selection`` (DataFrame) set and a note.
+    number is not known in advance: the search stops when no order changes).  Returns the
+    :class:`~volcal.analysis.identify.IdentificationResult` of the chosen orders with
+    ``order_selection`` (DataFrame) set and a note.
     """
-    from volcal.measurement.tables import Measurements, load_measurements, load_stations
-    from volcal.analysis.identify import build_error_model, identify, initial_stations, reading_sigma
-    from volcal.model.machine import Machine
+    from volcal.analysis.identify import (
+        build_error_model,
+        identify,
+        initial_stations,
+        reading_sigma,
+    )
     from volcal.measurement.budget import Budget, load_budget
+    from volcal.measurement.tables import Measurements, load_measurements, load_stations
+    from volcal.model.machine import Machine
 
     t0 = time.perf_counter()
     if criterion not in CRITERIA:
@@ -160,7 +166,7 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
     kinds = {a: k for a, (k, _) in start.items()}
     n_pos = _distinct_positions(meas, spec)
     options: dict[str, list[int]] = {}
-    for a, (kind, n0) in start.items():
+    for a, (kind, _) in start.items():
         ok = [n for n in sorted(set(cand[kind])) if _n_params(kind, n) <= n_pos[a]]
         options[a] = ok or [min(cand[kind])]
     orders = {a: (n0 if n0 in options[a] else min(options[a], key=lambda n: abs(n - n0)))

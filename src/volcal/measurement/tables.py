@@ -67,9 +67,10 @@ from __future__ import annotations
 import difflib
 import re
 import warnings
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -714,8 +715,8 @@ def load_measurements(source: str | Path | pd.DataFrame, spec: MachineSpec, *,
 
     # duplicates
     table = pd.DataFrame({"station": station, "point": point})
-    for j, a in enumerate(axis_names):
-        table[a] = q_file[:, j]
+    for j, axis_name in enumerate(axis_names):
+        table[axis_name] = q_file[:, j]
     for j, c in enumerate(("tool_x", "tool_y", "tool_z")):
         table[c] = tool[:, j]
     table["length"] = length
@@ -815,7 +816,7 @@ def _id_list(ids: Iterable[str], n: int = 8) -> str:
 
 
 def _check_station_ids(name: str, station_ids: list[str], first_row: dict[str, int],
-                       stations_df: pd.DataFrame, column: str, problems: "_Problems") -> None:
+                       stations_df: pd.DataFrame, column: str, problems: _Problems) -> None:
     """The stations table must describe the stations of the data: no common id at all is
     an error (the table is for other data, or its ids are spelt differently); stations in
     the table without readings, above all ones marked ``fixed``, and stations of the data

@@ -34,10 +34,13 @@ each class.  Values of the conditions are in the parameters' units (mm, rad).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import scipy.linalg as sla
+
+if TYPE_CHECKING:  # pandas is imported where the table is built
+    import pandas as pd
 
 from volcal.base.linalg import scale_columns
 from volcal.base.units import report_factor, report_unit
@@ -163,7 +166,7 @@ def select_conditions(J: np.ndarray, C: np.ndarray, fixed: np.ndarray | None = N
 
 
 def condition_table(conditions: list[Condition], imposed: np.ndarray, theta: np.ndarray
-                    ) -> "pd.DataFrame":  # noqa: F821
+                    ) -> pd.DataFrame:
     """condition, class, imposed, value (um or urad), unit: every candidate with the value
     it takes at theta (mm / rad).  An imposed condition holds exactly (value 0 to rounding);
     the others take whatever the data say."""

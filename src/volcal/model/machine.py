@@ -85,14 +85,14 @@ class Machine:
     from_cache: bool = False
 
     @classmethod
-    def from_model(cls, model: str | Path | MachineSpec, *, use_cache: bool = True) -> "Machine":
+    def from_model(cls, model: str | Path | MachineSpec, *, use_cache: bool = True) -> Machine:
         """Build (or load from the cache) the machine of a bundled name, file or spec."""
         spec = resolve_model(model)
         t0 = time.perf_counter()
         # the name only makes the entry readable; the content hash is the key
         safe = "".join(c if c.isalnum() or c in "_-" else "_" for c in spec.name)[:40]
         key = (f"{safe}-{spec.fingerprint()}-v{__version__}-s{CHAIN_SCHEMA}"
-               f"-ca{ca.__version__}")
+               f"-ca{ca.CasadiMeta.version()}")
         path = cache_dir() / f"{key}.casadi"
         funcs = None
         if use_cache and path.exists():

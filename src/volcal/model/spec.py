@@ -49,7 +49,7 @@ import math
 import numbers
 import re
 import tomllib
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
@@ -61,7 +61,8 @@ ROT_LETTERS = "ABC"
 _NAME_RE = re.compile(r"^[A-Z][A-Z0-9]{0,3}$")
 # model names end up in file names (the build cache): no path separators, no spaces
 _MODEL_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
-_DIRECTIONS = {"+x": (0, 1), "-x": (0, -1), "+y": (1, 1), "-y": (1, -1), "+z": (2, 1), "-z": (2, -1)}
+_DIRECTIONS = {"+x": (0, 1), "-x": (0, -1), "+y": (1, 1), "-y": (1, -1),
+               "+z": (2, 1), "-z": (2, -1)}
 
 #: kinds of error bases (:class:`ErrorForm`)
 BASIS_KINDS = ("poly", "fourier", "bspline", "table", "constant")
@@ -446,7 +447,9 @@ def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
     if not isinstance(exclude, list):
         raise InputError(f"expected a list of error names from {comp_names + loc_names}, "
                          f"got {exclude!r}", source=where, column="exclude")
-    exclude = _check_names(exclude, where, "exclude", comp_names + loc_names)
+    exclude_names = _check_names(exclude, where, "exclude", comp_names + loc_names)
+    # a list was checked above: never "all" / "none" here
+    exclude = exclude_names if isinstance(exclude_names, tuple) else ()
     rotary = kind == "rotary"
     basis = form_from_dict(d["basis"], where, "basis", rotary) if "basis" in d else None
     eb = d.get("error_basis", {})

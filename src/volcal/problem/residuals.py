@@ -22,11 +22,11 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from volcal.base.units import solver_scale
+from volcal.measurement.instruments import Instrument
 from volcal.model.datum import candidate_conditions
 from volcal.model.errors import ErrorModel
-from volcal.measurement.instruments import Instrument
 from volcal.model.machine import Machine
-from volcal.base.units import solver_scale
 
 
 def _dense_kernel() -> str:
@@ -83,9 +83,10 @@ class Layout:
         return idx, first
 
     @classmethod
-    def from_measurements(cls, meas) -> "Layout":
-        """The layout of validated measurements (:class:`volcal.measurement.tables.Measurements`), with
-        readings of identical commanded pose and tool offset grouped."""
+    def from_measurements(cls, meas) -> Layout:
+        """The layout of validated measurements
+        (:class:`volcal.measurement.tables.Measurements`), with readings of identical
+        commanded pose and tool offset grouped."""
         return cls(np.asarray(meas.station_index, int), len(meas.station_ids),
                    tuple(meas.station_ids), cls.group_poses(meas.q_internal, meas.tool))
 

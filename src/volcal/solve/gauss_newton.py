@@ -122,7 +122,7 @@ class GaussNewtonSolver:
         max_iter = self.max_iter if max_iter is None else max_iter
         status, it = "Maximum_Iterations_Exceeded", 0
         f, size = float("nan"), float("inf")
-        for it in range(1, max_iter + 1):
+        for it in range(1, max_iter + 1):  # noqa: B007  (the count is reported)
             f, dx, kkt, pred = (v.full() for v in step(xs, p, Z, mu))
             f, dx, pred = f.item(), dx.ravel(), pred.item()
             if not np.all(np.isfinite(dx)):

@@ -7,6 +7,8 @@ squares it converges in a handful of iterations and costs half of the exact Hess
 from __future__ import annotations
 
 import time
+from typing import Any
+
 import casadi as ca
 import numpy as np
 
@@ -22,7 +24,7 @@ class NLPSolver:
     def __init__(self, problem: IdentificationProblem, *, hessian: str = "gauss-newton",
                  tol: float = 1e-8, max_iter: int = 100, verbose: bool = False):
         self.problem = problem
-        opts = {
+        opts: dict[str, Any] = {
             "ipopt.print_level": 5 if verbose else 0,
             "print_time": False,
             "ipopt.sb": "yes",
