@@ -72,7 +72,8 @@ def case(tmp_path_factory):
 def test_every_file_is_written_with_its_columns_and_units(case):
     out = case["out"]
     names = sorted(p.name for p in out.iterdir())
-    assert names == sorted([*RESULT_FILES, "manifest.json"])
+    # solver_state.npz: optional for folders of format 2, always written now
+    assert names == sorted([*RESULT_FILES, "manifest.json", "solver_state.npz"])
     for png in PLOT_FILES:
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     par = pd.read_csv(out / "parameters.csv")
@@ -229,7 +230,7 @@ def test_a_failure_mid_write_leaves_no_folder(case, tmp_path, monkeypatch):
 def test_a_previous_result_is_replaced_and_other_folders_are_refused(case, tmp_path):
     out = tmp_path / "r"
     save_result(case["res"], out, plots=False, data_name="first.csv")
-    assert sorted(p.name for p in out.iterdir()) == sorted([*DATA_FILES, "manifest.json"])
+    assert sorted(p.name for p in out.iterdir()) == sorted([*DATA_FILES, "manifest.json", "solver_state.npz"])
     save_result(case["res"], out, plots=False, data_name="second.csv")
     assert json.loads((out / "result.json").read_text())["data"] == "second.csv"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r"]
@@ -412,7 +413,7 @@ def test_identify_cli_robust_summary_and_inputs_untouched(case, tmp_path, monkey
     printed = capsys.readouterr().out
     assert code == 0, printed
     assert file_hash(data) == h
-    assert sorted(p.name for p in out.iterdir()) == sorted([*DATA_FILES, "manifest.json"])
+    assert sorted(p.name for p in out.iterdir()) == sorted([*DATA_FILES, "manifest.json", "solver_state.npz"])
     for needle in ("Solve", "residual RMS", "largest volumetric error",
                    "unidentifiable           none", "rejected readings        1",
                    str(out / "report.md")):

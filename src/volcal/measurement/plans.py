@@ -353,26 +353,26 @@ def check_plan(plan: pd.DataFrame, spec: Any, *, source: str = "<plan>") -> pd.D
     if not isinstance(plan, pd.DataFrame):
         raise InputError(f"expected a DataFrame of poses, got {type(plan).__name__}",
                          source=source)
-    raw = _data._read_raw(plan, source, "plan")
+    raw = _data.read_raw(plan, source, "plan")
     return _validate_raw(raw, spec)
 
 
 def _validate_raw(raw: Any, spec: MachineSpec) -> pd.DataFrame:
     from volcal.measurement import tables as _data
 
-    problems = _data._Problems(raw.name)
-    schema = [_data._Col(a.name, (f"{a.name}_{_unit(a)}",), True, "float", _unit(a))
+    problems = _data.Problems(raw.name)
+    schema = [_data.Column(a.name, (f"{a.name}_{_unit(a)}",), True, "float", _unit(a))
               for a in spec.axes]
-    pos = _data._resolve_columns(raw, schema, problems, axis_names=spec.axis_names,
+    pos = _data.resolve_columns(raw, schema, problems, axis_names=spec.axis_names,
                                  model_name=spec.name)
     out = {}
     for a in spec.axes:
         label = raw.header[pos[a.name]]
-        v = _data._parse_float(raw.body[pos[a.name]], raw.rows, label, _unit(a), False,
+        v = _data.parse_float(raw.body[pos[a.name]], raw.rows, label, _unit(a), False,
                                problems)
         lo, hi = a.travel
         tol = _data.TRAVEL_TOLERANCE * (hi - lo)
-        _data._report(problems, raw.rows, (v < lo - tol) | (v > hi + tol), label,
+        _data.report_rows(problems, raw.rows, (v < lo - tol) | (v > hi + tol), label,
                       lambda k, v=v, a=a, lo=lo, hi=hi: f"{a.name} = {v[k]:g} {_unit(a)} is "
                       f"outside the travel [{lo:g}, {hi:g}] {_unit(a)} of axis {a.name}")
         out[a.name] = v
@@ -389,7 +389,7 @@ def plan_from_csv(path: str | Path, spec: Any) -> pd.DataFrame:
     from volcal.measurement import tables as _data
 
     spec = _as_spec(spec)
-    raw = _data._read_raw(Path(path), None, "plan")
+    raw = _data.read_raw(Path(path), None, "plan")
     return _validate_raw(raw, spec)
 
 
@@ -401,7 +401,7 @@ def nominal_points(spec: Any, plan: pd.DataFrame, tools: np.ndarray | None = Non
                    ) -> np.ndarray:
     """Nominal tool points (mm, workpiece frame) of every (tool, pose) of a plan,
     shape (K * N, 3), tool-major (all poses with the first tool, then the second ...)."""
-    from volcal.measurement.tables import _nominal_tool_points
+    from volcal.measurement.tables import nominal_tool_points as _nominal_tool_points
 
     spec = _as_spec(spec)
     q = plan[spec.axis_names].to_numpy(dtype=float).copy()

@@ -322,15 +322,15 @@ def load_true_parameters(path: str | Path, error_model: ErrorModel) -> np.ndarra
     """
     from volcal.measurement import tables as _data
 
-    raw = _data._read_raw(Path(path), None, "parameter table")
-    problems = _data._Problems(raw.name)
-    schema = [_data._Col("name", (), True, "id"), _data._Col("value", (), True, "float"),
-              _data._Col("unit", (), True, "id")]
-    pos = _data._resolve_columns(raw, schema, problems)
-    names = _data._parse_ids(raw.body[pos["name"]], raw.rows, "name", problems)
-    values = _data._parse_float(raw.body[pos["value"]], raw.rows, "value", "in the row's unit",
+    raw = _data.read_raw(Path(path), None, "parameter table")
+    problems = _data.Problems(raw.name)
+    schema = [_data.Column("name", (), True, "id"), _data.Column("value", (), True, "float"),
+              _data.Column("unit", (), True, "id")]
+    pos = _data.resolve_columns(raw, schema, problems)
+    names = _data.parse_ids(raw.body[pos["name"]], raw.rows, "name", problems)
+    values = _data.parse_float(raw.body[pos["value"]], raw.rows, "value", "in the row's unit",
                                 False, problems)
-    units = _data._parse_ids(raw.body[pos["unit"]], raw.rows, "unit", problems)
+    units = _data.parse_ids(raw.body[pos["unit"]], raw.rows, "unit", problems)
     problems.raise_if_any()
     index = {n: i for i, n in enumerate(error_model.param_names)}
     kinds = error_model.param_units

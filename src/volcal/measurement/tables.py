@@ -890,3 +890,30 @@ def _warn_geometry(name: str, spec: MachineSpec, station_ids: list[str],
                       f"offsets in rows {rows[first[point_index[k]]]} and {rows[k]} "
                       f"({differ.size} row(s) differ from the first use of their point id); a "
                       "point id names one commanded pose", DataWarning, stacklevel=3)
+
+
+# --------------------------------------------------------------------------------------
+# the public toolkit for reading and validating tables
+#
+# Every reader of a user table (measurements, stations, plans, parameter and point tables,
+# budgets' CSV parts) goes through these, so that a bad cell is reported the same way
+# everywhere: the file, the row (spreadsheet numbering: header = row 1) and the column,
+# what was found and what was expected, all problems of a column at once (InputError).
+#
+#   raw = read_raw(path_or_df, name, "plan")          # text cells, row numbers, source name
+#   problems = Problems(raw.name)
+#   pos = resolve_columns(raw, [Column("X", ("X_mm",), True, "float", "mm")], problems)
+#   x = parse_float(raw.body[pos["X"]], raw.rows, "X", "mm", False, problems)
+#   problems.raise_if_any()
+
+Column = _Col
+Problems = _Problems
+read_raw = _read_raw
+resolve_columns = _resolve_columns
+parse_float = _parse_float
+parse_ids = _parse_ids
+report_rows = _report
+nominal_tool_points = _nominal_tool_points
+
+__all__ += ["Column", "Problems", "read_raw", "resolve_columns", "parse_float", "parse_ids",
+            "report_rows", "nominal_tool_points"]

@@ -225,14 +225,14 @@ def read_points(points: str | Path | pd.DataFrame, spec: MachineSpec, *,
     """
     from volcal.measurement import tables as _data
 
-    raw = _data._read_raw(points, name, "points table")
-    problems = _data._Problems(raw.name)
-    schema = [_data._Col("point", (), False, "id")]
+    raw = _data.read_raw(points, name, "points table")
+    problems = _data.Problems(raw.name)
+    schema = [_data.Column("point", (), False, "id")]
     for a in spec.axes:
         u = _axis_unit(spec, a.name)
-        schema.append(_data._Col(a.name, (f"{a.name}_{u}",), True, "float", u))
-    schema += [_data._Col(f"tool_{c}", (f"tool_{c}_mm",), False, "float", "mm") for c in "xyz"]
-    pos = _data._resolve_columns(raw, schema, problems, axis_names=spec.axis_names,
+        schema.append(_data.Column(a.name, (f"{a.name}_{u}",), True, "float", u))
+    schema += [_data.Column(f"tool_{c}", (f"tool_{c}_mm",), False, "float", "mm") for c in "xyz"]
+    pos = _data.resolve_columns(raw, schema, problems, axis_names=spec.axis_names,
                                  model_name=spec.name)
     body, rows = raw.body, raw.rows
     values: dict[str, np.ndarray] = {}
@@ -240,10 +240,10 @@ def read_points(points: str | Path | pd.DataFrame, spec: MachineSpec, *,
     for j, a in enumerate(spec.axes):
         label = raw.header[pos[a.name]]
         u = _axis_unit(spec, a.name)
-        v = _data._parse_float(body[pos[a.name]], rows, label, u, False, problems)
+        v = _data.parse_float(body[pos[a.name]], rows, label, u, False, problems)
         lo, hi = a.travel
         tol = _data.TRAVEL_TOLERANCE * (hi - lo)
-        _data._report(problems, rows, (v < lo - tol) | (v > hi + tol), label,
+        _data.report_rows(problems, rows, (v < lo - tol) | (v > hi + tol), label,
                       lambda k, v=v, a=a, lo=lo, hi=hi, u=u:
                       f"{a.name} = {v[k]:g} {u} is outside the travel [{lo:g}, {hi:g}] {u} "
                       f"of axis {a.name}; the identified error model does not extrapolate")
@@ -252,11 +252,11 @@ def read_points(points: str | Path | pd.DataFrame, spec: MachineSpec, *,
     tool = np.zeros((len(rows), 3))
     for j, c in enumerate(("tool_x", "tool_y", "tool_z")):
         if c in pos:
-            tool[:, j] = _data._parse_float(body[pos[c]], rows, raw.header[pos[c]], "mm", False,
+            tool[:, j] = _data.parse_float(body[pos[c]], rows, raw.header[pos[c]], "mm", False,
                                             problems)
             values[c] = tool[:, j]
     if "point" in pos:
-        values["point"] = _data._parse_ids(body[pos["point"]], rows, raw.header[pos["point"]],
+        values["point"] = _data.parse_ids(body[pos["point"]], rows, raw.header[pos["point"]],
                                            problems)
     problems.raise_if_any()
     order = sorted(pos, key=lambda c: pos[c])
