@@ -48,7 +48,7 @@ from volcal.model.datum import condition_table, null_space, select_conditions
 from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.model.machine import Machine
 from volcal.model.spec import MachineSpec
-from volcal.problem.residuals import IdentificationProblem, Layout
+from volcal.problem.residuals import IdentificationProblem, Layout, NumpyCall
 from volcal.problem.strategies import (
     ClassicPipeline,
     PhasedStrategy,
@@ -321,8 +321,10 @@ class Identifier:
         for the same point in turn, and the dense Jacobian is the expensive part."""
         key = (np.asarray(x, float).tobytes(), np.asarray(p, float).tobytes())
         if getattr(self, "_jac_key", None) != key:
-            r, J = self.problem.jacobian(self.problem.to_scaled(x), p)
-            r, J = r.full().ravel(), J.full()
+            if getattr(self, "_jac_call", None) is None:
+                self._jac_call = NumpyCall(self.problem.jacobian)
+            r, J = self._jac_call(self.problem.to_scaled(x), p)
+            r = r.ravel()
             r.flags.writeable = J.flags.writeable = False  # shared: read-only
             self._jac_key, self._jac = key, (r, J)
         return self._jac

@@ -55,6 +55,43 @@ def dense_mtimes(a, b):
     return ca.mtimes(a, b) if kernel == "reference" else ca.mtimes(a, b, kernel)
 
 
+class NumpyCall:
+    """Evaluate a CasADi Function on numpy arrays through its raw buffers, returning dense
+    numpy outputs.  Converting the DM outputs of an ordinary call costs more than the
+    evaluation for a large sparse Jacobian (DM.full() walks the nonzeros one by one); here
+    the nonzeros land in a numpy array and are scattered once.  Not thread-safe: one
+    object per thread."""
+
+    def __init__(self, f: ca.Function):
+        self.f = f
+        self._buf, self._eval = f.buffer()
+        self._nz = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
+        self._where = []
+        for i in range(f.n_out()):
+            sp = f.sparsity_out(i)
+            colind = np.asarray(sp.colind(), int)
+            rows = np.asarray(sp.row(), int)
+            cols = np.repeat(np.arange(sp.size2()), np.diff(colind))
+            self._where.append((sp.size1(), sp.size2(), rows, cols, sp.is_dense()))
+        for i, nz in enumerate(self._nz):
+            self._buf.set_res(i, memoryview(nz))
+
+    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
+        keep = [np.ascontiguousarray(np.asarray(a, float).ravel(order="F")) for a in args]
+        for i, a in enumerate(keep):
+            self._buf.set_arg(i, memoryview(a))
+        self._eval()
+        out = []
+        for nz, (m, n, rows, cols, dense) in zip(self._nz, self._where):
+            if dense:
+                out.append(nz.reshape(n, m).T.copy() if n > 1 else nz.copy())
+            else:
+                full = np.zeros((m, n))
+                full[rows, cols] = nz
+                out.append(full)
+        return out
+
+
 @dataclass(frozen=True)
 class Layout:
     """Structure of a data set: the station (0..n_stations-1) of every reading and, where
@@ -184,7 +221,8 @@ class IdentificationProblem:
         D = ca.MX(ca.Sparsity.triplet(N, 3 * Np, np.repeat(ar, 3).tolist(), cols.tolist()),
                   ca.vec(rows[:3, :])[self._csc_order(N, 3 * Np, np.repeat(ar, 3), cols,
                                                       np.arange(3 * N))])
-        J_th = ca.mtimes(D, self._stack_poses(G, Np, nt))
+        Gs = self._stack_poses(G, Np, nt)  # (3 n_poses, nt), shared with the Hessian
+        J_th = ca.mtimes(D, Gs)
         # station and global columns: one nonzero per row per variable
         rr = np.concatenate([ar] * (n_ps + n_g))
         cc = np.concatenate([nt + n_ps * st_idx + k for k in range(n_ps)]
@@ -218,7 +256,6 @@ class IdentificationProblem:
         #   H_rr = J_rest^T J_rest             one nonzero per row per variable
         # so the flops are 3 n_poses n_theta^2 (not N n_theta^2), all in CasADi: the
         # Function can be expanded, serialised and code-generated.
-        Gs = self._stack_poses(G, Np, nt)
         Dt = D.T
         Jr = J_rest[:, nt:]
         right = ca.densify(ca.horzcat(ca.mtimes(ca.mtimes(Dt, D), Gs), ca.mtimes(Dt, Jr)))
