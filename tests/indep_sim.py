@@ -38,7 +38,8 @@ Conventions (those of docs/conventions.md, restated here as this program impleme
   model uses Rx Ry Rz: the two differ at second order only.
 * Volumetric error = actual - nominal tool point, in the workpiece frame.
 * Units inside: mm and rad; rotary positions in deg in tables (``Geometry.to_internal``).
-* Readings: ``length = |station - actual point| - dead_length`` (volcal.measurement.tables's meaning of
+* Readings: ``length = |station - actual point| - dead_length``
+  (volcal.measurement.tables's meaning of
   the dead length), stations fixed in the workpiece frame.
 
 Noise (paper 002, Table 1, read as volcal reads it: tabulated values in um, rectangular
@@ -222,7 +223,7 @@ class Truth:
     def const(self, name: str) -> float:
         return float(self.constants.get(name, 0.0))
 
-    def scaled(self, factor: float) -> "Truth":
+    def scaled(self, factor: float) -> Truth:
         """The same truth with every error multiplied by ``factor``."""
         return Truth({k: (lambda x, f=f: factor * np.asarray(f(x), float))
                       for k, f in self.motions.items()},
@@ -796,7 +797,7 @@ def _reference_fit(machine, error_model, meas: pd.DataFrame, stations_start: pd.
     elif method == "gauss-newton":
         its = 0
         r = fun(xf)
-        for its in range(1, max_iter + 1):
+        for its in range(1, max_iter + 1):  # noqa: B007  (the count is reported)
             J = jac(xf)
             col = np.linalg.norm(J, axis=0)
             col[col == 0] = 1.0

@@ -18,13 +18,17 @@ import pytest
 
 import volcal.cli.main
 from volcal.analysis.adequacy import assess, assess_residuals, chi2_interval
-from volcal.model.errors import ErrorForm, ErrorModel
 from volcal.analysis.identify import identify
-from volcal.model.machine import Machine
 from volcal.measurement.plans import default_plan, default_stations, grid_plan, summary_grid
+from volcal.measurement.simulate import (
+    draw_true_parameters,
+    max_volumetric_error_um,
+    parse_tools,
+    simulate,
+)
+from volcal.model.errors import ErrorForm, ErrorModel
+from volcal.model.machine import Machine
 from volcal.outputs.results import load_result, save_result, volumetric_grid_table
-from volcal.measurement.simulate import (draw_true_parameters, max_volumetric_error_um, parse_tools,
-                             simulate)
 
 TOOLS = np.array([[0, 0, 0], [0, 0, -100.0], [80, 0, -100.0], [0, 80, -100.0]])
 DEFAULT_TOOLS = "0,0,0;0,0,-100;80,0,-100;0,80,-100"  # those of `volcal simulate`

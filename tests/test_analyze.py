@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal.outputs.analysis_report import analyze_plan, analyze_result
 from volcal.base.threads import blas_threads
+from volcal.outputs.analysis_report import analyze_plan, analyze_result
 
 
 @pytest.fixture(scope="module")
@@ -92,8 +92,8 @@ def test_too_few_positions_for_the_polynomial_degree(ex):
 
 
 def test_result_analysis_and_residual_scaling(ex):
-    from volcal.measurement.tables import load_measurements
     from volcal.analysis.identify import identify
+    from volcal.measurement.tables import load_measurements
 
     sim = ex.simulate(3)
     meas = load_measurements(sim.measurements, ex.machine.spec)

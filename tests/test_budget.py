@@ -7,9 +7,16 @@ import numpy as np
 import pytest
 
 from volcal.base.exceptions import InputError
+from volcal.measurement.budget import (
+    PAPER001_DRIFT,
+    Budget,
+    DriftModel,
+    Source,
+    bundled_budgets,
+    default_budget,
+    load_budget,
+)
 from volcal.model.spec import resolve_model
-from volcal.measurement.budget import (PAPER001_DRIFT, Budget, DriftModel, Source, bundled_budgets,
-                                default_budget, load_budget)
 
 N = 100_000
 S3 = math.sqrt(3.0)

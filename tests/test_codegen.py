@@ -12,10 +12,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal.outputs.codegen import export_model, export_solver, load
-from volcal.outputs.codegen.export import DEFAULT_OPTIONS
 from volcal.analysis.identify import identify
 from volcal.measurement.simulate import example
+from volcal.outputs.codegen import export_model, export_solver, load
+from volcal.outputs.codegen.export import DEFAULT_OPTIONS
 
 pytestmark = pytest.mark.skipif(shutil.which("gcc") is None or shutil.which("make") is None,
                                 reason="needs gcc and make")
@@ -324,9 +324,9 @@ def test_model_only_export(ex, tmp_path, python_result):
 
 
 def test_two_phase_strategy_agrees_with_tight_python(ex, data, tmp_path):
-    from volcal.outputs.codegen import define_solver
-    from volcal.measurement.tables import load_measurements
     from volcal.analysis.identify import initial_stations
+    from volcal.measurement.tables import load_measurements
+    from volcal.outputs.codegen import define_solver
     from volcal.solve.ipopt import NLPSolver
 
     df = data[0]

@@ -74,10 +74,10 @@ def measurements(tmp_path_factory):
     line)."""
     import numpy as np
 
-    from volcal.model.errors import ErrorForm, ErrorModel
-    from volcal.model.machine import Machine
     from volcal.measurement.plans import default_stations, grid_plan
     from volcal.measurement.simulate import draw_true_parameters, parse_tools, simulate
+    from volcal.model.errors import ErrorForm, ErrorModel
+    from volcal.model.machine import Machine
 
     seed = 3
     machine = Machine.from_model("xfyz")

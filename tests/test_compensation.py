@@ -27,17 +27,17 @@ import re
 from pathlib import Path
 from types import SimpleNamespace
 
-import indep_sim as ind
 import numpy as np
 import pytest
 
-from volcal.cli.main import main
-from volcal.outputs.compensation import LimitError, compensate
-from volcal.model.errors import ErrorModel
-from volcal.base.exceptions import InputError
+import indep_sim as ind
 from volcal.analysis.identify import identify, predict_volumetric
-from volcal.model.machine import Machine
+from volcal.base.exceptions import InputError
+from volcal.cli.main import main
 from volcal.measurement.simulate import draw_true_parameters, example
+from volcal.model.errors import ErrorModel
+from volcal.model.machine import Machine
+from volcal.outputs.compensation import LimitError, compensate
 
 TOOLS = np.array([[0, 0, 0], [0, 0, -100.0], [80, 0, -100.0], [0, 80, -100.0]])
 FIGURES: dict[str, str] = {}
@@ -202,7 +202,7 @@ def read_generic_tables(folder: Path, geom: ind.Geometry) -> ind.Truth:
         for col in df.columns[1:]:
             name, unit = col.rsplit("_", 1)
             scale = 1e-3 if unit == "um" else 1e-6
-            motions[name] = (lambda x, pos=pos, v=df[col].to_numpy(float) * scale,
+            motions[name] = (lambda x, pos=pos, v=df[col].to_numpy(float) * scale,  # noqa: B008
                              rot=a.rotary: _interp(pos, v, np.rad2deg(x) if rot else x,
                                                    _turn(pos, rot)))
     c = pd.read_csv(folder / "constants.csv", comment="#")

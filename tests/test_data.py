@@ -8,9 +8,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal.measurement.tables import (MAX_LENGTH_MM, DataWarning, Measurements, load_measurements,
-                         load_stations)
 from volcal.base.exceptions import InputError
+from volcal.measurement.tables import (
+    MAX_LENGTH_MM,
+    DataWarning,
+    Measurements,
+    load_measurements,
+    load_stations,
+)
 from volcal.model.spec import resolve_model
 
 STATIONS = {"S1": (-300.0, -200.0, -400.0), "S2": (1000.0, -200.0, -350.0),

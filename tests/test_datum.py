@@ -18,11 +18,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from volcal.analysis.identify import declared_poses, identify, rigid_fit
+from volcal.measurement.plans import default_stations, grid_plan
 from volcal.model.datum import DATUMS, candidate_conditions, select_conditions
 from volcal.model.errors import ErrorForm, ErrorModel
-from volcal.analysis.identify import declared_poses, identify, rigid_fit
 from volcal.model.machine import Machine
-from volcal.measurement.plans import default_stations, grid_plan
 from volcal.model.spec import bundled_models
 
 # a low order keeps the 5-axis plans small and every error motion identifiable

@@ -10,10 +10,16 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal.model.errors import ErrorForm, ErrorModel, bspline, fourier, parse_basis
 from volcal.base.exceptions import InputError
-from volcal.model.spec import (AxisSpec, MachineSpec, load_model_file, machine_from_dict,
-                         resolve_model, spec_to_dict)
+from volcal.model.errors import ErrorForm, ErrorModel, bspline, fourier, parse_basis
+from volcal.model.spec import (
+    AxisSpec,
+    MachineSpec,
+    load_model_file,
+    machine_from_dict,
+    resolve_model,
+    spec_to_dict,
+)
 
 CXYZ = """
 name = "cxyz_bases"
@@ -276,10 +282,10 @@ def _simulate(machine, em, theta, plan, tools, seed=3, n_stations=4):
 @pytest.mark.filterwarnings("ignore:.*tool offset")
 def test_result_round_trip_with_fourier_and_bspline(tmp_path):
     from volcal.analysis.identify import identify
-    from volcal.model.machine import Machine
     from volcal.measurement.plans import grid_plan
-    from volcal.outputs.results import load_result, save_result
     from volcal.measurement.simulate import draw_true_parameters
+    from volcal.model.machine import Machine
+    from volcal.outputs.results import load_result, save_result
 
     spec = load(tmp_path, model_text(c_extra='basis = { kind = "fourier", degree = 2 }',
                                      x_extra='basis = { kind = "bspline", segments = 2 }'))
@@ -308,8 +314,8 @@ def test_result_round_trip_with_fourier_and_bspline(tmp_path):
 
 @pytest.fixture(scope="module")
 def xfyz_case():
-    from volcal.model.machine import Machine
     from volcal.measurement.plans import grid_plan
+    from volcal.model.machine import Machine
 
     machine = Machine.from_model("xfyz")
     plan = grid_plan(machine.spec, {"X": 9, "Y": 2, "Z": 2})
@@ -367,7 +373,6 @@ def test_degree_auto_follows_the_truth(xfyz_case, tmp_path, high):
 @pytest.mark.filterwarnings("ignore:.*tool offset")
 def test_degree_auto_cross_validation(xfyz_case):
     from volcal.analysis.order_selection import select_orders
-
     from volcal.measurement.plans import grid_plan
 
     machine, _ = xfyz_case

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from numpy.polynomial import legendre as npleg
 
-from volcal.model.errors import ErrorForm, ErrorModel, legendre
 from volcal.base.exceptions import InputError
+from volcal.model.errors import ErrorForm, ErrorModel, legendre
 from volcal.model.spec import resolve_model
 
 

@@ -22,10 +22,15 @@ import pandas as pd
 import pytest
 
 import volcal.cli.main
-from volcal.measurement.tables import DataWarning, load_measurements
 from volcal.base.exceptions import InputError
-from volcal.base.folders import (MANIFEST, check_out_dir, folder_lock, output_policy,
-                            verify_manifest, write_folder)
+from volcal.base.folders import (
+    MANIFEST,
+    check_out_dir,
+    folder_lock,
+    verify_manifest,
+    write_folder,
+)
+from volcal.measurement.tables import DataWarning, load_measurements
 from volcal.model.spec import MAX_AXES, MAX_NESTING, load_model_file, resolve_model
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -92,7 +97,8 @@ def test_simulate_writes_a_manifest_with_umask_modes_and_needs_force(tmp_path, c
     out = tmp_path / "sim"
     old = os.umask(0o027)
     try:
-        assert main(["simulate", "--model", "xfyz", "--grid", "3", "--seed", "1", "--out", out]) == 0
+        assert main(["simulate", "--model", "xfyz", "--grid", "3", "--seed", "1",
+                     "--out", out]) == 0
     finally:
         os.umask(old)
     man = json.loads((out / MANIFEST).read_text())

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from volcal.model.errors import ErrorForm, ErrorModel
-from volcal.base.exceptions import SolverError
 from volcal.analysis.identify import identify, rigid_fit
-from volcal.model.machine import Machine
+from volcal.base.exceptions import SolverError
 from volcal.measurement.plans import default_stations, grid_plan
 from volcal.measurement.simulate import draw_true_parameters, simulate
+from volcal.model.errors import ErrorForm, ErrorModel
+from volcal.model.machine import Machine
 
 TOOLS = np.array([[0, 0, 0], [0, 0, -100.0], [80, 0, -100.0], [0, 80, -100.0]])
 
@@ -135,8 +135,8 @@ def test_noise_free_joint_is_exact_to_second_order():
 def test_solver_failure_is_reported_with_status():
     machine, em, theta, sim = simulated("mcv754_wxyzt", grid=4)
     from volcal.analysis.identify import Identifier
-    from volcal.problem.residuals import Layout
     from volcal.measurement.tables import load_measurements
+    from volcal.problem.residuals import Layout
 
     meas = load_measurements(sim.measurements, machine.spec)
     ider = Identifier(machine, em, Layout(meas.station_index, len(meas.station_ids)))

@@ -21,12 +21,12 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
-import indep_sim as ind
 import numpy as np
 import pytest
 
-from volcal.model.errors import ErrorModel
+import indep_sim as ind
 from volcal.analysis.identify import identify
+from volcal.model.errors import ErrorModel
 from volcal.model.machine import Machine
 
 TOOLS = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0], [80.0, 0.0, 60.0], [0.0, 80.0, 60.0]])
@@ -169,7 +169,7 @@ def _field_grid(geom, tools):
     return np.repeat(q, len(tools), axis=0), np.tile(tools, (len(q), 1))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _simulation(name):
     case = CASES[name]
     geom = ind.load_geometry(case.model)
@@ -181,7 +181,7 @@ def _simulation(name):
     return geom, truth, tools, sim
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _run(name):
     case = CASES[name]
     geom, truth, tools, sim = _simulation(name)

@@ -9,13 +9,13 @@
 """
 from __future__ import annotations
 
-import coordinate_probe  # noqa: F401  (registers the instrument)
-import indep_sim as ind
 import numpy as np
 import pandas as pd
 import pytest
 import scipy.optimize as so
 
+import coordinate_probe  # noqa: F401  (registers the instrument)
+import indep_sim as ind
 from volcal.analysis.identify import identify
 from volcal.measurement.instruments import (
     MultiLaserInstrument,

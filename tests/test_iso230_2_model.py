@@ -6,8 +6,7 @@ import pytest
 from scipy import integrate
 from scipy.stats import norm
 
-from volcal.iso230_2 import (fit_axis_model, fit_plane, fit_polynomial, gls,
-                             type_a_uncertainty)
+from volcal.iso230_2 import fit_axis_model, fit_plane, fit_polynomial, gls, type_a_uncertainty
 
 P_AXIS = np.array([0.0, 75.416, 150.893, 225.274, 300.681, 375.127, 450.562, 525.348,
                    600.915, 675.209, 750.0])                       # mm

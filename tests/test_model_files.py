@@ -124,7 +124,8 @@ def test_unknown_keys(tmp_path):
     reject(tmp_path, model(GOOD_AXES + axis(travle="[0.0, 1.0]")),
            r"#3", r"unknown key\(s\) \['travle'\]", r"allowed: \[.*'travel'")
     reject(tmp_path, model(GOOD_AXES, header='name = "m"\nunits = "inch"\n'),
-           r"unknown top-level key\(s\) \['units'\]", r"allowed: \['axis', 'description', 'name', 'tool_errors'\]")
+           r"unknown top-level key\(s\) \['units'\]",
+           r"allowed: \['axis', 'description', 'name', 'tool_errors'\]")
 
 
 def test_missing_or_bad_model_name(tmp_path):

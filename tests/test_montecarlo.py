@@ -9,10 +9,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from volcal.base.threads import blas_threads
 from volcal.analysis.uncertainty.evaluation import compare_with_reference, evaluation_factor
-from volcal.analysis.uncertainty.montecarlo import (contributions, monte_carlo, quantity_table,
-                                           run_trials, verify_against_ipopt)
+from volcal.analysis.uncertainty.montecarlo import (
+    contributions,
+    monte_carlo,
+    quantity_table,
+    run_trials,
+    verify_against_ipopt,
+)
+from volcal.base.threads import blas_threads
 
 
 @pytest.fixture(scope="module")
@@ -249,8 +254,8 @@ def test_drift_tool_and_station_inputs(example_mc):
     """Optional inputs: the budget's drift (one realisation per station over the time
     stamps), tool offset and fixed-station uncertainties: sampled, and their linearised
     covariance matches the Monte Carlo spread of the linear map."""
-    from volcal.measurement.budget import PAPER001_DRIFT
     from volcal.analysis.uncertainty.montecarlo import build_kernel
+    from volcal.measurement.budget import PAPER001_DRIFT
 
     ex = example_mc["example"]
     ider, p = example_mc["identifier"], example_mc["p"]

@@ -1,4 +1,5 @@
-"""Tests of volcal.analysis.multilaser (paper 001's three-laser instrument) and of the paper-001 study.
+"""Tests of volcal.analysis.multilaser (paper 001's three-laser instrument) and of the
+paper-001 study.
 
 Units: mm, rad; point errors in um.  The study is run in smoke mode (a few trials).
 """

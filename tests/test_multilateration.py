@@ -10,7 +10,6 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from volcal.measurement.tables import load_stations
 from volcal.base.exceptions import InputError
 from volcal.measurement.multilateration import (
     calibrate_station,
@@ -18,6 +17,7 @@ from volcal.measurement.multilateration import (
     condition_numbers,
     multilaterate,
 )
+from volcal.measurement.tables import load_stations
 
 EPS = np.finfo(float).eps
 SIGMA = 0.5e-3  # mm (0.5 um)
@@ -432,7 +432,7 @@ def test_batched_sqrt_agrees_with_scipy_least_squares():
     r = multilaterate(STATIONS, DEAD, L, "sqrt")
     for i in range(0, len(POINTS), 15):
         ref = least_squares(  # analytic Jacobian: finite differences stop ~1e-8 mm short
-            lambda p: np.linalg.norm(p - STATIONS, axis=1) - (DEAD + L[i]),
+            lambda p, i=i: np.linalg.norm(p - STATIONS, axis=1) - (DEAD + L[i]),
             POINTS[i] + 0.01, xtol=1e-15, ftol=1e-15, gtol=1e-15,
             jac=lambda p: (p - STATIONS) / np.linalg.norm(p - STATIONS, axis=1)[:, None]).x
         np.testing.assert_allclose(r.points[i], ref, atol=1e-9)

@@ -17,14 +17,20 @@ import pytest
 
 import volcal.cli.main
 import volcal.outputs.results as results
-from volcal.model.errors import ErrorForm, ErrorModel
-from volcal.base.exceptions import InputError, SolverError
 from volcal.analysis.identify import IdentificationResult, identify
-from volcal.model.machine import Machine
+from volcal.base.exceptions import InputError, SolverError
 from volcal.measurement.plans import default_stations, grid_plan
-from volcal.outputs.results import (DATA_FILES, PLOT_FILES, RESULT_FILES, load_result, read_points,
-                            save_result)
 from volcal.measurement.simulate import draw_true_parameters, simulate
+from volcal.model.errors import ErrorForm, ErrorModel
+from volcal.model.machine import Machine
+from volcal.outputs.results import (
+    DATA_FILES,
+    PLOT_FILES,
+    RESULT_FILES,
+    load_result,
+    read_points,
+    save_result,
+)
 from volcal.solve.outcome import SolveOutcome
 
 TOOLS = np.array([[0, 0, 0], [0, 0, -100.0], [80, 0, -100.0], [0, 80, -100.0]])
@@ -167,7 +173,8 @@ def test_result_json_is_strict_json_and_round_trips(case):
     res, out, machine = case["res"], case["out"], case["machine"]
     text = (out / "result.json").read_text()
     doc = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
-    assert doc["format"] == results.RESULT_FORMAT and doc["format_version"] == results.RESULT_FORMAT_VERSION
+    assert doc["format"] == results.RESULT_FORMAT
+    assert doc["format_version"] == results.RESULT_FORMAT_VERSION
     assert doc["data"] == "measurements.csv" and doc["strategy"] == "joint"
     assert doc["versions"]["volcal"] and doc["versions"]["casadi"]
     assert doc["param_names"] == res.error_model.param_names
@@ -230,7 +237,8 @@ def test_a_failure_mid_write_leaves_no_folder(case, tmp_path, monkeypatch):
 def test_a_previous_result_is_replaced_and_other_folders_are_refused(case, tmp_path):
     out = tmp_path / "r"
     save_result(case["res"], out, plots=False, data_name="first.csv")
-    assert sorted(p.name for p in out.iterdir()) == sorted([*DATA_FILES, "manifest.json", "solver_state.npz"])
+    written = sorted(p.name for p in out.iterdir())
+    assert written == sorted([*DATA_FILES, "manifest.json", "solver_state.npz"])
     save_result(case["res"], out, plots=False, data_name="second.csv")
     assert json.loads((out / "result.json").read_text())["data"] == "second.csv"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r"]
@@ -413,7 +421,8 @@ def test_identify_cli_robust_summary_and_inputs_untouched(case, tmp_path, monkey
     printed = capsys.readouterr().out
     assert code == 0, printed
     assert file_hash(data) == h
-    assert sorted(p.name for p in out.iterdir()) == sorted([*DATA_FILES, "manifest.json", "solver_state.npz"])
+    written = sorted(p.name for p in out.iterdir())
+    assert written == sorted([*DATA_FILES, "manifest.json", "solver_state.npz"])
     for needle in ("Solve", "residual RMS", "largest volumetric error",
                    "unidentifiable           none", "rejected readings        1",
                    str(out / "report.md")):

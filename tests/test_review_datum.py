@@ -6,16 +6,16 @@ from __future__ import annotations
 
 import functools
 
-import indep_sim as ind
 import numpy as np
 
+import indep_sim as ind
 from volcal.analysis.identify import identify
 
 MODEL = "mcv754_wxyzt"
 TOOLS = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0], [80.0, 0.0, 60.0]])
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _sim():
     geom = ind.load_geometry(MODEL)
     rng = np.random.default_rng(5)

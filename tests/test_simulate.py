@@ -1,4 +1,5 @@
-"""The simulator (volcal.measurement.simulate), measurement plans (volcal.measurement.plans) and `volcal simulate`.
+"""The simulator (volcal.measurement.simulate), measurement plans
+(volcal.measurement.plans) and `volcal simulate`.
 
 The forward kinematics used as reference here is written from the conventions of
 volcal.model.symbolic.chain (docstring and _axis_factors) with plain numpy, independently of the
@@ -7,25 +8,40 @@ SymPy/CasADi pipeline the simulator uses.
 from __future__ import annotations
 
 import json
-import zlib
 import warnings
+import zlib
 
 import numpy as np
 import pandas as pd
 import pytest
 
+from volcal.base.exceptions import InputError
 from volcal.cli import main as cli
+from volcal.measurement.budget import Budget, Source, load_budget
+from volcal.measurement.plans import (
+    check_plan,
+    default_stations,
+    diagonal_plan,
+    grid_plan,
+    line_plan,
+    nominal_points,
+    plan_from_csv,
+)
+from volcal.measurement.simulate import (
+    SIMULATION_FILES,
+    Simulation,
+    draw_true_parameters,
+    example,
+    load_true_parameters,
+    max_volumetric_error_um,
+    parse_tools,
+    save_simulation,
+    simulate,
+)
 from volcal.measurement.tables import DataWarning, load_measurements, load_stations
 from volcal.model.errors import ErrorModel
-from volcal.base.exceptions import InputError
 from volcal.model.machine import Machine
-from volcal.measurement.plans import (check_plan, default_stations, diagonal_plan, grid_plan, line_plan,
-                          nominal_points, plan_from_csv)
-from volcal.measurement.simulate import (SIMULATION_FILES, Simulation, draw_true_parameters, example,
-                             load_true_parameters, max_volumetric_error_um, parse_tools,
-                             save_simulation, simulate)
 from volcal.model.spec import bundled_models
-from volcal.measurement.budget import Budget, Source, load_budget
 
 # paper 000, Table 5, calculated values (mm)
 TABLE5 = {

@@ -4,8 +4,8 @@ and used by Monte Carlo instead of reconstructing the held set and the weights."
 from __future__ import annotations
 
 import numpy as np
-from test_identify import simulated
 
+from test_identify import simulated
 from volcal.analysis.identify import Identifier, identify
 from volcal.analysis.uncertainty.montecarlo import fixed_mask, identification_data
 from volcal.measurement.tables import load_measurements

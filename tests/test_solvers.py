@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_identify import simulated
 
+from test_identify import simulated
 from volcal.analysis.identify import Identifier, identify
 from volcal.measurement.tables import load_measurements
 from volcal.problem.residuals import Layout
