@@ -427,11 +427,26 @@ def _report(problems: _Problems, rows: np.ndarray, mask: np.ndarray, column: str
 def _parse_float(values: pd.Series, rows: np.ndarray, column: str, unit: str, optional: bool,
                  problems: _Problems) -> np.ndarray:
     vals = values.to_numpy(dtype=object)
-    blank = np.array([_is_blank(v) or (isinstance(v, str) and v.strip().lower() in _NA_STRINGS)
-                      for v in vals], dtype=bool)
-    bools = np.array([isinstance(v, (bool, np.bool_)) for v in vals], dtype=bool)
-    cleaned = pd.Series([v.strip() if isinstance(v, str) else v for v in vals], dtype=object)
-    num = pd.to_numeric(cleaned, errors="coerce").to_numpy(dtype=float, copy=True)
+    kind = pd.api.types.infer_dtype(values, skipna=False)
+    if kind in ("floating", "integer", "mixed-integer-float"):
+        # numbers already (a DataFrame): no per-cell work
+        num = values.to_numpy(dtype=float, copy=True)
+        blank = np.isnan(num)
+        bools = np.zeros(len(num), bool)
+    elif kind == "string":
+        # text cells (a CSV file): the same rules, vectorised
+        text = values.str.strip()
+        blank = (text.eq("") | text.str.lower().isin(_NA_STRINGS)).to_numpy(bool)
+        bools = np.zeros(len(text), bool)
+        num = pd.to_numeric(text, errors="coerce").to_numpy(dtype=float, copy=True)
+    else:
+        blank = np.array([_is_blank(v) or (isinstance(v, str)
+                                           and v.strip().lower() in _NA_STRINGS)
+                          for v in vals], dtype=bool)
+        bools = np.array([isinstance(v, (bool, np.bool_)) for v in vals], dtype=bool)
+        cleaned = pd.Series([v.strip() if isinstance(v, str) else v for v in vals],
+                            dtype=object)
+        num = pd.to_numeric(cleaned, errors="coerce").to_numpy(dtype=float, copy=True)
     num[blank] = np.nan
     bad = (~blank & np.isnan(num)) | bools
     num[bad] = np.nan
