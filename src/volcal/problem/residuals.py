@@ -185,6 +185,10 @@ class IdentificationProblem:
         point = m["tool_point_exact" if self.exact else "tool_point"](qs, ts, e)[0]
         f_pose = ca.Function("pose", [qs, ts, ths], [point, ca.jacobian(point, ths)],
                              ["q", "t", "theta"], ["p", "dp_dtheta"], {"cse": True})
+        # the point alone: the objective and the residuals need no derivative (an MX call
+        # evaluates every output of the function it calls)
+        f_point = ca.Function("point", [qs, ts, ths], [point], ["q", "t", "theta"], ["p"],
+                              {"cse": True})
         ps, ss, gs = ca.SX.sym("p", 3), ca.SX.sym("s", n_ps), ca.SX.sym("g", n_g)
         ms, ws = ca.SX.sym("m"), ca.SX.sym("w")
         s_phys = ss * ca.DM(sc[nt:nt + n_ps])
@@ -193,6 +197,8 @@ class IdentificationProblem:
         row = ca.jacobian(res, ca.vertcat(ps, ss, gs)).T
         f_read = ca.Function("reading", [ps, ss, gs, ms, ws], [res, row],
                              ["p", "s", "g", "m", "w"], ["r", "dr_dpsg"], {"cse": True})
+        f_res = ca.Function("reading_value", [ps, ss, gs, ms, ws], [res],
+                            ["p", "s", "g", "m", "w"], ["r"], {"cse": True})
         self.pose_function, self.reading_function = f_pose, f_read
 
         # all readings in MX (x is the scaled variable vector)
@@ -212,6 +218,9 @@ class IdentificationProblem:
         Pr = P[:, pose_idx.tolist()]  # the point of every reading
         r_row, rows = f_read.map(N)(Pr, S, g, meas.T, w.T)
         r = r_row.T
+        # the same residuals without derivatives, for the objective and ``residual``
+        P_val = f_point.map(Np)(Q[:, first.tolist()], T[:, first.tolist()], th)
+        r_val = f_res.map(N)(P_val[:, pose_idx.tolist()], S, g, meas.T, w.T).T
 
         # J = [D G_stack | station columns | global columns]: D (N x 3 Np) holds each
         # reading's d(r)/d(point) in the columns of its pose, G_stack (3 Np x nt) the
@@ -231,7 +240,7 @@ class IdentificationProblem:
         J_rest = ca.MX(ca.Sparsity.triplet(N, self.n_x, rr.tolist(), cc.tolist()),
                        ca.vec(rows)[self._csc_order(N, self.n_x, rr, cc, src)])
         J = ca.horzcat(J_th, J_rest[:, nt:])
-        self.residual = ca.Function("residual", [xs, p], [r], ["x", "p"], ["r"])
+        self.residual = ca.Function("residual", [xs, p], [r_val], ["x", "p"], ["r"])
         self.jacobian = ca.Function("jacobian", [xs, p], [r, J], ["x", "p"], ["r", "J"])
 
         self.conditions = candidate_conditions(em, em.datum)
@@ -241,7 +250,7 @@ class IdentificationProblem:
         self.datum_active = np.ones(len(self.conditions), bool)
         Cs = self.C_all * self.scale[None, :nt]
         gvec = ca.mtimes(ca.DM(Cs), xs[:em.n_params]) if self.C_all.shape[0] else ca.MX(0, 1)
-        self.nlp = {"x": xs, "p": p, "f": 0.5 * ca.sumsqr(r), "g": gvec}
+        self.nlp = {"x": xs, "p": p, "f": 0.5 * ca.sumsqr(r_val), "g": gvec}
         # gradient of 0.5 ||r||^2 from the explicit Jacobian: J^T r, instead of reverse AD
         # through the map (which cost half of a small solve)
         self.grad_f = ca.Function("nlp_grad_f", [xs, p], [0.5 * ca.sumsqr(r), ca.mtimes(J.T, r)],
