@@ -24,8 +24,14 @@ import sympy as sp
 
 from volcal.model.spec import MachineSpec, error_symbols
 from volcal.model.symbolic.dual import Dual, rigid_inverse
-from volcal.model.symbolic.transforms import (Factor, Rotate, SmallRotate, Translate, as_dual,
-                                        as_exact)
+from volcal.model.symbolic.transforms import (
+    Factor,
+    Rotate,
+    SmallRotate,
+    Translate,
+    as_dual,
+    as_exact,
+)
 
 _0 = sp.Integer(0)
 

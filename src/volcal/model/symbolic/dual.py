@@ -18,11 +18,11 @@ class Dual:
     real: sp.Matrix
     dual: sp.Matrix
 
-    def __matmul__(self, other: "Dual") -> "Dual":
+    def __matmul__(self, other: Dual) -> Dual:
         # (A0 + eps A1)(B0 + eps B1) = A0 B0 + eps (A0 B1 + A1 B0): the eps^2 term vanishes.
         return Dual(self.real * other.real, self.real * other.dual + self.dual * other.real)
 
-    def rigid_inverse(self) -> "Dual":
+    def rigid_inverse(self) -> Dual:
         """Inverse of a dual homogeneous transform whose real part is rigid.
 
         (A0 + eps A1)^-1 = A0^-1 - eps A0^-1 A1 A0^-1, with A0^-1 = [R^T, -R^T t].
