@@ -60,7 +60,7 @@ import platform
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -68,14 +68,14 @@ import numpy as np
 import pandas as pd
 
 from volcal import __version__
-from volcal.model.errors import ErrorForm, ErrorModel
-from volcal.base.exceptions import InputError
 from volcal.analysis.adequacy import assess, plot_residuals_vs_axes
 from volcal.analysis.identifiability import FieldNullSpace
 from volcal.analysis.identify import IdentificationResult, SolverState, predict_volumetric
+from volcal.base.exceptions import InputError
+from volcal.base.units import REPORT
+from volcal.model.errors import ErrorForm, ErrorModel
 from volcal.model.machine import Machine
 from volcal.model.spec import MachineSpec, machine_from_dict, spec_to_dict
-from volcal.base.units import REPORT
 
 log = logging.getLogger(__name__)
 
@@ -217,8 +217,8 @@ def read_points(points: str | Path | pd.DataFrame, spec: MachineSpec, *,
     required), ``tool_x, tool_y, tool_z`` (or ``tool_x_mm`` ...; mm, optional, default
     0) and ``point`` (text id, optional).  Any other column is an error, as are missing
     or non-numeric values and axis positions outside the travel (tolerance
-    :data:`volcal.measurement.tables.TRAVEL_TOLERANCE` x travel range): :class:`InputError` naming the
-    file, row (header = row 1) and column.
+    :data:`volcal.measurement.tables.TRAVEL_TOLERANCE` x travel range): :class:`InputError`
+    naming the file, row (header = row 1) and column.
 
     Returns (table with the input's columns and names in input order, q (N, n_axes) in
     file units, tool (N, 3) mm).
@@ -299,7 +299,7 @@ def _forms(em: ErrorModel) -> list[dict[str, Any]]:
 def _versions() -> dict[str, str]:
     import casadi
 
-    return {"volcal": __version__, "casadi": casadi.__version__, "numpy": np.__version__,
+    return {"volcal": __version__, "casadi": casadi.CasadiMeta.version(), "numpy": np.__version__,
             "python": platform.python_version()}
 
 
@@ -735,7 +735,7 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     add(_md_table(pd.DataFrame(ax_rows, columns=["axis", "kind", "direction", "branch",
                                                  "travel", "reference"])))
     add("")
-    kinds = {}
+    kinds: dict[str, list[str]] = {}
     for s, f in zip(em.errors, em.forms):
         if s.kind == "location":
             label = "constant (location error)"
@@ -759,7 +759,7 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     add(f"- reading uncertainties from: {result.sigma_source}")
     tools = res[["tool_x", "tool_y", "tool_z"]].drop_duplicates() if "tool_x" in res else None
     if tools is not None:
-        add(f"- tool offsets (mm): " + "; ".join(
+        add("- tool offsets (mm): " + "; ".join(
             f"({x:g}, {y:g}, {z:g})" for x, y, z in tools.to_numpy()))
     add("")
 
@@ -830,8 +830,8 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     if ident is not None and ident.weak:
         add("Weakly determined directions (small singular value):")
         add("")
-        for s, c in ident.weak:
-            add(f"- s = {s:.2e}: `{c}`")
+        for sv, c in ident.weak:
+            add(f"- s = {sv:.2e}: `{c}`")
         add("")
 
     add("## Rejected readings")
@@ -1016,6 +1016,7 @@ def _adequacy_section(ad, plots: bool) -> str:
 def _datum_section(result: IdentificationResult) -> str:
     """Report text: which datum conditions hold exactly and which take other values."""
     tab = result.datum
+    assert tab is not None  # the caller writes this section only for results with a datum
     imp = tab[tab["imposed"]]
     free = tab[~tab["imposed"]]
     lines = [f"### Datum ({result.error_model.datum})", "",
@@ -1067,7 +1068,7 @@ def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name:
 
     def writer(tmp: Path) -> None:
         em, machine = result.error_model, result.machine
-        created = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        created = datetime.now(UTC).isoformat(timespec="seconds")
         log.info("writing the result tables (temporary folder %s)", tmp)
         result.parameters().to_csv(tmp / "parameters.csv", index=False)
         result.stations.to_csv(tmp / "stations.csv", index=False)

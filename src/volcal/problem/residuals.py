@@ -18,6 +18,7 @@ Fixing a variable is done with equal bounds, again without rebuild.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -64,6 +65,8 @@ class NumpyCall:
 
     def __init__(self, f: ca.Function):
         self.f = f
+        # CasADi's stub of FunctionBuffer lists a size argument the binding does not take
+        self._buf: Any
         self._buf, self._eval = f.buffer()
         self._nz = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
         self._where = []
@@ -74,12 +77,12 @@ class NumpyCall:
             cols = np.repeat(np.arange(sp.size2()), np.diff(colind))
             self._where.append((sp.size1(), sp.size2(), rows, cols, sp.is_dense()))
         for i, nz in enumerate(self._nz):
-            self._buf.set_res(i, memoryview(nz))
+            self._buf.set_res(i, nz.data)
 
     def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
         keep = [np.ascontiguousarray(np.asarray(a, float).ravel(order="F")) for a in args]
         for i, a in enumerate(keep):
-            self._buf.set_arg(i, memoryview(a))
+            self._buf.set_arg(i, a.data)
         self._eval()
         out = []
         for nz, (m, n, rows, cols, dense) in zip(self._nz, self._where):

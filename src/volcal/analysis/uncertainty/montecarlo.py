@@ -33,9 +33,10 @@ import logging
 import os
 import tempfile
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -270,7 +271,8 @@ def _save_npz(path: Path, arrays: dict[str, np.ndarray], chunk: Chunk) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npz")
     os.close(fd)
     try:
-        np.savez(tmp, start=chunk.start, stop=chunk.stop, **arrays)
+        # numpy's stub types **kwargs as allow_pickle; these are arrays
+        np.savez(tmp, start=chunk.start, stop=chunk.stop, **arrays)  # type: ignore[arg-type]
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -380,7 +382,7 @@ class MCResult:
 
     @classmethod
     def from_samples(cls, kernel: MCKernel, samples: MCSamples,
-                     eval_table: pd.DataFrame | None = None) -> "MCResult":
+                     eval_table: pd.DataFrame | None = None) -> MCResult:
         return cls(kernel, samples, kernel.linear_covariance(samples.enabled), eval_table)
 
     def parameters(self, *, include_stations: bool = True) -> pd.DataFrame:
@@ -511,7 +513,7 @@ def error_motion_rows(error_model, quantities: Iterable[str]) -> tuple[list[str]
     return names, np.array(rows).reshape(len(names), em.n_params), units
 
 
-def quantity_table(mc: "MCResult", error_model, quantities: Iterable[str]) -> pd.DataFrame:
+def quantity_table(mc: MCResult, error_model, quantities: Iterable[str]) -> pd.DataFrame:
     """Summary of named quantities (see :func:`error_motion_rows`): name, unit (um /
     urad), value (at the identification), mc_mean, u, U (k = 2), 95 % interval, u_linear."""
     names, A, units = error_motion_rows(error_model, quantities)
@@ -599,11 +601,11 @@ def verify_against_ipopt(kernel: MCKernel, ider, p: np.ndarray, seed: int,
     X0 = np.tile(eng.x_hat, (len(trials), 1))
     X0[:, eng.fixed] += dX
     sol = eng.solve(eng.m[None, :] + dM, X0, tol=kernel.tol)
-    Xi = []
+    rows = []
     for b in range(len(trials)):
         xi, _ = ipopt_resolve(ider, X0[b], p, eng.fixed, (eng.m + dM[b])[None, :])
-        Xi.append(xi[0])
-    Xi = np.array(Xi)
+        rows.append(xi[0])
+    Xi = np.array(rows)
     d = np.abs(Xi - sol.x) / eng.scale
     nt = kernel.n_theta
     return {"max_abs_scaled": float(d.max()),
@@ -627,11 +629,11 @@ def monte_carlo(model, data, stations=None, *, budget="paper002", trials: int = 
     """Identify, then Monte Carlo around the identification.  Returns a dict with the
     identification ``result``, ``kernel``, ``mc`` (:class:`MCResult`), ``contributions``
     (a table or None) and ``verify`` (IPOPT cross-check of ``verify`` trials, or None)."""
-    from volcal.measurement.tables import load_measurements, load_stations
     from volcal.analysis.identify import Identifier, identify
+    from volcal.measurement.budget import load_budget
+    from volcal.measurement.tables import load_measurements, load_stations
     from volcal.model.machine import Machine
     from volcal.problem.residuals import Layout
-    from volcal.measurement.budget import load_budget
 
     machine = model if isinstance(model, Machine) else Machine.from_model(model)
     bud = load_budget(budget)

@@ -32,6 +32,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from volcal.measurement.budget import Budget
+
 __all__ = ["InputSource", "InputSampler", "trial_rng"]
 
 
@@ -57,7 +59,7 @@ class InputSampler:
     picklable).  Build it with :meth:`build`."""
 
     sources: list[InputSource]
-    budget: object                       # volcal.measurement.budget.Budget
+    budget: Budget
     length_mm: np.ndarray                # (N,) reading lengths for per-metre sources
     axis_names: list[str]
     axis_sens: np.ndarray                # (N, n_axes) dL/dq (mm/mm or mm/rad)
@@ -76,7 +78,7 @@ class InputSampler:
               beam_unit: np.ndarray, length_mm: np.ndarray, budget, *,
               time_s: np.ndarray | None = None, fixed: np.ndarray | None = None,
               station_slice: slice | None = None, tool_sigma_mm: float = 0.0,
-              station_sigma_mm: float = 0.0) -> "InputSampler":
+              station_sigma_mm: float = 0.0) -> InputSampler:
         """Sensitivities from the machine (nominal model) at the readings' poses q (N,
         n_axes; mm, rad) and tools (N, 3); beam_unit (N, 3) unit vectors station ->
         point; length_mm (N,) the readings' lengths; budget: a Budget."""
@@ -184,6 +186,7 @@ class InputSampler:
                         v *= 2.0
                         v -= 1.0
                     if on[k]:
+                        assert scale is not None  # a reading source always has its factor
                         v *= scale
                         row += v
                 elif kind == "drift":
@@ -246,9 +249,9 @@ class InputSampler:
                 return np.asarray(s.standard_uncertainty(self.length_mm), float) ** 2 * \
                     np.ones(self.length_mm.size)
         for j, a in enumerate(self.axis_names):
-            s = bud.axis_sources.get(a)
-            if s is not None and s.name == name:
-                return (float(s.standard_uncertainty()) * self.axis_sens[:, j]) ** 2
+            src = bud.axis_sources.get(a)
+            if src is not None and src.name == name:
+                return (float(src.standard_uncertainty()) * self.axis_sens[:, j]) ** 2
         return None
 
     def propagate(self, Km: np.ndarray, Kx: np.ndarray, name: str) -> np.ndarray:
