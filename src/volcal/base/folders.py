@@ -279,8 +279,8 @@ def write_folder(out_dir: str | Path, allowed: Iterable[str], what: str,
     allowed = tuple(allowed) + (MANIFEST,)
     allowed_dirs, inputs = tuple(allowed_dirs), tuple(inputs)
     out = Path(out_dir).absolute()
-    kw = dict(inputs=inputs, allowed_dirs=allowed_dirs, force=force)
-    check_out_dir(out, allowed, what, marker, **kw)
+    check_out_dir(out, allowed, what, marker, inputs=inputs, allowed_dirs=allowed_dirs,
+                  force=force)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -293,7 +293,9 @@ def write_folder(out_dir: str | Path, allowed: Iterable[str], what: str,
             _write_manifest(tmp, what)
             _apply_umask(tmp)
             if out.exists():
-                check_out_dir(out, allowed, what, marker, **kw)  # it may have changed
+                # it may have changed meanwhile
+                check_out_dir(out, allowed, what, marker, inputs=inputs,
+                              allowed_dirs=allowed_dirs, force=force)
                 old = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
                 os.rename(out, old)
                 try:

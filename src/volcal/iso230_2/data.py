@@ -301,7 +301,7 @@ def _one_axis(name, rows, cycle, direction, target, value, units, form, src, ori
     for (c, d), ks in runs.items():
         sym = "+" if d == "up" else "-"
         keys = np.round(target[ks], _TARGET_DECIMALS)
-        seen = {}
+        seen: dict[float, int] = {}
         for k, t in zip(ks, keys):
             if t in seen:
                 raise InputError(f"axis {name}, cycle {c}, direction '{sym}': second reading "

@@ -186,7 +186,8 @@ class Source:
 
         ``L_mm`` (measured length, mm) matters for length sources with ``per_metre``.
         """
-        div = self.k if self.distribution == "normal" else _SQRT3
+        # a normal source always has its coverage factor (checked when it is built)
+        div = float(self.k or 1.0) if self.distribution == "normal" else _SQRT3
         return self._magnitude(L_mm) * self.scale / div
 
     def sample(self, size: int | tuple[int, ...], rng: np.random.Generator | int,

@@ -661,10 +661,9 @@ def calibrate_stations(station_index: Sequence[Any] | np.ndarray, points: np.nda
     if isinstance(dead_length, Mapping):
         dfix = np.array([float(dead_length.get(s, 0.0)) for s in stations.tolist()])
     else:
-        dfix = np.broadcast_to(np.asarray(dead_length, dtype=float), (K,)).copy() \
-            if np.size(dead_length) in (1, K) else None
-        if dfix is None:
+        if np.size(dead_length) not in (1, K):
             raise InputError(f"dead_length must be a scalar or have {K} values")
+        dfix = np.broadcast_to(np.asarray(dead_length, dtype=float), (K,)).copy()
     est = bool(estimate_dead_length)
     n_unknown = 4 if est else 3
     x0_given = _initial_stations(initial, stations, K)
@@ -771,19 +770,19 @@ def calibrate_stations(station_index: Sequence[Any] | np.ndarray, points: np.nda
             cond[idx], cond_lb[idx], cond_s[idx] = c, lb, cs
             iters[idx] = it
             sing = ~(cs < SINGULAR_CONDITION)
-            for j, k in enumerate(idx):
-                if cv[j] and not sing[j]:
+            for jj, k in enumerate(idx):
+                if cv[jj] and not sing[jj]:
                     conv[k] = True
-                    pos[k] = xs[j, :3]
-                    dl[k] = xs[j, 3] if est else dfix[k]
+                    pos[k] = xs[jj, :3]
+                    dl[k] = xs[jj, 3] if est else dfix[k]
                     status[k] = "converged" + (" (points coplanar: the mirror solution fits "
                                                "equally well; kept the one nearest the start)"
                                                if rank[k] == 2 else "")
-                elif cv[j]:
-                    status[k] = (f"singular at the solution (scaled condition {cs[j]:.3g}); "
+                elif cv[jj]:
+                    status[k] = (f"singular at the solution (scaled condition {cs[jj]:.3g}); "
                                  "the station is not identifiable from these points")
                 else:
-                    status[k] = str(why[j])
+                    status[k] = str(why[jj])
     # geometric residual RMS (for every method)
     rng = L + np.where(np.isfinite(dl), dl, 0.0)[:, None]
     rms = _geometric_rms(pos, P, rng, mask)

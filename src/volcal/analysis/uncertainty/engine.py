@@ -169,7 +169,7 @@ class StructuredLSQ:
                    R=np.zeros((0, 0)), names=list(problem.names))
         J0 = self.jacobian(self.x_hat)
         A = J0[:, free] @ Z
-        self.R = np.linalg.qr(A, mode="r")
+        self.R = np.asarray(np.linalg.qr(A, mode="r"))
         self._J0 = J0
         if check:
             import casadi  # noqa: F401  (only to fail clearly if unavailable)

@@ -222,12 +222,13 @@ def run_show(args) -> int:
     from volcal.model.spec import resolve_model
 
     spec = resolve_model(args.model)
-    sections = _SECTIONS if args.section == "all" else (args.section,)
+    sections: tuple[str, ...] = _SECTIONS if args.section == "all" else (args.section,)
     axes_header = ["axis", "kind", "branch", "direction", "travel_min", "travel_max",
                    "reference", "unit", "center_x_mm", "center_y_mm", "center_z_mm"]
     err_header = ["name", "axis", "kind", "quantity", "unit", "report_unit", "meaning"]
     vol_header = ["component", "error", "error_unit", "coefficient"]
-    terms = silent = None
+    terms: list = []
+    silent: list[str] = []
     n_rot = sum(a.is_rotary for a in spec.axes)
     too_big = None
     if "volumetric" in sections and n_rot > MAX_WRITTEN_ROTARY:

@@ -144,8 +144,8 @@ class _Compiled:
         Jq = np.zeros((M, 3, self.n_axes)) if jacobians else None
         for i in range(M):
             flag = self._vol(_ptr(q[i]), _ptr(tool[i]), _ptr(theta), _ptr(p[i]), _ptr(dp[i]),
-                             _ptr(Jt[i]) if jacobians else None,
-                             _ptr(Jq[i]) if jacobians else None)
+                             _ptr(Jt[i]) if Jt is not None else None,
+                             _ptr(Jq[i]) if Jq is not None else None)
             if flag:
                 raise RuntimeError("the C model function failed")
         return (p, dp, Jt, Jq) if jacobians else (p, dp)
@@ -200,7 +200,7 @@ class CompiledSolver(_Compiled):
     def default_options(self) -> dict:
         o = _Options()
         self._defaults(ctypes.byref(o))
-        return {k: getattr(o, k) for k, _ in _Options._fields_}
+        return {f[0]: getattr(o, f[0]) for f in _Options._fields_}
 
     def work_size(self) -> int:
         return int(self._work_size())
@@ -234,9 +234,9 @@ class CompiledSolver(_Compiled):
         opt = _Options()
         self._defaults(ctypes.byref(opt))
         for k, v in options.items():
-            if k not in dict(_Options._fields_):
-                raise InputError(f"unknown option {k!r}; options: "
-                                 f"{[f for f, _ in _Options._fields_]}")
+            names = [f[0] for f in _Options._fields_]
+            if k not in names:
+                raise InputError(f"unknown option {k!r}; options: {names}")
             setattr(opt, k, v)
         res = self._Result()
         t0 = time.perf_counter()

@@ -62,6 +62,7 @@ The C functions (all take and return column vectors; x is the *scaled* variable 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -87,10 +88,11 @@ class Phase:
     name: str
     fixed: np.ndarray           # (n_x,) bool
     zero: np.ndarray            # (n_x,) bool, fixed variables set to 0 before the phase
-    basic: np.ndarray = field(default=None)      # indices of the basic variables
-    nonbasic: np.ndarray = field(default=None)   # indices of the free non-basic variables
-    E: np.ndarray = field(default=None, repr=False)  # (n_x, n_z): dx = E dz
-    P: np.ndarray = field(default=None, repr=False)  # (n_x, n_x): projection of a start
+    # set by :func:`eliminate`
+    basic: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # basic variables
+    nonbasic: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # free non-basic
+    E: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)  # dx = E dz
+    P: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)  # projection
 
     @property
     def n_z(self) -> int:
@@ -189,9 +191,9 @@ def _dense(f: ca.Function) -> ca.Function:
     output only, packed, so a structurally sparse output would not be a plain array."""
     if all(f.sparsity_out(i).is_dense() for i in range(f.n_out())):
         return f
-    sym = ca.SX if f.is_a("SXFunction") else ca.MX
-    args = [sym.sym(f.name_in(i), f.sparsity_in(i)) for i in range(f.n_in())]
-    outs = [ca.densify(o) for o in f.call(args)]
+    sym: Any = ca.SX if f.is_a("SXFunction") else ca.MX
+    args: Any = [sym.sym(f.name_in(i), f.sparsity_in(i)) for i in range(f.n_in())]
+    outs = [ca.densify(o) for o in f.call(args)]  # list in, list out
     opts = {"cse": True} if sym is ca.SX else {}
     return ca.Function(f.name(), args, outs, f.name_in(), f.name_out(), opts)
 
@@ -273,7 +275,7 @@ def solve_function(pr: IdentificationProblem, phase: Phase, name: str, *,
         step = ca.mmax(ca.fabs(dx))
         gdx = ca.dot(gr, dz)
     else:
-        dx, kkt, kkt_rel, step, gdx = ca.MX(pr.n_x, 1), 0, 0, 0, 0
+        dx, kkt, kkt_rel, step, gdx = ca.MX(pr.n_x, 1), ca.MX(0), ca.MX(0), ca.MX(0), ca.MX(0)
     return _dense(ca.Function(name, [H, g, rn], [dx, gdx, kkt, kkt_rel, step],
                               ["H", "g", "rnorm"], ["dx", "gdx", "kkt", "kkt_rel", "step"]))
 
@@ -342,10 +344,10 @@ def station_start_function(machine: Machine, station_index: np.ndarray, n_statio
     Ms = ca.SX.sym("M", 30)
     M, v = ca.reshape(Ms[:25], 5, 5), Ms[25:]
     dsc = 1.0 / ca.sqrt(ca.diag(M))                         # unit-diagonal scaling
-    y = dsc * ca.solve(M * ca.mtimes(dsc, dsc.T), dsc * v)
+    y: Any = dsc * ca.solve(M * ca.mtimes(dsc, dsc.T), dsc * v)
     lin_solve = ca.Function("lin_solve", [Ms], [y[:4]], {"cse": True})
     y = lin_solve.map(K)(ca.mtimes(lin.map(N)(Pc, m.T), sel))                     # 4 x K
-    u = ca.vertcat(y[:3, :] + c, y[3, :])
+    u: Any = ca.vertcat(y[:3, :] + c, y[3, :])
     # Gauss-Newton on the sqrt residual ||P - Q|| - d - l
     us = ca.SX.sym("u", 4)
     diff = us[:3] - ps
@@ -374,9 +376,9 @@ def budget_sigma_function(machine: Machine, budget: Budget, station_index: np.nd
     p0 = machine["nominal"](qs, ts)
     u = p0 - Ss
     u = u / ca.sqrt(ca.sumsqr(u))
-    var = 0
+    var: Any = 0
     for s in budget.length_sources:
-        div = s.k if s.distribution == "normal" else np.sqrt(3.0)
+        div = float(s.k or 1.0) if s.distribution == "normal" else np.sqrt(3.0)
         var = var + ((s.magnitude + s.per_metre * ca.fabs(Ls) / 1000.0) * s.scale / div) ** 2
     dpdq = ca.jacobian(p0, qs)
     for k, a in enumerate(machine.spec.axes):
@@ -389,8 +391,9 @@ def budget_sigma_function(machine: Machine, budget: Budget, station_index: np.nd
     sel = ca.DM(ca.Sparsity.triplet(n_stations, N, [int(i) for i in station_index],
                                     list(range(N))), 1.0)
     SN = ca.mtimes(S[:3, :], sel)
-    sig = one.map(N)(ca.reshape(q, n_ax, N), ca.reshape(t, 3, N), m.T, SN)
-    return _dense(ca.Function(name, [q, t, m, S], [sig.T], ["q", "t", "m", "S"], ["sigma"]))
+    sigma_all = one.map(N)(ca.reshape(q, n_ax, N), ca.reshape(t, 3, N), m.T, SN)
+    return _dense(ca.Function(name, [q, t, m, S], [sigma_all.T], ["q", "t", "m", "S"],
+                              ["sigma"]))
 
 
 def _deg_factor(machine: Machine) -> np.ndarray:

@@ -31,6 +31,7 @@ import math
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
+from collections.abc import Mapping
 from typing import Any, Callable
 
 import numpy as np
@@ -82,7 +83,7 @@ class Built:
     ``render(summary)`` the files {name: text or bytes}."""
 
     residual: Callable[[np.ndarray, np.ndarray], np.ndarray]
-    render: Callable[["Compensation"], dict[str, str | bytes]]
+    render: Callable[["Compensation"], Mapping[str, str | bytes]]
     values: str
     spacing: dict[str, float]
     bound_um: float

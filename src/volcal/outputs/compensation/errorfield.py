@@ -147,7 +147,8 @@ class ErrorField:
                 hi = lo + 2 * np.pi
             self.axes.append(AxisInfo(
                 a.name, k, a.is_rotary, periodic, lo, hi, float(conv(a.reference)),
-                a.dir_index, a.dir_sign, a.branch, tuple(float(c) for c in a.center)))
+                a.dir_index, a.dir_sign, a.branch,
+                (float(a.center[0]), float(a.center[1]), float(a.center[2]))))
         n, ne = len(self.axes), len(self.errors_list)
         q = ca.SX.sym("q", n)
         t = ca.SX.sym("t", 3)

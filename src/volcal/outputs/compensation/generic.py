@@ -199,7 +199,7 @@ def build(ctx: Context) -> Built:
     tables.append({"table": "volumetric_grid", "input": " ".join(a.name for a in axes),
                    "columns": f"{tag}_x/y/z x {len(tools)} tool offset(s)",
                    "points": int(np.prod([len(n) for n in nodes]))})
-    not_carried = []
+    not_carried: list[str] = []
     spacing = ", ".join(f"{ax} {fld.axis(ax).to_file(tabs.spacing.h[i]):.4g} "
                         f"{fld.axis(ax).unit}" for i, ax in enumerate(tabs.axes))
     notes = [f"per-axis tables: spacing {spacing}, "

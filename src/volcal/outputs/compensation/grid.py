@@ -117,7 +117,7 @@ class Spacing:
     bound_um: float
 
 
-def choose_spacing(lengths: Sequence[float], curvatures_um: Sequence[float],
+def choose_spacing(lengths: Sequence[float], curvatures_um: Sequence[float] | np.ndarray,
                    tolerance_um: float, *, min_intervals: Sequence[int] | None = None
                    ) -> Spacing:
     """Spacings h_j meeting ``sum_j h_j^2 S_j / 8 <= tolerance`` with the fewest nodes
@@ -470,6 +470,7 @@ def correction_targets(field, tool: np.ndarray) -> CorrectionTargets:
         if J is None:
             J = field.error_jacobian(q, tool)
             M = field.axis_jacobian(q, tool)
+        assert J is not None and M is not None
         jk, m = J[:, :, names.index(n)], M[:, :, a.index]
         s = float(np.sum(jk * m) / max(np.sum(m * m), 1e-300))
         if np.max(np.abs(jk - s * m)) <= 1e-6 * max(np.max(np.abs(jk)), 1e-300):
@@ -487,15 +488,15 @@ def fit_tables(field, tables: list[AxisTable], q: np.ndarray, target: np.ndarray
     from scipy import sparse
 
     q = np.atleast_2d(np.asarray(q, float))
-    fixed = set(fixed)
-    vals = {i: t(q[:, field.axis(t.input).index]) for i, t in enumerate(tables) if i in fixed}
+    held = set(fixed)
+    vals = {i: t(q[:, field.axis(t.input).index]) for i, t in enumerate(tables) if i in held}
     for o_i, out in enumerate(outputs):
         y = target[:, o_i].copy()
         cols, owners = [], []
         for i, t in enumerate(tables):
             if t.output != out:
                 continue
-            if i in fixed:
+            if i in held:
                 y -= vals[i]
                 continue
             H = hat_matrix(t.nodes, q[:, field.axis(t.input).index], periodic=t.periodic)

@@ -47,6 +47,8 @@ $MN_MM_CEC_MAX_POINTS), LEC 5000 points per axis (MD38000 $MA_MM_ENC_COMP_MAX_PO
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from volcal.base.exceptions import InputError
@@ -154,6 +156,7 @@ def _prune(fld, tables: list[AxisTable], Q: np.ndarray, target: np.ndarray, lin:
             g = hat_matrix(t.nodes, Q[:, fld.axis(t.input).index],
                            periodic=t.periodic) @ (D[blocks[i]] * x[blocks[i]])
             if t.kind == "carrier":
+                assert t.multiplier is not None  # a carrier always names its multiplier
                 a = fld.axis(tables[t.multiplier].input)
                 # a lever arm about the middle of the travel; a rotary factor as it is
                 v = g * (Q[:, a.index] - 0.5 * (a.lo + a.hi) if not a.rotary
@@ -195,7 +198,7 @@ def build(ctx: Context) -> Built:
     for r in targets.own:
         tables.append(AxisTable(r, r, nodes[r], targets.own_value(fld, r, nodes[r]), per[r],
                                 "own"))
-    mult = {}
+    mult: dict[Any, int] = {}
     for L in lin:
         mult[L] = len(tables)
         tables.append(AxisTable(L, L, nodes[L], nodes[L] - 1.0, False, "multiplier",
@@ -282,6 +285,7 @@ def build(ctx: Context) -> Built:
                 vals = np.rad2deg(vals)
             xs = axis_val(t.input, t.nodes)
             if t.kind == "carrier":
+                assert t.multiplier is not None
                 m = tables[t.multiplier]
                 desc = (f"{t.output} = F({t.input}) x (table {idx[id(m)] + 1}: {m.label} minus "
                         "1, the product added to this table's own value)")
