@@ -303,7 +303,7 @@ def assess_residuals(normalised: Sequence[float] | np.ndarray, dof: int | None =
                   if n_out and p_count < 1e-3 else 0.0)
     best = structure[0] if structure else None
     struct_ok = best is not None and best.p_value < STRUCTURE_P
-    struct_excess = best.explained_share * ss_in if struct_ok else 0.0
+    struct_excess = best.explained_share * ss_in if best is not None and struct_ok else 0.0
     dof_in = max(dof - (n - n_in), 1)
     rest = max(ss_in - struct_excess, 0.0) / dof_in
     budget_factor = float(math.sqrt(rest)) if rest > 0 else float("nan")
@@ -327,7 +327,7 @@ def assess_residuals(normalised: Sequence[float] | np.ndarray, dof: int | None =
                 "(wrong reflector, beam breaks, a mistyped pose) or run with --robust",
                 {k: outliers[k] for k in ("max_abs", "n_beyond_5_robust", "n_beyond_5_sigma",
                                           "excess_kurtosis", "chi2_share")}))
-        if struct_ok and shares["structure"] >= CAUSE_MIN_SHARE:
+        if best is not None and struct_ok and shares["structure"] >= CAUSE_MIN_SHARE:
             causes.append(Cause(
                 "structure", shares["structure"],
                 f"structure against axis {best.axis}: the residuals' binned means over its "

@@ -108,7 +108,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Literal, Sequence
+from typing import Any, Literal, Sequence
 
 import casadi as ca
 import numpy as np
@@ -499,7 +499,8 @@ class HPTIEstimator:
         # one point: three simultaneous readings, one SX expression per reading
         P, fr = ca.SX.sym("P", 3), ca.SX.sym("frame", 6)
         ge, of = ca.SX.sym("geometry", 3), ca.SX.sym("offsets", 3)
-        Q = [ca.vertcat(0, 0, 0), ca.vertcat(ge[0], 0, 0), ca.vertcat(ge[1], ge[2], 0)]
+        Q: list[Any] = [ca.vertcat(0, 0, 0), ca.vertcat(ge[0], 0, 0),
+                        ca.vertcat(ge[1], ge[2], 0)]
         m = ca.vertcat(*[self.instrument.reading(P, ca.vertcat(Q[i], of[i]), fr)
                          for i in range(3)])
         self.point_function = ca.Function("hpti_point", [P, fr, ge, of], [m],
@@ -721,7 +722,8 @@ class HPTIEstimator:
             free = self.mask("points", "frame")
             x, st, ok, it, _, rep = self._step("points-only", x0, L, W, free, key("p"),
                                                scaling, fix_unidentifiable, damping_rel)
-            reports.append(rep), status.append(st)
+            reports.append(rep)
+            status.append(st)
             iters += it
             ok_all &= ok
         elif strategy == "two-phase":
@@ -733,20 +735,23 @@ class HPTIEstimator:
             x1, st, ok, it, _, rep = self._step("two-phase: 1 instrument", x0, L, W1,
                                                 self.mask(*phase1), key("1"), scaling,
                                                 fix_unidentifiable, damping_rel)
-            reports.append(rep), status.append(st)
+            reports.append(rep)
+            status.append(st)
             iters += it
             ok_all &= ok
             x, st, ok, it, _, rep = self._step("two-phase: 2 points", x1, L, W,
                                                self.mask("points"), key("2"), scaling,
                                                fix_unidentifiable, damping_rel)
-            reports.append(rep), status.append(st)
+            reports.append(rep)
+            status.append(st)
             iters += it
             ok_all &= ok
         elif strategy == "joint":
             x, st, ok, it, _, rep = self._step("joint", x0, L, W, self.mask(*joint_groups),
                                                key("j"), scaling, fix_unidentifiable,
                                                damping_rel)
-            reports.append(rep), status.append(st)
+            reports.append(rep)
+            status.append(st)
             iters += it
             ok_all &= ok
         else:
@@ -868,7 +873,7 @@ def cases_from_config(cfg: dict) -> list[Case]:
                     raise ValueError(f"[[case]] {d.get('name')!r}: {key} has unknown group "
                                      f"{gname!r}; groups: {GROUPS}")
         cal = d.get("calibration_points", "all")
-        kw = dict(phase1=tuple(d.get("phase1", Case.phase1)),
+        kw: dict[str, Any] = dict(phase1=tuple(d.get("phase1", Case.phase1)),
                   groups=tuple(d.get("groups", Case.groups)),
                   scaling=str(d.get("scaling", "units")),
                   fix_unidentifiable=bool(d.get("fix_unidentifiable", False)),
@@ -918,7 +923,8 @@ class StudyRunner:
     def estimate(self, data: HPTIData, case: Case, *, cache: bool = True) -> Estimate:
         return self.estimator.estimate(
             data, case.strategy, 1.0 if case.accuracy is None else case.accuracy,
-            scale_instrument=self.scale_instrument, weights=1.0 / self.sigma,
+            scale_instrument=self.scale_instrument,
+            weights=np.full((data.n_points, 3), 1.0 / self.sigma),
             phase1=case.phase1, calibration_points=case.calibration_points,
             joint_groups=case.groups, fix_unidentifiable=case.fix_unidentifiable,
             scaling=case.scaling, cache_key=(case.name, case.accuracy) if cache else None)

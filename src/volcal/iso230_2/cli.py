@@ -90,13 +90,13 @@ def run(args) -> int:
 
     if args.plane:
         from .plane import evaluate_plane, write_plane_report
-        result = evaluate_plane(data, degree_p=args.degree,
-                                degree_r=args.degree if args.degree_r is None else args.degree_r,
-                                mpe_um=args.mpe_um, k=args.k, resolution_um=args.resolution_um,
-                                type_a=args.type_a)
-        for w in result.warnings:
+        plane = evaluate_plane(data, degree_p=args.degree,
+                               degree_r=args.degree if args.degree_r is None else args.degree_r,
+                               mpe_um=args.mpe_um, k=args.k, resolution_um=args.resolution_um,
+                               type_a=args.type_a)
+        for w in plane.warnings:
             log.warning(w)
-        path = write_plane_report(result, out, spacing_mm=args.spacing_mm)
+        path = write_plane_report(plane, out, spacing_mm=args.spacing_mm)
         if not quiet:
             print(f"wrote {path}: plane_parameters.csv, plane_polynomial.csv, plane_grid.csv, "
                   "plane_means.csv, report.md, plane.png")

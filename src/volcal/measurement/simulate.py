@@ -255,11 +255,11 @@ def draw_true_parameters(machine: Machine, error_model: ErrorModel | None,
                        abs(size) * COEFFICIENT_DECAY ** max(j - lead, 0) * g.normal())
         lo, hi, _ = em._axis_range(s)
 
-        def f(x, coef=coef, lo=lo, hi=hi, deg=deg):
+        def poly(x, coef=coef, lo=lo, hi=hi, deg=deg):
             sx = 2 * (np.asarray(x, float) - lo) / (hi - lo) - 1
             return sum(c * p for c, p in zip(coef, legendre(sx, deg)))
 
-        funcs[s.name] = f
+        funcs[s.name] = poly
     theta = _project_datum(em, em.fit_functions(funcs))
     if max_volumetric_um is None:
         return theta

@@ -40,9 +40,9 @@ axis position pos (file units) and ``<error>`` for a constant; units are those o
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from functools import lru_cache
-from typing import Literal
+from typing import Any, Literal
 
 import casadi as ca
 import numpy as np
@@ -147,11 +147,11 @@ def parse_basis(text: str, *, source: str = "--basis") -> tuple[str, ErrorForm]:
         elif kind == "constant" or not arg:
             if kind == "constant" and arg:
                 raise ValueError(arg)
-            form = ErrorForm(kind)
+            form = ErrorForm(kind)  # type: ignore[arg-type]  # kind checked against BASIS_KINDS
         elif kind == "bspline":
             form = ErrorForm("bspline", segments=int(arg))
         else:
-            form = ErrorForm(kind, degree=int(arg))
+            form = ErrorForm(kind, degree=int(arg))  # type: ignore[arg-type]  # checked above
     except ValueError:
         raise InputError(f"bad number in {text!r}: {kind} takes "
                          + {"table": "comma-separated knot positions",
@@ -371,7 +371,8 @@ class ErrorModel:
             th[pos[n]] = v
         return th
 
-    def fit_functions(self, funcs: Mapping[str, callable], n_samples: int = 64) -> np.ndarray:
+    def fit_functions(self, funcs: Mapping[str, Callable[[np.ndarray], Any]],
+                      n_samples: int = 64) -> np.ndarray:
         """Least-squares parameters reproducing given error functions f(x) (x internal units
         along the axis' travel); errors not in ``funcs`` are zero."""
         th = np.zeros(self.n_params)
@@ -397,7 +398,7 @@ def _independent_rows(C: np.ndarray, tol: float = 1e-10) -> list[int]:
         if not np.any(r):
             continue
         res = r - basis.T @ (basis @ r) if len(basis) else r.copy()
-        if np.linalg.norm(res) > tol * max(1.0, np.linalg.norm(r)):
+        if np.linalg.norm(res) > tol * max(1.0, float(np.linalg.norm(r))):
             basis = np.vstack([basis, res / np.linalg.norm(res)])
             keep.append(i)
     return keep

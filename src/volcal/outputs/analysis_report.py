@@ -40,6 +40,7 @@ import scipy.linalg as sla
 
 from volcal.analysis.identifiability import Identifiability, _describe, scaled_constrained_svd
 from volcal.base.units import report_factors
+from volcal.model.errors import Datum
 
 log = logging.getLogger(__name__)
 
@@ -506,7 +507,7 @@ def _null_directions(ider, J: np.ndarray, x: np.ndarray, ident: Identifiability,
     whole: list[int] = []
     for k in range(em.n_errors):
         idx = np.flatnonzero(em.param_error_arr == k)
-        rows = np.flatnonzero(np.abs(C[:, idx]).sum(axis=1) > 0) if C.shape[0] else []
+        rows: Any = np.flatnonzero(np.abs(C[:, idx]).sum(axis=1) > 0) if C.shape[0] else []
         Ck = C[np.ix_(rows, idx)] * pr.scale[idx][None, :] if len(rows) else \
             np.zeros((0, len(idx)))
         E = sla.null_space(Ck) if Ck.shape[0] else np.eye(len(idx))
@@ -658,7 +659,7 @@ def analyze_jacobian_report(ider, x: np.ndarray, p: np.ndarray, *, source: str,
 
 
 def analyze_plan(model, plan: pd.DataFrame, stations, tools=None, budget="paper002", *,
-                 error_model=None, degree: int = 3, datum: str = "iso230",
+                 error_model=None, degree: int = 3, datum: Datum = "iso230",
                  theta: np.ndarray | None = None, eval_points: pd.DataFrame | None = None,
                  n_weak: int = 8) -> AnalysisReport:
     """Analyse a measurement plan before measuring: model (name, file, spec or Machine),
@@ -733,7 +734,7 @@ def analyze_result(result, measurements, *, budget=None, scale_covariance: bool 
 
 
 def analyze_data(model, data, stations=None, *, budget="paper002", strategy: str = "joint",
-                 degree: int = 3, datum: str = "iso230", error_model=None,
+                 degree: int = 3, datum: Datum = "iso230", error_model=None,
                  scale_covariance: bool = False, eval_points: pd.DataFrame | None = None
                  ) -> tuple[AnalysisReport, Any]:
     """Identify, then :func:`analyze_result`.  Returns (report, identification result)."""

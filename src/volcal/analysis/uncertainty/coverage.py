@@ -24,8 +24,14 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+from typing import Any
+
 import numpy as np
 import pandas as pd
+
+from volcal.measurement.budget import Budget
+from volcal.model.errors import ErrorModel
+from volcal.model.machine import Machine
 
 from volcal.base.units import report_factors
 
@@ -41,12 +47,12 @@ class CoverageSetup:
     """The fixed part of the experiments: machine, error model, stations, plan, tools,
     budget, the check poses (M, n_axes; file units) and the size of the drawn errors."""
 
-    machine: object
-    error_model: object
+    machine: Machine
+    error_model: ErrorModel
     stations: pd.DataFrame
     plan: pd.DataFrame
     tools: np.ndarray
-    budget: object
+    budget: Budget
     check_poses: pd.DataFrame
     max_volumetric_um: float = 60.0
     mc_trials: int = 1000
@@ -182,7 +188,7 @@ def summarise_coverage(results: list[dict]) -> dict:
     """Pooled and per-pose coverage rates (with counts), for the linearised and MC
     intervals and the parameters."""
     ok = [r for r in results if r["success"]]
-    out = {"experiments": len(results), "succeeded": len(ok)}
+    out: dict[str, Any] = {"experiments": len(results), "succeeded": len(ok)}
     for key in ("linear_inside", "mc_inside"):
         if not ok or key not in ok[0]:
             continue

@@ -21,8 +21,10 @@ import sys
 import tempfile
 import time
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -32,7 +34,7 @@ from volcal import __version__
 from volcal.outputs.codegen import solver as S
 from volcal.outputs.codegen import templates as T
 from volcal.measurement.tables import DataWarning, load_measurements, load_stations
-from volcal.model.errors import ErrorModel
+from volcal.model.errors import Datum, ErrorModel
 from volcal.base.exceptions import InputError
 from volcal.analysis.identify import Identifier, initial_stations, build_error_model
 from volcal.model.machine import Machine
@@ -154,7 +156,7 @@ def _generator_hash() -> str:
 
 
 def _versions() -> dict:
-    return {"volcal": __version__, "casadi": ca.__version__,
+    return {"volcal": __version__, "casadi": ca.CasadiMeta.version(),
             "python": ".".join(map(str, sys.version_info[:3])), "generator": _generator_hash()}
 
 
@@ -218,7 +220,7 @@ def _reuse(out: Path, input_hash: str) -> dict | None:
     return man
 
 
-def _write_files(out: Path, files: dict[str, str | bytes], manifest: dict) -> dict:
+def _write_files(out: Path, files: Mapping[str, str | bytes], manifest: dict) -> dict:
     """Write files through a temporary folder, then the manifest last (an interrupted
     export has no valid manifest and is regenerated next time)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -328,7 +330,7 @@ class SolverDefinition:
 
 
 def define_solver(model, plan, *, stations=None, strategy: str = "joint", degree: int = 3,
-                  datum: str = "iso230", budget: str | Path | Budget = "paper002",
+                  datum: Datum = "iso230", budget: str | Path | Budget = "paper002",
                   exact: bool = False) -> SolverDefinition:
     """Decide everything an exported solver fixes, from the model and the plan.
 
@@ -345,7 +347,7 @@ def define_solver(model, plan, *, stations=None, strategy: str = "joint", degree
 
 
 def _define(machine: Machine, meas, has_lengths: bool, st_table: pd.DataFrame | None, *,
-            strategy: str, degree: int, datum: str, budget, exact: bool) -> SolverDefinition:
+            strategy: str, degree: int, datum: Datum, budget, exact: bool) -> SolverDefinition:
     if strategy not in EXPORT_STRATEGIES:
         raise InputError(f"strategy {strategy!r} cannot be exported; expected one of "
                          f"{list(EXPORT_STRATEGIES)}")
@@ -422,7 +424,7 @@ def solver_functions(d: SolverDefinition, name: str, *, linsol: str = "ldl"
 
 
 def export_solver(model, plan, out: str | Path, *, stations=None, strategy: str = "joint",
-                  degree: int = 3, datum: str = "iso230",
+                  degree: int = 3, datum: Datum = "iso230",
                   budget: str | Path | Budget = "paper002", exact: bool = False,
                   name: str | None = None, linsol: str = "ldl", options: dict | None = None,
                   build_it: bool = True, force: bool = False, cc: str = "gcc",
@@ -446,7 +448,7 @@ def export_solver(model, plan, out: str | Path, *, stations=None, strategy: str 
     name = _check_name(name or default_name(spec))
     if linsol not in ("ldl", "qr"):
         raise InputError(f"linsol must be 'ldl' or 'qr', got {linsol!r}")
-    opts = dict(DEFAULT_OPTIONS)
+    opts: dict[str, Any] = dict(DEFAULT_OPTIONS)
     unknown = sorted(set(options or {}) - set(opts))
     if unknown:
         raise InputError(f"unknown solver option(s) {unknown}; options: {sorted(opts)}")
@@ -491,7 +493,7 @@ def export_solver(model, plan, out: str | Path, *, stations=None, strategy: str 
     n_a = [S.theta_block(pr, ph).shape[1] for ph in d.phases]
     mp = _common(machine, em, name)
     mp.update({
-        "volcal_version": __version__, "casadi_version": ca.__version__,
+        "volcal_version": __version__, "casadi_version": ca.CasadiMeta.version(),
         "model": _model_label(model, spec), "fingerprint": spec.fingerprint(),
         "n_readings": str(N), "n_stations": str(K),
         "n_poses": str(d.layout["point"].nunique()), "strategy": strategy,
@@ -563,7 +565,7 @@ def export_solver(model, plan, out: str | Path, *, stations=None, strategy: str 
 # model export
 
 
-def export_model(model, out: str | Path, *, degree: int = 3, datum: str = "iso230",
+def export_model(model, out: str | Path, *, degree: int = 3, datum: Datum = "iso230",
                  exact: bool = False, name: str | None = None, build_it: bool = True,
                  force: bool = False, cc: str = "gcc", cflags: str | None = None
                  ) -> ExportInfo:
@@ -590,7 +592,7 @@ def export_model(model, out: str | Path, *, degree: int = 3, datum: str = "iso23
              S.error_values_function(machine, em, f"{name}_ca_error_values")]
     files = _generate_casadi(funcs, name)
     mp = _common(machine, em, name)
-    mp.update({"volcal_version": __version__, "casadi_version": ca.__version__,
+    mp.update({"volcal_version": __version__, "casadi_version": ca.CasadiMeta.version(),
                "model": _model_label(model, spec), "fingerprint": spec.fingerprint(),
                "degree": str(degree), "datum": datum})
     files[f"{name}.h"] = _render("model.h.j2", mp)
