@@ -35,9 +35,10 @@ draws the normalised residuals against each axis position with binned means.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -348,7 +349,7 @@ def assess_residuals(normalised: Sequence[float] | np.ndarray, dof: int | None =
             gauss = (f"excess kurtosis {kurt:.2g}" if math.isfinite(kurt) else "")
             causes.append(Cause(
                 "budget", shares["budget"],
-                f"the uncertainty budget: the residuals are "
+                "the uncertainty budget: the residuals are "
                 + ("unstructured and Gaussian-looking" if not causes else "larger than the "
                    "budget allows beyond what the causes above explain")
                 + (f" ({gauss})" if gauss and not causes else "")

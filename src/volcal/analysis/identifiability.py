@@ -296,7 +296,7 @@ class FieldNullSpace:
                 "n_unidentifiable": self.n_unidentifiable}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "FieldNullSpace":
+    def from_dict(cls, d: dict) -> FieldNullSpace:
         nt = len(d["theta_dirs"])
         return cls(np.asarray(d["theta_dirs"], float).reshape(nt, -1),
                    np.asarray(d["rigid"], float).reshape(6, -1),

@@ -77,8 +77,8 @@ Variables ``x = [P_M (3N), frame (6), x1 x2 y2, offset1..3]``, scaled so that on
 (or 1 urad) and measured from a reference vector passed in ``p`` (the start values).
 
 ``"sphere"``: closed-form intersection of the three spheres
-    (:func:`volcal.measurement.multilateration.multilaterate`, ``method="sphere"``) with the analytic
-    laser origins and the characterised offsets; the root above the laser plane.
+    (:func:`volcal.measurement.multilateration.multilaterate`, ``method="sphere"``) with the
+    analytic laser origins and the characterised offsets; the root above the laser plane.
 ``"points-only"``: points free, instrument fixed at its analytic values (eq. 10-12).
 ``"two-phase"``: phase 1 estimates the instrument (by default frame, x1 x2 y2 and offsets;
     the paper: x1 x2 y2 only) with the points held at their reference values (the start
@@ -107,16 +107,17 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal, Sequence
+from typing import Any, Literal
 
 import casadi as ca
 import numpy as np
 
 from volcal.analysis import analyse_jacobian
+from volcal.measurement.budget import PAPER001_DRIFT, DriftModel
 from volcal.measurement.instruments.multilaser import FRAME_NAMES, MultiLaserInstrument
 from volcal.measurement.multilateration import multilaterate
-from volcal.measurement.budget import PAPER001_DRIFT, DriftModel
 
 __all__ = [
     "LASERS", "FRAME_NAMES", "GEOMETRY_NAMES", "OFFSET_NAMES", "STRATEGIES",
@@ -714,7 +715,9 @@ class HPTIEstimator:
             x0 = np.asarray(start, float).ravel().copy()
             if x0.shape != (self.n_x,):
                 raise ValueError(f"start must have {self.n_x} values, got {x0.shape}")
-        key = (lambda s: None if cache_key is None else (cache_key, s))
+        def key(s):
+            return None if cache_key is None else (cache_key, s)
+
         reports, status, iters, ok_all = [], [], 0, True
         if strategy == "points-only":
             if start is None:

@@ -9,8 +9,8 @@ with one BLAS thread: the command line for the whole process, the library inside
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator
 
 from threadpoolctl import threadpool_limits
 

@@ -19,7 +19,8 @@ def report_factor(unit: str) -> float:
     try:
         return REPORT[unit][0]
     except KeyError:
-        raise ValueError(f"unknown internal unit {unit!r}; expected one of {list(REPORT)}")
+        raise ValueError(f"unknown internal unit {unit!r}; expected one of {list(REPORT)}") \
+            from None
 
 
 def report_unit(unit: str) -> str:

@@ -12,6 +12,8 @@ import importlib
 import logging
 import sys
 
+from volcal.base.exceptions import InputError, SolverError
+
 # module path of each command's ``add_parser``; kept as strings so that ``volcal --help``
 # does not import CasADi or SymPy.
 _COMMANDS = [
@@ -27,8 +29,6 @@ _COMMANDS = [
     "volcal.cli.commands.compensate",
 ]
 
-
-from volcal.base.exceptions import InputError, SolverError
 
 
 class UserError(Exception):

@@ -65,8 +65,14 @@ from .data import LINEAR, ROTARY, AxisReadings, AxisUnits, load_readings
 from .evaluate import AxisResult, Iso230Result, evaluate, mpe_to_standard_uncertainty
 from .model import PolynomialModel, fit_axis_model, fit_polynomial, gls, type_a_uncertainty
 from .parameters import IsoParameters, iso230_2_parameters
-from .plane import (PlaneModel, PlaneResult, evaluate_plane, fit_plane, load_plane,
-                    write_plane_report)
+from .plane import (
+    PlaneModel,
+    PlaneResult,
+    evaluate_plane,
+    fit_plane,
+    load_plane,
+    write_plane_report,
+)
 from .report import OUTPUT_FILES, markdown_report, plot, write_report
 
 __all__ = [

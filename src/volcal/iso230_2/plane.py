@@ -22,8 +22,8 @@ import numpy as np
 import pandas as pd
 
 from volcal.base.exceptions import InputError
-
 from volcal.base.folders import check_out_dir, write_folder
+
 from .model import TYPE_A_METHODS, gls, to_raw_matrix, type_a_uncertainty
 
 __all__ = ["PlaneModel", "fit_plane", "PlaneReadings", "load_plane", "PlaneResult",
@@ -245,7 +245,7 @@ class PlaneResult:
         rows = []
         for q, (name, (kp, kr)) in enumerate(zip(mdl.names, powers)):
             kk = kp + kr
-            unit = "um" if kk == 0 else (f"um/mm" if kk == 1 else f"um/mm^{kk}")
+            unit = "um" if kk == 0 else ("um/mm" if kk == 1 else f"um/mm^{kk}")
             row = dict(coefficient=name, power_p=kp, power_r=kr, value=a[q],
                        std=math.sqrt(max(C[q, q], 0.0)), unit=unit)
             for l, nm in enumerate(mdl.names):

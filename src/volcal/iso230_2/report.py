@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 
 from volcal.base.exceptions import InputError
-
 from volcal.base.folders import check_out_dir, write_folder
+
 from .parameters import SCALAR_PARAMETERS
 
 __all__ = ["OUTPUT_FILES", "write_report", "markdown_report", "plot"]

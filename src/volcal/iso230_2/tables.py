@@ -24,7 +24,7 @@ def parameters_table(result) -> pd.DataFrame:
         du, ds = u.deviation, u.deviation_scale
         iso, mdl = ax.iso, ax.model
 
-        def add(name, value, unit, desc):
+        def add(name, value, unit, desc, ax=ax):
             rows.append(dict(axis=ax.axis, name=name, value=value, unit=unit,
                              description=desc))
 

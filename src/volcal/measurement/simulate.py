@@ -44,21 +44,22 @@ import json
 import logging
 import math
 import warnings
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from volcal import __version__
-from volcal.model.errors import ErrorModel, legendre
 from volcal.base.exceptions import InputError
-from volcal.model.machine import Machine
-from volcal.measurement.instruments import SequentialMultilateration
-from volcal.measurement.budget import ANGLE_UNITS, LENGTH_UNITS, Budget, load_budget
 from volcal.base.units import REPORT
+from volcal.measurement.budget import ANGLE_UNITS, LENGTH_UNITS, Budget, load_budget
+from volcal.measurement.instruments import SequentialMultilateration
+from volcal.model.errors import ErrorModel, legendre
+from volcal.model.machine import Machine
 
 log = logging.getLogger(__name__)
 
@@ -442,7 +443,8 @@ def simulate(machine: Machine | str, error_model: ErrorModel | None, theta_true:
 
     machine: Machine (or model name/file); error_model: its parameterisation (None:
         default ErrorModel); theta_true: true parameters (mm / rad).
-    stations: stations table (DataFrame or CSV, :func:`volcal.measurement.tables.load_stations` format:
+    stations: stations table (DataFrame or CSV, :func:`volcal.measurement.tables.load_stations`
+        format:
         ``station, x_mm, y_mm, z_mm, dead_length_mm``), the true positions (mm) and dead
         lengths (mm; 0 where not given).
     plan: commanded poses (one column per axis, mm / deg; see :mod:`volcal.measurement.plans`).
@@ -463,8 +465,8 @@ def simulate(machine: Machine | str, error_model: ErrorModel | None, theta_true:
     Raises :class:`InputError` for inconsistent inputs and for a reading that would not
     be positive (a point within the dead length of its station).
     """
-    from volcal.measurement.tables import DataWarning, load_stations
     from volcal.measurement.plans import check_plan
+    from volcal.measurement.tables import DataWarning, load_stations
 
     machine = _machine(machine)
     em = _error_model(machine, error_model)
@@ -752,8 +754,8 @@ def example(name: str = "mcv754") -> Example:
     (poses whose tool points come within 50 mm of a station dropped); tool offsets
     (0, 0, 0), (0, 0, -100), (80, 0, -100), (0, 80, -100) mm; budget ``paper002``.
     """
-    from volcal.measurement.tables import load_stations
     from volcal.measurement.plans import grid_plan
+    from volcal.measurement.tables import load_stations
 
     if name not in _EXAMPLES:
         raise InputError(f"no bundled example named {name!r}; examples: {examples()}")

@@ -199,7 +199,6 @@ class AnalysisReport:
     # ---- text ------------------------------------------------------------------------------
     def summary(self, *, top: int = 8) -> str:
         idn = self.identifiability
-        n_free = int(np.sum(~np.isnan(np.diag(self.cov)))) if self.cov.size else 0
         lines = [f"volcal analyze ({self.source}): model '{self.model}', "
                  f"{self.n_readings} readings, {len(self.names)} variables "
                  f"({self.n_theta} error parameters)",
@@ -476,7 +475,6 @@ def _null_directions(ider, J: np.ndarray, x: np.ndarray, ident: Identifiability,
             return False
         return np.linalg.norm(v - B @ (B.T @ v)) < 1e-6 * np.linalg.norm(v)
 
-    axis_index = {a.name: j for j, a in enumerate(em.spec.axes)}
     n_pos = {a.name: len(np.unique(np.round(q[:, j], 9))) for j, a in enumerate(em.spec.axes)}
 
     def explain(vs: np.ndarray, err_ids: list[int]) -> str:
@@ -612,8 +610,8 @@ def analyze_jacobian_report(ider, x: np.ndarray, p: np.ndarray, *, source: str,
     or when None those that remove a null direction at x (:mod:`volcal.model.datum`).
     The null directions' pivots are held (frame variables first, as the joint
     identification does) for the covariance."""
-    from volcal.measurement.plans import grid_plan
     from volcal.analysis.uncertainty.engine import unpack_data
+    from volcal.measurement.plans import grid_plan
 
     pr = ider.problem
     machine = pr.machine
@@ -666,13 +664,13 @@ def analyze_plan(model, plan: pd.DataFrame, stations, tools=None, budget="paper0
     plan (poses, mm / deg), stations (table or file: positions and dead lengths), tools
     (K, 3) mm (default one offset at 0), budget (name, file or Budget).  The readings are
     the noise-free lengths at ``theta`` (default 0), weighted by the budget."""
+    from volcal.analysis.identify import Identifier
+    from volcal.measurement.budget import load_budget
+    from volcal.measurement.simulate import simulate
     from volcal.measurement.tables import load_measurements
     from volcal.model.errors import ErrorForm, ErrorModel
-    from volcal.analysis.identify import Identifier
     from volcal.model.machine import Machine
     from volcal.problem.residuals import Layout
-    from volcal.measurement.simulate import simulate
-    from volcal.measurement.budget import load_budget
 
     machine = model if isinstance(model, Machine) else Machine.from_model(model)
     em = error_model or ErrorModel(machine.spec, default=ErrorForm("poly", degree),
@@ -708,8 +706,8 @@ def analyze_result(result, measurements, *, budget=None, scale_covariance: bool 
     ``scale_covariance`` multiplies the covariance by the residual variance factor
     chi2/dof of the identification."""
     from volcal.analysis.identify import Identifier
-    from volcal.problem.residuals import Layout
     from volcal.analysis.uncertainty.montecarlo import fixed_mask, identification_data
+    from volcal.problem.residuals import Layout
 
     meas = measurements
     layout = Layout.from_measurements(meas)
@@ -738,10 +736,10 @@ def analyze_data(model, data, stations=None, *, budget="paper002", strategy: str
                  scale_covariance: bool = False, eval_points: pd.DataFrame | None = None
                  ) -> tuple[AnalysisReport, Any]:
     """Identify, then :func:`analyze_result`.  Returns (report, identification result)."""
-    from volcal.measurement.tables import load_measurements, load_stations
     from volcal.analysis.identify import identify
-    from volcal.model.machine import Machine
     from volcal.measurement.budget import load_budget
+    from volcal.measurement.tables import load_measurements, load_stations
+    from volcal.model.machine import Machine
 
     machine = model if isinstance(model, Machine) else Machine.from_model(model)
     bud = load_budget(budget)

@@ -23,17 +23,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from volcal.base.units import report_factors
 from volcal.measurement.budget import Budget
 from volcal.model.errors import ErrorModel
 from volcal.model.machine import Machine
-
-from volcal.base.units import report_factors
 
 __all__ = ["CoverageSetup", "coverage_experiment", "run_coverage", "summarise_coverage",
            "Z95"]
@@ -62,7 +60,7 @@ class CoverageSetup:
     @classmethod
     def from_example(cls, name: str = "mcv754", *, grid: dict | int | None = None,
                      mc_trials: int = 1000, n_check: int = 3, draw_truth: bool = True
-                     ) -> "CoverageSetup":
+                     ) -> CoverageSetup:
         from volcal.measurement.plans import grid_plan
         from volcal.measurement.simulate import _clear_plan, example
 
@@ -81,12 +79,16 @@ def coverage_experiment(setup: CoverageSetup, k: int, *, seed: int = 0,
     """Experiment k (see the module docstring).  Returns per check pose and component the
     truth, the estimate, the linearised u and inside flags, the MC interval and inside
     flags, and per parameter the z-score (estimate - truth) / u."""
-    from volcal.measurement.tables import load_measurements
     from volcal.analysis.identify import Identifier, identify
-    from volcal.problem.residuals import Layout
+    from volcal.analysis.uncertainty.montecarlo import (
+        build_kernel,
+        fixed_mask,
+        identification_data,
+        run_trials,
+    )
     from volcal.measurement.simulate import draw_true_parameters, simulate
-    from volcal.analysis.uncertainty.montecarlo import (build_kernel, fixed_mask,
-                                               identification_data, run_trials)
+    from volcal.measurement.tables import load_measurements
+    from volcal.problem.residuals import Layout
 
     t0 = time.perf_counter()
     m, em = setup.machine, setup.error_model

@@ -79,7 +79,7 @@ class VolumetricMap:
 
     @classmethod
     def build(cls, machine, error_model, q: np.ndarray, tool: np.ndarray | None = None
-              ) -> "VolumetricMap":
+              ) -> VolumetricMap:
         q = np.atleast_2d(np.asarray(q, float))
         tool = np.zeros((len(q), 3)) if tool is None else np.array(
             np.broadcast_to(np.asarray(tool, float), (len(q), 3)))
@@ -138,7 +138,7 @@ class StructuredLSQ:
     # ---- construction -------------------------------------------------------------------
     @classmethod
     def build(cls, problem, x_hat: np.ndarray, p: np.ndarray, fixed: np.ndarray, *,
-              constrained: bool = True, check: bool = True) -> "StructuredLSQ":
+              constrained: bool = True, check: bool = True) -> StructuredLSQ:
         """From an :class:`~volcal.problem.residuals.IdentificationProblem`, its solution x_hat
         (physical), the data vector p and the held variables.  With ``check`` the
         residuals and gradient are compared with the problem's CasADi functions (relative

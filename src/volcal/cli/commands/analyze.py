@@ -85,15 +85,20 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from volcal.outputs.analysis_report import analyze_data, analyze_plan
-    from volcal.cli.commands.simulate import _DEFAULT_TOOLS, _grid_counts
-    from volcal.model.errors import ErrorForm, ErrorModel
     from volcal.base.exceptions import InputError
-    from volcal.model.machine import Machine
-    from volcal.measurement.plans import (default_plan, diagonal_plan, grid_plan, line_plan,
-                              plan_from_csv)
-    from volcal.measurement.simulate import example, parse_tools
     from volcal.base.threads import blas_threads
+    from volcal.cli.commands.simulate import _DEFAULT_TOOLS, _grid_counts
+    from volcal.measurement.plans import (
+        default_plan,
+        diagonal_plan,
+        grid_plan,
+        line_plan,
+        plan_from_csv,
+    )
+    from volcal.measurement.simulate import example, parse_tools
+    from volcal.model.errors import ErrorForm, ErrorModel
+    from volcal.model.machine import Machine
+    from volcal.outputs.analysis_report import analyze_data, analyze_plan
 
     if args.degree < 0:
         raise InputError(f"expected a degree >= 0, got {args.degree}", source="--degree")
@@ -108,8 +113,8 @@ def run(args: argparse.Namespace) -> int:
         # the output folder before any solving
         from pathlib import Path
 
-        from volcal.outputs.analysis_report import ANALYSIS_FILES
         from volcal.base.folders import check_out_dir
+        from volcal.outputs.analysis_report import ANALYSIS_FILES
         check_out_dir(args.out, ANALYSIS_FILES, "an analysis", inputs=[
             args.result, args.data, args.stations, args.model and Path(args.model),
             args.budget and Path(args.budget),
@@ -170,9 +175,9 @@ def run(args: argparse.Namespace) -> int:
 def _run_result(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from volcal.outputs.analysis_report import analyze_data, result_inputs
-    from volcal.measurement.plans import grid_plan
     from volcal.base.threads import blas_threads
+    from volcal.measurement.plans import grid_plan
+    from volcal.outputs.analysis_report import analyze_data, result_inputs
 
     inp = result_inputs(args.result)
     with blas_threads(1):

@@ -71,8 +71,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def _check_out(args) -> None:
     """The export folder, checked before anything is generated: never a file, never a
     folder of other files (an export writes its own names into it), never the plan."""
-    from volcal.outputs.codegen.export import MANIFEST
     from volcal.base.exceptions import InputError
+    from volcal.outputs.codegen.export import MANIFEST
 
     out = args.out.resolve()
     if out.exists() and not out.is_dir():
@@ -87,8 +87,8 @@ def _check_out(args) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from volcal.outputs.codegen import export_model, export_solver
     from volcal.base.exceptions import InputError
+    from volcal.outputs.codegen import export_model, export_solver
 
     if args.degree < 0:
         raise InputError(f"expected a degree >= 0, got {args.degree}", source="--degree")

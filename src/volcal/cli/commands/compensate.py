@@ -95,9 +95,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from volcal.outputs.compensation import compensate
     from volcal.base.exceptions import InputError
     from volcal.base.folders import check_out_dir
+    from volcal.outputs.compensation import compensate
 
     for name in ("max_points", "max_tables"):
         v = getattr(args, name)

@@ -44,10 +44,9 @@ def run_demo(out_dir: str | Path = "volcal-demo", *, seed: int | None = None,
     """Simulate the bundled example, identify it, analyse it and write everything to
     ``out_dir`` (``simulation/``, ``identification/``, ``truth_comparison.csv``)."""
     from volcal.analysis.identify import identify, rigid_fit
-    from volcal.outputs.results import save_result
-    from volcal.measurement.simulate import example, save_simulation
-
     from volcal.base.folders import check_out_dir, write_folder
+    from volcal.measurement.simulate import example, save_simulation
+    from volcal.outputs.results import save_result
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)

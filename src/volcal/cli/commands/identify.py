@@ -7,7 +7,8 @@ Example::
 Writes the result folder of DESIGN.md (see :mod:`volcal.outputs.results`) and prints a short
 summary.  When chi2/dof lies outside its 99.9 % interval (the model adequacy test,
 :mod:`volcal.analysis.adequacy`) a warning naming the likely cause goes to the terminal
-(stderr; silenced only by -q), as does a warning for data from a single station.  Exit codes: 0 success, 1 the solver did not converge, 2 bad input.  The input
+(stderr; silenced only by -q), as does a warning for data from a single station.  Exit
+codes: 0 success, 1 the solver did not converge, 2 bad input.  The input
 files are only read; the output folder is written atomically and replaces only a previous
 result folder, with --force.
 """
@@ -18,10 +19,10 @@ import json
 import logging
 from pathlib import Path
 
-log = logging.getLogger(__name__)
-
 # kept here (not imported from volcal.analysis.identify) so that `volcal --help` stays light
 from volcal.problem.strategies import strategies as _strategies
+
+log = logging.getLogger(__name__)
 
 _STRATEGIES = tuple(_strategies())
 _DATUMS = ("iso230", "reference", "none")
@@ -110,10 +111,10 @@ def _inside(path: Path, folder: Path) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from volcal.model.errors import parse_basis
-    from volcal.base.exceptions import InputError
-    from volcal.analysis.identify import identify
     from volcal.analysis.adequacy import assess
+    from volcal.analysis.identify import identify
+    from volcal.base.exceptions import InputError
+    from volcal.model.errors import parse_basis
     from volcal.outputs.results import check_out_dir, save_result
 
     degree: int | str = str(args.degree).strip().lower()
@@ -196,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
             free = res.datum.loc[~res.datum["imposed"]]
             print(f"  datum ({res.error_model.datum})           "
                   f"{int(res.datum['imposed'].sum())} of {len(res.datum)} conditions imposed"
-                  + (f"; not imposed (the data determine them, values in datum.csv): "
+                  + ("; not imposed (the data determine them, values in datum.csv): "
                      + ", ".join(c.split(" ")[0] for c in free["condition"]) if len(free)
                      else ""))
         if args.robust:

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-
 MC_FILES = ("parameters.csv", "error_motions.csv", "volumetric.csv", "comparison.csv",
             "contributions.csv", "summary.json", "report.md", "volumetric_U.png",
             "max_volumetric.png", "contributions.png")
@@ -122,14 +121,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     import pandas as pd
 
-    from volcal.model.errors import ErrorForm, ErrorModel
+    from volcal.analysis.uncertainty.montecarlo import monte_carlo
     from volcal.base.exceptions import InputError
-    from volcal.model.machine import Machine
+    from volcal.base.threads import blas_threads
     from volcal.measurement.plans import grid_plan
     from volcal.measurement.simulate import example
-    from volcal.base.threads import blas_threads
+    from volcal.model.errors import ErrorForm, ErrorModel
+    from volcal.model.machine import Machine
     from volcal.outputs.mc_report import write_mc_outputs
-    from volcal.analysis.uncertainty.montecarlo import monte_carlo
 
     for name, v, lo in (("--trials", args.trials, 2), ("--chunk-size", args.chunk_size, 1),
                         ("--eval-grid", args.eval_grid, 2), ("--degree", args.degree, 0),

@@ -54,7 +54,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--plan", metavar="default|grid|lines|diagonals|FILE.csv",
                    help="measurement plan: the default (a grid over the travel; with rotary "
                         "axes a linear-axis grid plus rotary sweeps over the whole travel at "
-                        "several linear and rotary positions, see volcal.measurement.plans.default_plan), "
+                        "several linear and rotary positions, see "
+                        "volcal.measurement.plans.default_plan), "
                         "a grid over the travel, lines along the axes, the ISO 230-6 body "
                         "diagonals, or a CSV of poses (axis columns, mm/deg)")
     p.add_argument("--grid", metavar="N",
@@ -107,13 +108,25 @@ def _grid_counts(text: str | None, plan: str):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from volcal.model.errors import ErrorForm, ErrorModel
     from volcal.base.exceptions import InputError
+    from volcal.measurement.plans import (
+        default_plan,
+        default_stations,
+        diagonal_plan,
+        grid_plan,
+        line_plan,
+        plan_from_csv,
+    )
+    from volcal.measurement.simulate import (
+        draw_true_parameters,
+        example,
+        load_true_parameters,
+        parse_tools,
+        save_simulation,
+        simulate,
+    )
+    from volcal.model.errors import ErrorForm, ErrorModel
     from volcal.model.machine import Machine
-    from volcal.measurement.plans import (default_plan, default_stations, diagonal_plan, grid_plan,
-                              line_plan, plan_from_csv)
-    from volcal.measurement.simulate import (draw_true_parameters, example, load_true_parameters,
-                                 parse_tools, save_simulation, simulate)
 
     if args.seed < 0:
         raise InputError(f"expected a non-negative seed, got {args.seed}", source="--seed")

@@ -31,16 +31,16 @@ import numpy as np
 import pandas as pd
 
 from volcal import __version__
-from volcal.outputs.codegen import solver as S
-from volcal.outputs.codegen import templates as T
+from volcal.analysis.identify import Identifier, build_error_model, initial_stations
+from volcal.base.exceptions import InputError
+from volcal.measurement.budget import Budget, load_budget
 from volcal.measurement.tables import DataWarning, load_measurements, load_stations
 from volcal.model.errors import Datum, ErrorModel
-from volcal.base.exceptions import InputError
-from volcal.analysis.identify import Identifier, initial_stations, build_error_model
 from volcal.model.machine import Machine
-from volcal.problem.residuals import Layout
 from volcal.model.spec import MachineSpec
-from volcal.measurement.budget import Budget, load_budget
+from volcal.outputs.codegen import solver as S
+from volcal.outputs.codegen import templates as T
+from volcal.problem.residuals import Layout
 
 log = logging.getLogger(__name__)
 

@@ -69,12 +69,12 @@ import numpy as np
 import pandas as pd
 import scipy.linalg as sla
 
-from volcal.model.errors import ErrorModel
-from volcal.base.exceptions import InputError
 from volcal.analysis.identify import Identifier, reading_sigma
+from volcal.base.exceptions import InputError
+from volcal.measurement.budget import Budget
+from volcal.model.errors import ErrorModel
 from volcal.model.machine import Machine
 from volcal.problem.residuals import IdentificationProblem
-from volcal.measurement.budget import Budget
 
 #: Gauss-Newton steps of the station start computation (from the linear solution).
 STATION_START_STEPS = 8
@@ -226,7 +226,6 @@ def rows_function(pr: IdentificationProblem, phase: Phase, name: str) -> ca.Func
     nt, nps, ng, K, N = pr.n_theta, ins.n_station_params, ins.n_global_params, \
         lay.n_stations, lay.n_readings
     Et = theta_block(pr, phase) * pr.scale[:nt, None]
-    n_a = Et.shape[1]
     qs, ts, ths = ca.SX.sym("q", m.n_axes), ca.SX.sym("t", 3), ca.SX.sym("theta", nt)
     ss, gs, ms, ws = ca.SX.sym("s", nps), ca.SX.sym("g", ng), ca.SX.sym("m"), ca.SX.sym("w")
     # the reading model of IdentificationProblem, in physical units

@@ -28,11 +28,11 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from collections.abc import Mapping
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -83,7 +83,7 @@ class Built:
     ``render(summary)`` the files {name: text or bytes}."""
 
     residual: Callable[[np.ndarray, np.ndarray], np.ndarray]
-    render: Callable[["Compensation"], Mapping[str, str | bytes]]
+    render: Callable[[Compensation], Mapping[str, str | bytes]]
     values: str
     spacing: dict[str, float]
     bound_um: float
@@ -250,7 +250,7 @@ def rms_um(v_mm: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(np.asarray(v_mm) ** 2, axis=1)))) * 1e3
 
 
-def table_residuals(fld: ErrorField, tables, ctx: "Context"
+def table_residuals(fld: ErrorField, tables, ctx: Context
                     ) -> tuple[float, list[tuple[float, np.ndarray]]]:
     """What 1-D tables leave: (RMS um at the tables' tool offset, [(RMS um, tool offset)]
     at every other tool offset of the plan), over the check poses."""
@@ -326,7 +326,7 @@ def compensate(result: Any, format: str, out_dir: str | Path | None, *,
                          source="--tool")
     tools = np.unique(tools, axis=0)
     table_tool = _parse_tool(table_tool, "--table-tool")
-    created = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    created = datetime.now(UTC).isoformat(timespec="seconds")
     options = dict(axis_names=dict(axis_names or {}), max_points=max_points,
                    max_tables=max_tables, target=target, tool_direction=tool_direction)
     ctx = Context(fld, tolerance_um, tools, table_tool, sign, options, created,

@@ -102,8 +102,9 @@ def as_field_input(result: Any):
 def plan_tools(result: Any, folder=None) -> np.ndarray | None:
     """The distinct tool offsets (K, 3) mm of the readings an identification used (its
     residuals table, or residuals.csv of its folder); None when unknown."""
-    import pandas as pd
     from pathlib import Path
+
+    import pandas as pd
 
     df = getattr(result, "residuals", None)
     if df is None and folder is not None:

@@ -34,8 +34,15 @@ import json
 import numpy as np
 
 from . import Built, Context
-from .grid import (check_limit, choose_spacing, component_tables, curvature_nd, multilinear,
-                   uniform_nodes, workspace_sample)
+from .grid import (
+    check_limit,
+    choose_spacing,
+    component_tables,
+    curvature_nd,
+    multilinear,
+    uniform_nodes,
+    workspace_sample,
+)
 
 MAX_GRID_POINTS = 2_000_000
 

@@ -36,8 +36,16 @@ import numpy as np
 from volcal.base.exceptions import InputError
 
 from . import Built, Context, render_template, table_residuals
-from .grid import (AxisTable, check_limit, correction_residual, correction_spacing,
-                   correction_targets, fit_tables, uniform_nodes, workspace_sample)
+from .grid import (
+    AxisTable,
+    check_limit,
+    correction_residual,
+    correction_spacing,
+    correction_targets,
+    fit_tables,
+    uniform_nodes,
+    workspace_sample,
+)
 
 MAX_POINTS = 256
 MAX_TABLES = 8

@@ -54,8 +54,16 @@ import numpy as np
 from volcal.base.exceptions import InputError
 
 from . import Built, Context, render_template, table_residuals
-from .grid import (AxisTable, check_limit, correction_residual, correction_spacing,
-                   correction_targets, fit_tables, uniform_nodes, workspace_sample)
+from .grid import (
+    AxisTable,
+    check_limit,
+    correction_residual,
+    correction_spacing,
+    correction_targets,
+    fit_tables,
+    uniform_nodes,
+    workspace_sample,
+)
 
 TARGETS = {
     "840d": {"max_tables": 62, "max_points": 2000, "max_lec_points": 5000,
