@@ -32,6 +32,7 @@ station's position from the machine's errors, so even a passing ``chi2`` says li
 result with the same ``residuals`` / ``conditions`` / ``machine``); :func:`plot_residuals_vs_axes`
 draws the normalised residuals against each axis position with binned means.
 """
+
 from __future__ import annotations
 
 import math
@@ -43,9 +44,19 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-__all__ = ["Adequacy", "AxisStructure", "Cause", "assess", "assess_residuals",
-           "plot_residuals_vs_axes", "CONFIDENCE", "MAX_BINS", "OUTLIER_K",
-           "STRUCTURE_P", "CAUSE_MIN_SHARE"]
+__all__ = [
+    "Adequacy",
+    "AxisStructure",
+    "Cause",
+    "assess",
+    "assess_residuals",
+    "plot_residuals_vs_axes",
+    "CONFIDENCE",
+    "MAX_BINS",
+    "OUTLIER_K",
+    "STRUCTURE_P",
+    "CAUSE_MIN_SHARE",
+]
 
 #: two-sided probability content of the chi2/dof acceptance interval
 CONFIDENCE = 0.999
@@ -185,8 +196,9 @@ def _within_ss(z: np.ndarray, group: np.ndarray) -> tuple[float, int]:
     return max(ss, 0.0), len(n)
 
 
-def _axis_structure(z: np.ndarray, station: np.ndarray, positions: pd.DataFrame,
-                    units: Sequence[str]) -> list[AxisStructure]:
+def _axis_structure(
+    z: np.ndarray, station: np.ndarray, positions: pd.DataFrame, units: Sequence[str]
+) -> list[AxisStructure]:
     from scipy.stats import f as f_dist
 
     n = len(z)
@@ -208,10 +220,19 @@ def _axis_structure(z: np.ndarray, station: np.ndarray, positions: pd.DataFrame,
             logp = -745.0
         total = float(np.sum(z * z))
         explained = max(between - df1 * ss_cell / df2, 0.0) / total if total > 0 else 0.0
-        out.append(AxisStructure(axis=str(name), unit=unit, n_bins=len(centres),
-                                 f=float(fstat), df1=int(df1), df2=int(df2),
-                                 p_value=float(math.exp(logp)), log10_p=logp / math.log(10),
-                                 explained_share=float(explained)))
+        out.append(
+            AxisStructure(
+                axis=str(name),
+                unit=unit,
+                n_bins=len(centres),
+                f=float(fstat),
+                df1=int(df1),
+                df2=int(df2),
+                p_value=float(math.exp(logp)),
+                log10_p=logp / math.log(10),
+                explained_share=float(explained),
+            )
+        )
     out.sort(key=lambda s: (s.log10_p, -s.explained_share))
     return out
 
@@ -220,16 +241,20 @@ def _excess_kurtosis(z: np.ndarray) -> float:
     if len(z) < 4:
         return float("nan")
     c = z - z.mean()
-    m2 = float(np.mean(c ** 2))
-    return float(np.mean(c ** 4) / m2 ** 2 - 3.0) if m2 > 0 else float("nan")
+    m2 = float(np.mean(c**2))
+    return float(np.mean(c**4) / m2**2 - 3.0) if m2 > 0 else float("nan")
 
 
-def assess_residuals(normalised: Sequence[float] | np.ndarray, dof: int | None = None, *,
-                     stations: Sequence[Any] | np.ndarray | None = None,
-                     positions: pd.DataFrame | None = None,
-                     units: Sequence[str] | None = None,
-                     rejected: Sequence[bool] | np.ndarray | None = None,
-                     chi2_per_dof: float | None = None) -> Adequacy:
+def assess_residuals(
+    normalised: Sequence[float] | np.ndarray,
+    dof: int | None = None,
+    *,
+    stations: Sequence[Any] | np.ndarray | None = None,
+    positions: pd.DataFrame | None = None,
+    units: Sequence[str] | None = None,
+    rejected: Sequence[bool] | np.ndarray | None = None,
+    chi2_per_dof: float | None = None,
+) -> Adequacy:
     """Test whitened residuals for model adequacy (see the module docstring).
 
     normalised: whitened residuals ``r / sigma`` of every reading; dof: degrees of freedom
@@ -245,8 +270,11 @@ def assess_residuals(normalised: Sequence[float] | np.ndarray, dof: int | None =
         keep &= ~np.asarray(rejected, bool)
     z = z_all[keep]
     n = len(z)
-    st = (np.zeros(len(z_all), np.int64) if stations is None
-          else np.unique(np.asarray(stations).astype(str), return_inverse=True)[1])[keep]
+    st = (
+        np.zeros(len(z_all), np.int64)
+        if stations is None
+        else np.unique(np.asarray(stations).astype(str), return_inverse=True)[1]
+    )[keep]
     n_st = int(len(np.unique(st))) if n else 0
     dof = n if dof is None else max(int(dof), 1)
     chi2_sum = float(np.sum(z * z))
@@ -263,6 +291,7 @@ def assess_residuals(normalised: Sequence[float] | np.ndarray, dof: int | None =
     # under a normal law with the bulk's spread, OUTLIER_K sigmas are exceeded with this
     # probability: outliers count when they are clearly more than chance gives
     from scipy.stats import norm, poisson
+
     p_tail = 2.0 * float(norm.sf(OUTLIER_K))
     p_count = float(poisson.sf(n_out - 1, max(n * p_tail, 1e-300))) if n_out else 1.0
     ss_out = float(np.sum(z[out_mask] ** 2))
@@ -285,10 +314,12 @@ def assess_residuals(normalised: Sequence[float] | np.ndarray, dof: int | None =
 
     warnings: list[str] = []
     if n_st == 1:
-        warnings.append("all readings come from a single station: lengths from one station "
-                        "cannot separate the station's position from the machine's errors, "
-                        "so a passing chi2 says little about the identified errors; measure "
-                        "from at least four stations that are not coplanar")
+        warnings.append(
+            "all readings come from a single station: lengths from one station "
+            "cannot separate the station's position from the machine's errors, "
+            "so a passing chi2 says little about the identified errors; measure "
+            "from at least four stations that are not coplanar"
+        )
 
     inside = lo <= c2 <= hi
     causes: list[Cause] = []
@@ -300,8 +331,7 @@ def assess_residuals(normalised: Sequence[float] | np.ndarray, dof: int | None =
     excess = c2 * dof - expected
     n_in = n - n_out
     ss_in = chi2_sum - ss_out
-    out_excess = (max(ss_out - n_out * s_ref ** 2, 0.0)
-                  if n_out and p_count < 1e-3 else 0.0)
+    out_excess = max(ss_out - n_out * s_ref**2, 0.0) if n_out and p_count < 1e-3 else 0.0
     best = structure[0] if structure else None
     struct_ok = best is not None and best.p_value < STRUCTURE_P
     struct_excess = best.explained_share * ss_in if best is not None and struct_ok else 0.0
@@ -312,65 +342,114 @@ def assess_residuals(normalised: Sequence[float] | np.ndarray, dof: int | None =
 
     if not inside:
         if excess > 0:
-            shares = {"outliers": out_excess / excess, "structure": struct_excess / excess,
-                      "budget": max(excess - out_excess - struct_excess, 0.0) / excess}
+            shares = {
+                "outliers": out_excess / excess,
+                "structure": struct_excess / excess,
+                "budget": max(excess - out_excess - struct_excess, 0.0) / excess,
+            }
         else:
             shares = {"outliers": 0.0, "structure": 0.0, "budget": 1.0}
-        heavy = n_out > 0 and p_count < 1e-3 and (kurt > HEAVY_TAIL_KURTOSIS
-                                                  or outliers["chi2_share"] > 0.05)
+        heavy = (
+            n_out > 0
+            and p_count < 1e-3
+            and (kurt > HEAVY_TAIL_KURTOSIS or outliers["chi2_share"] > 0.05)
+        )
         if heavy and shares["outliers"] >= CAUSE_MIN_SHARE:
-            causes.append(Cause(
-                "outliers", shares["outliers"],
-                f"outliers: {n_out} reading(s) beyond {OUTLIER_K:g} robust standard "
-                f"deviations of the bulk (largest |normalised residual| "
-                f"{outliers['max_abs']:.3g}, excess kurtosis {kurt:.3g}) carry "
-                f"{100 * outliers['chi2_share']:.0f} % of chi2; look for blunders "
-                "(wrong reflector, beam breaks, a mistyped pose) or run with --robust",
-                {k: outliers[k] for k in ("max_abs", "n_beyond_5_robust", "n_beyond_5_sigma",
-                                          "excess_kurtosis", "chi2_share")}))
+            causes.append(
+                Cause(
+                    "outliers",
+                    shares["outliers"],
+                    f"outliers: {n_out} reading(s) beyond {OUTLIER_K:g} robust standard "
+                    f"deviations of the bulk (largest |normalised residual| "
+                    f"{outliers['max_abs']:.3g}, excess kurtosis {kurt:.3g}) carry "
+                    f"{100 * outliers['chi2_share']:.0f} % of chi2; look for blunders "
+                    "(wrong reflector, beam breaks, a mistyped pose) or run with --robust",
+                    {
+                        k: outliers[k]
+                        for k in (
+                            "max_abs",
+                            "n_beyond_5_robust",
+                            "n_beyond_5_sigma",
+                            "excess_kurtosis",
+                            "chi2_share",
+                        )
+                    },
+                )
+            )
         if best is not None and struct_ok and shares["structure"] >= CAUSE_MIN_SHARE:
-            causes.append(Cause(
-                "structure", shares["structure"],
-                f"structure against axis {best.axis}: the residuals' binned means over its "
-                f"position explain {100 * best.explained_share:.0f} % of the residual sum "
-                f"of squares (F = {best.f:.3g}, {_fmt_p(best)}, {best.n_bins} position "
-                f"bins); the error model cannot follow an error motion of {best.axis} "
-                "(raise its degree, use a basis that fits, e.g. a Fourier series for a "
-                "rotary axis, or look for an error the model does not have)",
-                {"axis": best.axis, "f": best.f, "p_value": best.p_value,
-                 "log10_p": best.log10_p, "explained_share": best.explained_share,
-                 "n_bins": best.n_bins}))
+            causes.append(
+                Cause(
+                    "structure",
+                    shares["structure"],
+                    f"structure against axis {best.axis}: the residuals' binned means over its "
+                    f"position explain {100 * best.explained_share:.0f} % of the residual sum "
+                    f"of squares (F = {best.f:.3g}, {_fmt_p(best)}, {best.n_bins} position "
+                    f"bins); the error model cannot follow an error motion of {best.axis} "
+                    "(raise its degree, use a basis that fits, e.g. a Fourier series for a "
+                    "rotary axis, or look for an error the model does not have)",
+                    {
+                        "axis": best.axis,
+                        "f": best.f,
+                        "p_value": best.p_value,
+                        "log10_p": best.log10_p,
+                        "explained_share": best.explained_share,
+                        "n_bins": best.n_bins,
+                    },
+                )
+            )
         budget_off = not (rest_lo <= rest <= rest_hi)
         # a budget factor within 10 % of one is not worth naming beside another cause
-        budget_also = (budget_off and shares["budget"] >= CAUSE_MIN_SHARE
-                       and abs(budget_factor - 1.0) >= 0.1)
+        budget_also = (
+            budget_off and shares["budget"] >= CAUSE_MIN_SHARE and abs(budget_factor - 1.0) >= 0.1
+        )
         if excess <= 0 or budget_also or not causes:
             word = "too small" if budget_factor > 1 else "too large"
-            gauss = (f"excess kurtosis {kurt:.2g}" if math.isfinite(kurt) else "")
-            causes.append(Cause(
-                "budget", shares["budget"],
-                "the uncertainty budget: the residuals are "
-                + ("unstructured and Gaussian-looking" if not causes else "larger than the "
-                   "budget allows beyond what the causes above explain")
-                + (f" ({gauss})" if gauss and not causes else "")
-                + f", but {word}: the readings' standard uncertainties would have to be "
-                f"multiplied by {budget_factor:.3g} (or the budget is not the instrument's; "
-                "--scale-covariance scales the uncertainties by chi2/dof)",
-                {"factor": budget_factor, "variance_factor": rest}))
+            gauss = f"excess kurtosis {kurt:.2g}" if math.isfinite(kurt) else ""
+            causes.append(
+                Cause(
+                    "budget",
+                    shares["budget"],
+                    "the uncertainty budget: the residuals are "
+                    + (
+                        "unstructured and Gaussian-looking"
+                        if not causes
+                        else "larger than the budget allows beyond what the causes above explain"
+                    )
+                    + (f" ({gauss})" if gauss and not causes else "")
+                    + f", but {word}: the readings' standard uncertainties would have to be "
+                    f"multiplied by {budget_factor:.3g} (or the budget is not the instrument's; "
+                    "--scale-covariance scales the uncertainties by chi2/dof)",
+                    {"factor": budget_factor, "variance_factor": rest},
+                )
+            )
         causes.sort(key=lambda c: -c.share)
 
     verdict = "adequate" if inside else "inadequate"
     if inside:
-        msg = (f"the model fits: chi2/dof = {c2:.4g} lies inside its 99.9 % interval "
-               f"[{lo:.4g}, {hi:.4g}] for {dof} degrees of freedom")
+        msg = (
+            f"the model fits: chi2/dof = {c2:.4g} lies inside its 99.9 % interval "
+            f"[{lo:.4g}, {hi:.4g}] for {dof} degrees of freedom"
+        )
     else:
-        msg = (f"the model does NOT fit the data within their uncertainty: chi2/dof = "
-               f"{c2:.4g} lies outside its 99.9 % interval [{lo:.4g}, {hi:.4g}] for {dof} "
-               "degrees of freedom; likely cause: " + "; also ".join(c.text for c in causes))
-    return Adequacy(verdict=verdict, chi2_per_dof=float(c2), dof=int(dof),
-                    interval=(lo, hi), n_readings=int(n), n_stations=n_st,
-                    causes=tuple(causes), structure=tuple(structure), outliers=outliers,
-                    budget_factor=budget_factor, warnings=tuple(warnings), message=msg)
+        msg = (
+            f"the model does NOT fit the data within their uncertainty: chi2/dof = "
+            f"{c2:.4g} lies outside its 99.9 % interval [{lo:.4g}, {hi:.4g}] for {dof} "
+            "degrees of freedom; likely cause: " + "; also ".join(c.text for c in causes)
+        )
+    return Adequacy(
+        verdict=verdict,
+        chi2_per_dof=float(c2),
+        dof=int(dof),
+        interval=(lo, hi),
+        n_readings=int(n),
+        n_stations=n_st,
+        causes=tuple(causes),
+        structure=tuple(structure),
+        outliers=outliers,
+        budget_factor=budget_factor,
+        warnings=tuple(warnings),
+        message=msg,
+    )
 
 
 def _fmt_p(s: AxisStructure) -> str:
@@ -411,17 +490,20 @@ def assess(result: Any) -> Adequacy:
         return cached[1]
     res = result.residuals
     z = res["normalised_residual"].to_numpy(float)
-    rejected = (np.asarray(res["rejected"], bool) if "rejected" in res
-                else np.zeros(len(res), bool))
+    rejected = np.asarray(res["rejected"], bool) if "rejected" in res else np.zeros(len(res), bool)
     keep = np.isfinite(z) & ~rejected
     dof, c2 = _dof(result, z, keep)
     names, units = _axes(result)
     cols = [n for n in names if n in res.columns]
-    ad = assess_residuals(z, dof, stations=res["station"].to_numpy() if "station" in res
-                          else None,
-                          positions=res[cols] if cols else None,
-                          units=[u for n, u in zip(names, units) if n in cols],
-                          rejected=rejected, chi2_per_dof=c2)
+    ad = assess_residuals(
+        z,
+        dof,
+        stations=res["station"].to_numpy() if "station" in res else None,
+        positions=res[cols] if cols else None,
+        units=[u for n, u in zip(names, units) if n in cols],
+        rejected=rejected,
+        chi2_per_dof=c2,
+    )
     try:
         result.__dict__["_adequacy"] = (result.residuals, ad)
     except (AttributeError, TypeError):  # pragma: no cover - slotted or frozen results
@@ -433,10 +515,14 @@ def assess(result: Any) -> Adequacy:
 # plot
 
 
-def plot_residuals_vs_axes(residuals: pd.DataFrame, axis_names: Sequence[str],
-                           units: Sequence[str], path: str | Path,
-                           adequacy: Adequacy | None = None,
-                           max_points: int = 4000) -> None:
+def plot_residuals_vs_axes(
+    residuals: pd.DataFrame,
+    axis_names: Sequence[str],
+    units: Sequence[str],
+    path: str | Path,
+    adequacy: Adequacy | None = None,
+    max_points: int = 4000,
+) -> None:
     """Normalised residuals against each axis position (one panel per axis), with the
     binned means per station (lines) and the binned RMS over all stations (black); at
     most ``max_points`` readings are drawn (an even subsample), the binned statistics use
@@ -445,13 +531,19 @@ def plot_residuals_vs_axes(residuals: pd.DataFrame, axis_names: Sequence[str],
     from matplotlib.figure import Figure
 
     z = residuals["normalised_residual"].to_numpy(float)
-    rej = (np.asarray(residuals["rejected"], bool) if "rejected" in residuals
-           else np.zeros(len(z), bool))
+    rej = (
+        np.asarray(residuals["rejected"], bool)
+        if "rejected" in residuals
+        else np.zeros(len(z), bool)
+    )
     keep = np.isfinite(z) & ~rej
     names = [a for a in axis_names if a in residuals.columns]
     unit_of = dict(zip(axis_names, units))
-    st = (residuals["station"].astype(str).to_numpy() if "station" in residuals
-          else np.full(len(z), "all"))
+    st = (
+        residuals["station"].astype(str).to_numpy()
+        if "station" in residuals
+        else np.full(len(z), "all")
+    )
     by_axis = {s.axis: s for s in (adequacy.structure if adequacy else ())}
     n = max(len(names), 1)
     ncol = min(n, 3)
@@ -475,8 +567,7 @@ def plot_residuals_vs_axes(residuals: pd.DataFrame, axis_names: Sequence[str],
             ok = cnt > 0
             ax.plot(centres[ok], mean[ok] / cnt[ok], "-", linewidth=1.0, alpha=0.9)
         cnt = np.bincount(code, minlength=len(centres))
-        rms = np.sqrt(np.bincount(code, weights=zk ** 2, minlength=len(centres))
-                      / np.maximum(cnt, 1))
+        rms = np.sqrt(np.bincount(code, weights=zk**2, minlength=len(centres)) / np.maximum(cnt, 1))
         ok = cnt > 0
         ax.plot(centres[ok], rms[ok], "k--", linewidth=1.2, label="binned RMS")
         ax.axhline(0.0, color="0.3", linewidth=0.6)
@@ -484,20 +575,29 @@ def plot_residuals_vs_axes(residuals: pd.DataFrame, axis_names: Sequence[str],
         ax.set_xlabel(f"{name} position ({u})" if u else name)
         ax.set_ylabel("normalised residual")
         s = by_axis.get(name)
-        ax.set_title(f"axis {name}" + (f": F = {s.f:.3g}, {_fmt_p(s)}" if s else ""),
-                     fontsize=9)
+        ax.set_title(f"axis {name}" + (f": F = {s.f:.3g}, {_fmt_p(s)}" if s else ""), fontsize=9)
         ax.grid(True, alpha=0.3)
-    for ax in panels[len(names):]:
+    for ax in panels[len(names) :]:
         ax.set_visible(False)
     if names:
         panels[0].legend(fontsize=7, loc="upper right")
-    head = "Normalised residuals (residual / sigma) against axis position; lines: binned " \
-           "means per station"
+    head = (
+        "Normalised residuals (residual / sigma) against axis position; lines: binned "
+        "means per station"
+    )
     if adequacy is not None:
-        head += f"\nchi2/dof {adequacy.chi2_per_dof:.4g}, 99.9 % interval " \
-                f"[{adequacy.interval[0]:.4g}, {adequacy.interval[1]:.4g}]: {adequacy.verdict}"
+        head += (
+            f"\nchi2/dof {adequacy.chi2_per_dof:.4g}, 99.9 % interval "
+            f"[{adequacy.interval[0]:.4g}, {adequacy.interval[1]:.4g}]: {adequacy.verdict}"
+        )
     fig.suptitle(head, fontsize=10)
     top = 1.0 - 0.6 / fig.get_figheight()
-    fig.subplots_adjust(left=0.07 if ncol > 1 else 0.15, right=0.98, bottom=0.1 / nrow + 0.05,
-                        top=top - 0.05 / nrow, wspace=0.3, hspace=0.45)
+    fig.subplots_adjust(
+        left=0.07 if ncol > 1 else 0.15,
+        right=0.98,
+        bottom=0.1 / nrow + 0.05,
+        top=top - 0.05 / nrow,
+        wspace=0.3,
+        hspace=0.45,
+    )
     fig.savefig(path, dpi=100)

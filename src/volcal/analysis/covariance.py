@@ -6,14 +6,16 @@ basis of null(C): the Fisher information restricted to the directions the constr
 leave free.  Multiplying by the residual variance factor s^2 = ||r||^2 / (m - p) gives the
 a-posteriori covariance for budgets that are only known up to a factor.
 """
+
 from __future__ import annotations
 
 import numpy as np
 import scipy.linalg as sla
 
 
-def constrained_covariance(J: np.ndarray, C: np.ndarray | None = None, *,
-                           fixed: np.ndarray | None = None) -> np.ndarray:
+def constrained_covariance(
+    J: np.ndarray, C: np.ndarray | None = None, *, fixed: np.ndarray | None = None
+) -> np.ndarray:
     """(n, n) covariance of x; rows/columns of fixed variables are NaN."""
     J = np.asarray(J, float)
     n = J.shape[1]
@@ -31,6 +33,7 @@ def constrained_covariance(J: np.ndarray, C: np.ndarray | None = None, *,
         Z = np.eye(len(free))
     # pseudo-inverse via SVD: exact for full rank, and never explodes on a near-null direction
     from volcal.analysis.identifiability import _r_factor
+
     R = _r_factor(Jf * d) @ Z
     _, s, Vt = np.linalg.svd(R, full_matrices=False)
     keep = s > max(Jf.shape) * np.finfo(float).eps * (s[0] if len(s) else 0)

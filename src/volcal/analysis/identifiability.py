@@ -10,6 +10,7 @@ columns are the variables whose values the data cannot fix (one per null directi
 basis brought to reduced row-echelon form on those pivots gives each direction as a
 combination "A + 0.8 B" in the variables' own (scaled) units.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -69,8 +70,10 @@ class Identifiability:
         return self.null_basis.shape[1]
 
     def summary(self) -> str:
-        lines = [f"rank {self.rank} of {len(self.names) - self._n_constrained()} free directions "
-                 f"(tol {self.tol:.2e}); scaled condition number {self.condition:.3g}"]
+        lines = [
+            f"rank {self.rank} of {len(self.names) - self._n_constrained()} free directions "
+            f"(tol {self.tol:.2e}); scaled condition number {self.condition:.3g}"
+        ]
         kinds = self.kinds or ["unidentifiable"] * len(self.combinations)
         for c, k in zip(self.combinations, kinds):
             lines.append(f"  {k}: {c}")
@@ -129,8 +132,9 @@ class ScaledSVD:
     rank: int
 
 
-def scaled_constrained_svd(J: np.ndarray, C: np.ndarray | None = None,
-                           fixed: np.ndarray | None = None) -> ScaledSVD:
+def scaled_constrained_svd(
+    J: np.ndarray, C: np.ndarray | None = None, fixed: np.ndarray | None = None
+) -> ScaledSVD:
     """The factorisation behind :func:`analyse_jacobian` (see :class:`ScaledSVD`)."""
     J = np.asarray(J, float)
     m, n = J.shape
@@ -145,14 +149,20 @@ def scaled_constrained_svd(J: np.ndarray, C: np.ndarray | None = None,
     R = _r_factor(A)
     _, s, Vt = np.linalg.svd(R @ Z, full_matrices=True)
     s_full = np.zeros(Z.shape[1])
-    s_full[:len(s)] = s
+    s_full[: len(s)] = s
     tol = max(m, n) * np.finfo(float).eps * (s_full[0] if len(s_full) else 0.0)
     return ScaledSVD(free, norms, d, Z, R, s_full, Vt, float(tol), int(np.sum(s_full > tol)))
 
 
-def analyse_jacobian(J: np.ndarray, names: list[str], C: np.ndarray | None = None, *,
-                     fixed: np.ndarray | None = None, prefer: np.ndarray | None = None,
-                     weak_ratio: float = 1e-4) -> Identifiability:
+def analyse_jacobian(
+    J: np.ndarray,
+    names: list[str],
+    C: np.ndarray | None = None,
+    *,
+    fixed: np.ndarray | None = None,
+    prefer: np.ndarray | None = None,
+    weak_ratio: float = 1e-4,
+) -> Identifiability:
     """Rank, conditioning and named null space of J under C x = 0.
 
     J: (m, n) Jacobian of whitened residuals; C: (c, n) equality constraints; fixed: mask of
@@ -162,15 +172,17 @@ def analyse_jacobian(J: np.ndarray, names: list[str], C: np.ndarray | None = Non
     J = np.asarray(J, float)
     m, n = J.shape
     sv = scaled_constrained_svd(J, C, fixed)
-    free, d, Z, R, s_full, Vt, tol, rank = (sv.free, sv.d, sv.Z, sv.R, sv.s, sv.Vt, sv.tol,
-                                            sv.rank)
+    free, d, Z, R, s_full, Vt, tol, rank = (sv.free, sv.d, sv.Z, sv.R, sv.s, sv.Vt, sv.tol, sv.rank)
     norms, zero_col = sv.norms, sv.norms == 0
     s0 = s_full[0] if len(s_full) else 0.0
     N_y = Z @ Vt[rank:].T  # null directions in scaled free variables, orthonormal
     # condition numbers of the identifiable part
     cond = s_full[0] / s_full[rank - 1] if rank else np.inf
-    su = np.linalg.svd((R * np.where(zero_col, 0.0, norms)) @ Z, compute_uv=False) \
-        if rank else np.array([0.0])
+    su = (
+        np.linalg.svd((R * np.where(zero_col, 0.0, norms)) @ Z, compute_uv=False)
+        if rank
+        else np.array([0.0])
+    )
     cond_u = su[0] / su[rank - 1] if rank and su[rank - 1] > 0 else np.inf
 
     k = N_y.shape[1]
@@ -201,9 +213,20 @@ def analyse_jacobian(J: np.ndarray, names: list[str], C: np.ndarray | None = Non
             v = Z @ Vt[j]
             lead = int(np.argmax(np.abs(v)))
             weak.append((float(s_full[j]), _describe(v, full_names, lead)))
-    return Identifiability(list(names), s_full, rank, float(tol), float(cond), float(cond_u),
-                           basis, [int(free[p]) for p in pivots_free], combos, unident, weak,
-                           directions)
+    return Identifiability(
+        list(names),
+        s_full,
+        rank,
+        float(tol),
+        float(cond),
+        float(cond_u),
+        basis,
+        [int(free[p]) for p in pivots_free],
+        combos,
+        unident,
+        weak,
+        directions,
+    )
 
 
 def rigid_columns(points: np.ndarray) -> np.ndarray:
@@ -252,8 +275,7 @@ def _rigid_reference(G_meas: np.ndarray, p_meas: np.ndarray, th: np.ndarray) -> 
     return np.linalg.lstsq(A, F, rcond=None)[0]
 
 
-def _deviation(G: np.ndarray, points: np.ndarray, th: np.ndarray, rigid: np.ndarray
-               ) -> np.ndarray:
+def _deviation(G: np.ndarray, points: np.ndarray, th: np.ndarray, rigid: np.ndarray) -> np.ndarray:
     """(N, 3, k): field of each direction minus its measured-set rigid motion, mm."""
     F = np.einsum("nip,pk->nik", G, th)
     A = rigid_columns(points).reshape(len(G), 3, 6)
@@ -278,8 +300,7 @@ class FieldNullSpace:
     n_gauge: int
     n_unidentifiable: int
 
-    def determined(self, G: np.ndarray, points: np.ndarray, tol: float = GAUGE_TOL
-                   ) -> np.ndarray:
+    def determined(self, G: np.ndarray, points: np.ndarray, tol: float = GAUGE_TOL) -> np.ndarray:
         """Per pose: does its volumetric error follow from the data alone (up to the rigid
         motion no multilateration sees)?  G: (N, 3, n_theta) d(error)/d(theta) at the poses
         (mm per mm / rad); points: (N, 3) their nominal tool points (mm)."""
@@ -291,21 +312,29 @@ class FieldNullSpace:
         return dev <= tol
 
     def to_dict(self) -> dict:
-        return {"theta_dirs": self.theta_dirs.tolist(), "rigid": self.rigid.tolist(),
-                "field_scale": self.field_scale.tolist(), "n_gauge": self.n_gauge,
-                "n_unidentifiable": self.n_unidentifiable}
+        return {
+            "theta_dirs": self.theta_dirs.tolist(),
+            "rigid": self.rigid.tolist(),
+            "field_scale": self.field_scale.tolist(),
+            "n_gauge": self.n_gauge,
+            "n_unidentifiable": self.n_unidentifiable,
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> FieldNullSpace:
         nt = len(d["theta_dirs"])
-        return cls(np.asarray(d["theta_dirs"], float).reshape(nt, -1),
-                   np.asarray(d["rigid"], float).reshape(6, -1),
-                   np.asarray(d["field_scale"], float), int(d["n_gauge"]),
-                   int(d["n_unidentifiable"]))
+        return cls(
+            np.asarray(d["theta_dirs"], float).reshape(nt, -1),
+            np.asarray(d["rigid"], float).reshape(6, -1),
+            np.asarray(d["field_scale"], float),
+            int(d["n_gauge"]),
+            int(d["n_unidentifiable"]),
+        )
 
 
-def field_null_space(theta_dirs: np.ndarray, sets: FieldSets, tol: float = GAUGE_TOL
-                     ) -> FieldNullSpace:
+def field_null_space(
+    theta_dirs: np.ndarray, sets: FieldSets, tol: float = GAUGE_TOL
+) -> FieldNullSpace:
     """Classify null directions by their effect on the volumetric error.
 
     theta_dirs: (n_theta, k) error-parameter part of null directions (mm, rad); sets: the
@@ -315,8 +344,12 @@ def field_null_space(theta_dirs: np.ndarray, sets: FieldSets, tol: float = GAUGE
     if k == 0:
         return FieldNullSpace(th, np.zeros((6, 0)), np.zeros(0), 0, 0)
     rigid = _rigid_reference(sets.G_meas, sets.p_meas, th)
-    F_all = np.concatenate([np.einsum("nip,pk->nik", sets.G_meas, th).reshape(-1, k),
-                            np.einsum("nip,pk->nik", sets.G_decl, th).reshape(-1, k)])
+    F_all = np.concatenate(
+        [
+            np.einsum("nip,pk->nik", sets.G_meas, th).reshape(-1, k),
+            np.einsum("nip,pk->nik", sets.G_decl, th).reshape(-1, k),
+        ]
+    )
     scale = np.max(np.abs(F_all), axis=0)
     # a direction (a unit step of its variables: 1 um or 1 urad) that moves the error by
     # less than NIL_FIELD_MM anywhere moves nothing: it never flags a pose
@@ -328,8 +361,13 @@ def field_null_space(theta_dirs: np.ndarray, sets: FieldSets, tol: float = GAUGE
     return FieldNullSpace(th, rigid, scale, k - n_unid, n_unid)
 
 
-def split_gauge(ident: Identifiability, n_theta: int, sets: FieldSets,
-                theta_scale: np.ndarray, tol: float = GAUGE_TOL) -> Identifiability:
+def split_gauge(
+    ident: Identifiability,
+    n_theta: int,
+    sets: FieldSets,
+    theta_scale: np.ndarray,
+    tol: float = GAUGE_TOL,
+) -> Identifiability:
     """Label each held combination of ``ident`` gauge or unidentifiable (in place; also
     returned) with the same rule as :func:`field_null_space`: unidentifiable when its
     field over the declared set departs from the rigid motion it makes at the measured

@@ -20,6 +20,7 @@ Unidentifiable directions are found from the Jacobian at the start point (names 
 :attr:`IdentificationResult.identifiability`), held at zero, and reported; their standard
 uncertainties are NaN and ``identifiable`` is False in the parameter table.
 """
+
 from __future__ import annotations
 
 import logging
@@ -128,12 +129,13 @@ class IdentificationResult:
         """Does the model fit the data? chi2/dof against its 99.9 % interval and, when
         outside, the likely cause (:func:`volcal.analysis.adequacy.assess`)."""
         from volcal.analysis.adequacy import assess
+
         return assess(self)
 
     @property
     def residual_rms_um(self) -> float:
         r = self.residuals.loc[~self.residuals["rejected"], "residual_um"]
-        return float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan")
+        return float(np.sqrt(np.mean(r**2))) if len(r) else float("nan")
 
     def parameters(self) -> pd.DataFrame:
         """name, value, unit, std, identifiable (values in um / urad)."""
@@ -141,25 +143,42 @@ class IdentificationResult:
         f = report_factors(units)
         std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
         std[~self.identifiable] = np.nan
-        return pd.DataFrame({
-            "name": self.error_model.param_names,
-            "value": self.theta * f,
-            "unit": [report_unit(u) for u in units],
-            "std": std,
-            "identifiable": self.identifiable,
-        })
+        return pd.DataFrame(
+            {
+                "name": self.error_model.param_names,
+                "value": self.theta * f,
+                "unit": [report_unit(u) for u in units],
+                "std": std,
+                "identifiable": self.identifiable,
+            }
+        )
 
-    def predict(self, q_internal: np.ndarray, tool: np.ndarray | None = None, *,
-                with_uncertainty: bool = True) -> pd.DataFrame:
+    def predict(
+        self,
+        q_internal: np.ndarray,
+        tool: np.ndarray | None = None,
+        *,
+        with_uncertainty: bool = True,
+    ) -> pd.DataFrame:
         """Volumetric error (um) at poses q (N, n_axes; mm, rad) with tool offsets (N, 3)."""
-        return predict_volumetric(self.machine, self.error_model, self.theta,
-                                  self.cov_theta if with_uncertainty else None, q_internal, tool,
-                                  null_space=self.null_space)
+        return predict_volumetric(
+            self.machine,
+            self.error_model,
+            self.theta,
+            self.cov_theta if with_uncertainty else None,
+            q_internal,
+            tool,
+            null_space=self.null_space,
+        )
 
 
-def field_jacobian(machine: Machine, em: ErrorModel, theta: np.ndarray, q: np.ndarray,
-                   tool: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def field_jacobian(
+    machine: Machine,
+    em: ErrorModel,
+    theta: np.ndarray,
+    q: np.ndarray,
+    tool: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(nominal points (N, 3) mm, volumetric errors (N, 3) mm, G (N, 3, n_params) their
     derivative wrt the error parameters) of the first-order model at poses q (N, n_axes;
     mm, rad) and tool offsets (N, 3) mm."""
@@ -170,10 +189,16 @@ def field_jacobian(machine: Machine, em: ErrorModel, theta: np.ndarray, q: np.nd
     return p0, dp, np.matmul(Je, em.basis(q))  # (N, 3, n_errors) @ (N, n_errors, n_params)
 
 
-def predict_volumetric(machine: Machine, em: ErrorModel, theta: np.ndarray,
-                       cov_theta: np.ndarray | None, q: np.ndarray,
-                       tool: np.ndarray | None = None, *,
-                       null_space: FieldNullSpace | None = None) -> pd.DataFrame:
+def predict_volumetric(
+    machine: Machine,
+    em: ErrorModel,
+    theta: np.ndarray,
+    cov_theta: np.ndarray | None,
+    q: np.ndarray,
+    tool: np.ndarray | None = None,
+    *,
+    null_space: FieldNullSpace | None = None,
+) -> pd.DataFrame:
     """dx_um, dy_um, dz_um (and u_dx_um ... standard uncertainties when a covariance is
     given) of the first-order model at poses q (N, n_axes; mm, rad) and tools (N, 3) mm.
 
@@ -183,8 +208,7 @@ def predict_volumetric(machine: Machine, em: ErrorModel, theta: np.ndarray,
     those measured), the value is the datum's choice and the uncertainties are NaN."""
     p0, dp, G = field_jacobian(machine, em, theta, q, tool)
     out = pd.DataFrame(dp * 1e3, columns=["dx_um", "dy_um", "dz_um"])
-    det = (null_space.determined(G, p0) if null_space is not None
-           else np.ones(len(out), bool))
+    det = null_space.determined(G, p0) if null_space is not None else np.ones(len(out), bool)
     if cov_theta is not None:
         # held variables (NaN rows) contribute nothing where the pose is determined: their
         # value is a convention there; elsewhere the uncertainty is unknown, never zero
@@ -229,8 +253,9 @@ def declared_poses(spec: MachineSpec, n_poses: int = 256) -> np.ndarray:
     return lo + u * (hi - lo)
 
 
-def field_sets(machine: Machine, em: ErrorModel, theta: np.ndarray, q_meas: np.ndarray,
-               tools_meas: np.ndarray) -> FieldSets:
+def field_sets(
+    machine: Machine, em: ErrorModel, theta: np.ndarray, q_meas: np.ndarray, tools_meas: np.ndarray
+) -> FieldSets:
     """The measured set (the data's poses and tool offsets) and the declared set (a Halton
     sample of the travel at every measured tool offset) with their nominal points (mm) and
     d(volumetric error)/d(theta) (see :class:`volcal.analysis.identifiability.FieldSets`)."""
@@ -258,10 +283,19 @@ def rigid_fit(points: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray
 class Identifier:
     """Model + error model + layout -> a reusable solver (see the module docstring)."""
 
-    def __init__(self, machine: Machine, error_model: ErrorModel, layout: Layout, *,
-                 exact: bool = False, hessian: str = "gauss-newton", verbose: bool = False,
-                 datum_mode: str = "minimal", instrument: str | Instrument | None = None,
-                 solver: str = "ipopt"):
+    def __init__(
+        self,
+        machine: Machine,
+        error_model: ErrorModel,
+        layout: Layout,
+        *,
+        exact: bool = False,
+        hessian: str = "gauss-newton",
+        verbose: bool = False,
+        datum_mode: str = "minimal",
+        instrument: str | Instrument | None = None,
+        solver: str = "ipopt",
+    ):
         self.machine = machine
         self.error_model = error_model
         if datum_mode not in ("minimal", "impose-all"):
@@ -272,16 +306,20 @@ class Identifier:
         self.instrument = get_instrument(instrument)
         self.layout = layout
         t0 = time.perf_counter()
-        self.problem = IdentificationProblem(machine, error_model, self.instrument, layout,
-                                             exact=exact)
+        self.problem = IdentificationProblem(
+            machine, error_model, self.instrument, layout, exact=exact
+        )
         if solver not in SOLVERS:
             raise InputError(f"unknown solver {solver!r}; expected one of {', '.join(SOLVERS)}")
         #: "ipopt" (default): IPOPT then a few Gauss-Newton polish steps; "gauss-newton":
         #: Levenberg-Marquardt with the datum eliminated (volcal.solve.gauss_newton)
         self.solver_name = solver
         self.gauss_newton = GaussNewtonSolver(self.problem)
-        self.solver = (NLPSolver(self.problem, hessian=hessian, verbose=verbose)
-                       if solver == "ipopt" else self.gauss_newton)
+        self.solver = (
+            NLPSolver(self.problem, hessian=hessian, verbose=verbose)
+            if solver == "ipopt"
+            else self.gauss_newton
+        )
         self.build_seconds = time.perf_counter() - t0
         n = self.problem.n_x
         nt, ss = self.problem.n_theta, self.problem.station_slice()
@@ -309,7 +347,7 @@ class Identifier:
         for k, sid in enumerate(ids):
             base = pr.n_theta + nps * k
             if k < len(station_fixed) and station_fixed[k]:
-                fixed[base:base + nps] = True
+                fixed[base : base + nps] = True
             for name in ins.held_station_params(sid):
                 fixed[base + ins.station_param_names.index(name)] = True
         return fixed
@@ -329,8 +367,9 @@ class Identifier:
             self._jac_key, self._jac = key, (r, J)
         return self._jac
 
-    def analyse(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray,
-                constrained: bool = True) -> Identifiability:
+    def analyse(
+        self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray, constrained: bool = True
+    ) -> Identifiability:
         _, J = self.jacobian(x, p)
         C = self._scaled_constraints() if constrained else None
         return analyse_jacobian(J, self.problem.names, C, fixed=fixed, prefer=self.prefer)
@@ -341,7 +380,7 @@ class Identifier:
         returns the mask over the candidates."""
         pr = self.problem
         Call = np.zeros((pr.C_all.shape[0], pr.n_x))
-        Call[:, :pr.n_theta] = pr.C_all * pr.scale[None, :pr.n_theta]
+        Call[:, : pr.n_theta] = pr.C_all * pr.scale[None, : pr.n_theta]
         if Call.shape[0] == 0:
             pr.set_datum(np.zeros(0, bool))
             return pr.datum_active
@@ -351,6 +390,7 @@ class Identifier:
             # ISO 230 datum imposed regardless of the data does (kept for comparison,
             # studies/datum; it can constrain what the data determine)
             from volcal.model.errors import _independent_rows
+
             keep = np.array([c.klass != "location" for c in pr.conditions])
             rows = np.flatnonzero(keep)
             act = np.zeros(len(keep), bool)
@@ -361,9 +401,14 @@ class Identifier:
         pr.set_datum(select_conditions(J, Call, fixed))
         return pr.datum_active
 
-    def field_null_space(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray,
-                         q_meas: np.ndarray, tools_meas: np.ndarray
-                         ) -> tuple[FieldNullSpace, FieldSets]:
+    def field_null_space(
+        self,
+        x: np.ndarray,
+        p: np.ndarray,
+        fixed: np.ndarray,
+        q_meas: np.ndarray,
+        tools_meas: np.ndarray,
+    ) -> tuple[FieldNullSpace, FieldSets]:
         """How the null directions of the full Jacobian (no datum; ``fixed`` held) act on
         the volumetric error.
 
@@ -389,7 +434,7 @@ class Identifier:
     def _scaled_constraints(self) -> np.ndarray:
         pr = self.problem
         C = np.zeros((pr.C.shape[0], pr.n_x))
-        C[:, :pr.n_theta] = pr.C * pr.scale[None, :pr.n_theta]
+        C[:, : pr.n_theta] = pr.C * pr.scale[None, : pr.n_theta]
         return C
 
     def covariance(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray) -> np.ndarray:
@@ -400,7 +445,6 @@ class Identifier:
         s = self.problem.scale
         return cov_s * s[:, None] * s[None, :]
 
-
     # ---- strategies -----------------------------------------------------------------
     def group_mask(self, groups) -> np.ndarray:
         """The mask over x of variable groups (``"errors"``, ``"stations"``, ``"frame"``)."""
@@ -410,16 +454,24 @@ class Identifier:
             out |= masks[g]
         return out
 
-    def run(self, strategy: str | Strategy, x0: np.ndarray, p: np.ndarray, *,
-            user_fixed: np.ndarray | None = None, solve: bool = True
-            ) -> tuple[np.ndarray, list[SolveOutcome], np.ndarray, Identifiability]:
+    def run(
+        self,
+        strategy: str | Strategy,
+        x0: np.ndarray,
+        p: np.ndarray,
+        *,
+        user_fixed: np.ndarray | None = None,
+        solve: bool = True,
+    ) -> tuple[np.ndarray, list[SolveOutcome], np.ndarray, Identifiability]:
         """Solve with a strategy (:mod:`volcal.problem.strategies`) from x0 (physical), phase
         by phase on the one problem and solver.  Returns (x, outcomes, held mask of the last
         phase, identifiability of the last phase that analysed it)."""
         strat = get_strategy(strategy)
         if not isinstance(strat, PhasedStrategy):
-            raise InputError(f"the {strat.name} strategy does not solve the joint problem; "
-                             "run it through identify()")
+            raise InputError(
+                f"the {strat.name} strategy does not solve the joint problem; "
+                "run it through identify()"
+            )
         n = self.problem.n_x
         user_fixed = np.zeros(n, bool) if user_fixed is None else user_fixed
         outcomes: list[SolveOutcome] = []
@@ -428,8 +480,9 @@ class Identifier:
             if solve:
                 out = self.solver.solve(x, p, fixed=fixed)
                 if out.success and self.solver is not self.gauss_newton:
-                    out.x, out.polish_steps, out.polish_f = polish(self.gauss_newton, out.x,
-                                                                   p, fixed)
+                    out.x, out.polish_steps, out.polish_f = polish(
+                        self.gauss_newton, out.x, p, fixed
+                    )
                 return out
             # a plan without data (export-time analysis): keep the start point
             return SolveOutcome(np.array(x, float), float("nan"), "not solved", True, 0, 0.0)
@@ -462,9 +515,12 @@ class Identifier:
             if ph.report:
                 # the conditioning of the system this phase solved
                 rep = self.analyse(x, p, held, constrained=False)
-                self.phase_conditions.update({
-                    f"{ph.report}_jacobian_scaled": rep.condition,
-                    f"{ph.report}_jacobian_unscaled": rep.condition_unscaled})
+                self.phase_conditions.update(
+                    {
+                        f"{ph.report}_jacobian_scaled": rep.condition,
+                        f"{ph.report}_jacobian_unscaled": rep.condition_unscaled,
+                    }
+                )
         if ident is None:
             ident = self.analyse(x, p, fixed)
         return x, outcomes, fixed, ident
@@ -473,9 +529,13 @@ class Identifier:
 # ---------------------------------------------------------------------------------------
 
 
-def reading_sigma(machine: Machine, budget: Budget, meas: Measurements,
-                  stations: np.ndarray, instrument: str | Instrument | None = None
-                  ) -> np.ndarray:
+def reading_sigma(
+    machine: Machine,
+    budget: Budget,
+    meas: Measurements,
+    stations: np.ndarray,
+    instrument: str | Instrument | None = None,
+) -> np.ndarray:
     """Standard uncertainty (mm) of each reading from the budget: the length part combined
     with the axis repeatabilities carried to the reading through d(reading)/d(point) of the
     instrument (for a tracker, the beam direction) and d(point)/d(axis) of the machine.
@@ -487,7 +547,7 @@ def reading_sigma(machine: Machine, budget: Budget, meas: Measurements,
     p0, _, _ = machine.evaluate(q, t, np.zeros(machine.n_errors))
     S = np.zeros((len(stations), ins.n_station_params))
     given = np.asarray(stations, float)
-    S[:, :given.shape[1]] = given
+    S[:, : given.shape[1]] = given
     _, grad = ins.evaluate(p0, S[meas.station_index])  # (N, 3) d reading / d point
     var = budget.length_sigma(meas.length) ** 2
     h = 1e-6
@@ -503,9 +563,12 @@ def reading_sigma(machine: Machine, budget: Budget, meas: Measurements,
     return np.sqrt(var)
 
 
-def initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFrame | None,
-                     instrument: str | Instrument | None = None
-                     ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+def initial_stations(
+    machine: Machine,
+    meas: Measurements,
+    stations: pd.DataFrame | None,
+    instrument: str | Instrument | None = None,
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Start values of the stations: (K, n_station_params) in the order of
     ``meas.station_ids`` (for the tracker x, y, z, dead length in mm), the mask of stations
     held fixed (K,), and notes.  From the stations table where given (its columns are the
@@ -521,9 +584,12 @@ def initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFram
         cols = list(ins.station_param_names)
         missing_cols = [c for c in cols if c not in tab.columns]
         if missing_cols:
-            raise InputError(f"the stations table has no column {', '.join(missing_cols)} "
-                             f"(the {ins.name} instrument's station parameters are "
-                             f"{', '.join(cols)})", source="stations table")
+            raise InputError(
+                f"the stations table has no column {', '.join(missing_cols)} "
+                f"(the {ins.name} instrument's station parameters are "
+                f"{', '.join(cols)})",
+                source="stations table",
+            )
         for k, sid in enumerate(meas.station_ids):
             if sid in tab.index:
                 row = tab.loc[sid]
@@ -532,13 +598,15 @@ def initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFram
         # ids that do not match are never silently ignored (load_measurements warns)
         described = [str(s) for s in tab.index]
         if not set(described) & set(meas.station_ids):
-            raise InputError(f"no station of the data ({', '.join(meas.station_ids[:8])}) is "
-                             f"described in the stations table ({', '.join(described[:8])}); "
-                             "station ids must match exactly", source="stations table")
+            raise InputError(
+                f"no station of the data ({', '.join(meas.station_ids[:8])}) is "
+                f"described in the stations table ({', '.join(described[:8])}); "
+                "station ids must match exactly",
+                source="stations table",
+            )
         unused = [s for s in described if s not in meas.station_ids]
         if unused:
-            notes.append(f"stations table entries without readings ignored: "
-                         f"{', '.join(unused)}")
+            notes.append(f"stations table entries without readings ignored: {', '.join(unused)}")
     missing = np.isnan(est[:, 0])
     if missing.any():
         p0, _, _ = machine.evaluate(meas.q_internal, meas.tool, np.zeros(machine.n_errors))
@@ -551,8 +619,13 @@ def initial_stations(machine: Machine, meas: Measurements, stations: pd.DataFram
     return est, fixed, notes
 
 
-def build_error_model(spec: MachineSpec, *, degree: int = 3, datum: Datum = "iso230",
-                      forms: dict[str, ErrorForm] | None = None) -> ErrorModel:
+def build_error_model(
+    spec: MachineSpec,
+    *,
+    degree: int = 3,
+    datum: Datum = "iso230",
+    forms: dict[str, ErrorForm] | None = None,
+) -> ErrorModel:
     """The error model of ``spec``: ``forms`` ({error or axis name: ErrorForm}), then the
     model file's bases, then Legendre of ``degree`` (Fourier of ``degree`` on full-turn
     rotary axes); see :class:`volcal.model.errors.ErrorModel`."""
@@ -563,22 +636,37 @@ def identify(*args, **kwargs) -> IdentificationResult:
     """Identify the geometric errors of a machine (see :func:`_identify` for the
     arguments); runs with one BLAS thread (see :mod:`volcal.base.threads`)."""
     from volcal.base.threads import blas_threads
+
     with blas_threads(1):
         return _identify(*args, **kwargs)
 
 
-def _identify(model: str | Path | MachineSpec | Machine,
-              data: str | Path | pd.DataFrame | Measurements,
-             stations: str | Path | pd.DataFrame | None = None, *, strategy: str = "joint",
-             degree: int = 3, datum: Datum = "iso230", error_model: ErrorModel | None = None,
-             budget: str | Path | Budget = "paper002", robust: bool = False,
-             reject_k: float = 4.0, exact: bool = False, hessian: str = "gauss-newton",
-             scale_covariance: bool = False, station_method: str = "sqrt",
-             point_method: str = "sqrt", verbose: bool = False,
-             forms: dict[str, ErrorForm] | None = None, order_criterion: str = "bic",
-             cv_folds: int = 5, datum_mode: str = "minimal",
-             progress: bool = False, instrument: str | Instrument | None = None,
-             solver: str = "ipopt") -> IdentificationResult:
+def _identify(
+    model: str | Path | MachineSpec | Machine,
+    data: str | Path | pd.DataFrame | Measurements,
+    stations: str | Path | pd.DataFrame | None = None,
+    *,
+    strategy: str = "joint",
+    degree: int = 3,
+    datum: Datum = "iso230",
+    error_model: ErrorModel | None = None,
+    budget: str | Path | Budget = "paper002",
+    robust: bool = False,
+    reject_k: float = 4.0,
+    exact: bool = False,
+    hessian: str = "gauss-newton",
+    scale_covariance: bool = False,
+    station_method: str = "sqrt",
+    point_method: str = "sqrt",
+    verbose: bool = False,
+    forms: dict[str, ErrorForm] | None = None,
+    order_criterion: str = "bic",
+    cv_folds: int = 5,
+    datum_mode: str = "minimal",
+    progress: bool = False,
+    instrument: str | Instrument | None = None,
+    solver: str = "ipopt",
+) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
     model: bundled model name, model file, spec or Machine; data: measurement table (CSV,
@@ -600,12 +688,31 @@ def _identify(model: str | Path | MachineSpec | Machine,
     as ``"tracker"`` (default) or ``"multilaser"``, or an :class:`Instrument` object).
     """
     if degree == "auto":  # every other argument goes to each candidate fit
-        opts = {k: v for k, v in locals().items() if k not in (
-            "model", "data", "stations", "degree", "order_criterion", "cv_folds",
-            "progress")}
+        opts = {
+            k: v
+            for k, v in locals().items()
+            if k
+            not in (
+                "model",
+                "data",
+                "stations",
+                "degree",
+                "order_criterion",
+                "cv_folds",
+                "progress",
+            )
+        }
         from volcal.analysis.order_selection import select_orders
-        return select_orders(model, data, stations, criterion=order_criterion, folds=cv_folds,
-                             progress=progress, **opts)
+
+        return select_orders(
+            model,
+            data,
+            stations,
+            criterion=order_criterion,
+            folds=cv_folds,
+            progress=progress,
+            **opts,
+        )
     t_start = time.perf_counter()
     machine = model if isinstance(model, Machine) else Machine.from_model(model)
     spec = machine.spec
@@ -615,10 +722,16 @@ def _identify(model: str | Path | MachineSpec | Machine,
         # the tracker's stations table is validated by its reader; another instrument's
         # table is a DataFrame whose columns are its station parameters
         given = isinstance(stations, pd.DataFrame) and (
-            ins.name != "tracker" or ("x_mm" in stations and "dead_length_given" in stations))
+            ins.name != "tracker" or ("x_mm" in stations and "dead_length_given" in stations)
+        )
         st_table = stations if given else load_stations(stations)
-    meas = data if isinstance(data, Measurements) else load_measurements(
-        data, spec, stations=st_table, relative_lengths=not ins.positive_readings)
+    meas = (
+        data
+        if isinstance(data, Measurements)
+        else load_measurements(
+            data, spec, stations=st_table, relative_lengths=not ins.positive_readings
+        )
+    )
     em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
     bud = budget if isinstance(budget, Budget) else load_budget(budget)
     strat = get_strategy(strategy, station_method=station_method, point_method=point_method)
@@ -629,37 +742,67 @@ def _identify(model: str | Path | MachineSpec | Machine,
     no_sigma = ~np.isfinite(sigma)
     if no_sigma.any():  # the budget only where the table gives no sigma
         sigma[no_sigma] = reading_sigma(machine, bud, meas, st0, ins)[no_sigma]
-    sigma_source = "table" if not no_sigma.any() else (
-        f"budget {bud.name}" if no_sigma.all() else f"table and budget {bud.name}")
+    sigma_source = (
+        "table"
+        if not no_sigma.any()
+        else (f"budget {bud.name}" if no_sigma.all() else f"table and budget {bud.name}")
+    )
 
     if isinstance(strat, ClassicPipeline):
         if ins.name != "tracker":
-            raise InputError(f"the classic pipeline calibrates tracker stations; it does not "
-                             f"apply to the {ins.name} instrument")
+            raise InputError(
+                f"the classic pipeline calibrates tracker stations; it does not "
+                f"apply to the {ins.name} instrument"
+            )
         from volcal.analysis.classic import classic_pipeline
-        return classic_pipeline(machine, em, meas, st0, sigma,
-                                station_method=strat.station_method,
-                                point_method=strat.point_method, t_start=t_start,
-                                sigma_source=sigma_source, notes=notes)
+
+        return classic_pipeline(
+            machine,
+            em,
+            meas,
+            st0,
+            sigma,
+            station_method=strat.station_method,
+            point_method=strat.point_method,
+            t_start=t_start,
+            sigma_source=sigma_source,
+            notes=notes,
+        )
 
     layout = Layout.from_measurements(meas)
-    ider = Identifier(machine, em, layout, exact=exact, hessian=hessian, verbose=verbose,
-                      datum_mode=datum_mode, instrument=ins, solver=solver)
+    ider = Identifier(
+        machine,
+        em,
+        layout,
+        exact=exact,
+        hessian=hessian,
+        verbose=verbose,
+        datum_mode=datum_mode,
+        instrument=ins,
+        solver=solver,
+    )
     pr = ider.problem
     weights = 1.0 / sigma
     x0 = pr.pack_x(np.zeros(em.n_params), st0)
     user_fixed = ider.station_fixed(st_fixed)
     if isinstance(strat, PhasedStrategy) and strat.hold_stations and not st_fixed.all():
         user_fixed[ider.is_station] = True
-        notes.append(f"{strat.name}: stations held at their start values "
-                     "(given table or analytical solution)")
+        notes.append(
+            f"{strat.name}: stations held at their start values "
+            "(given table or analytical solution)"
+        )
 
     rejected = np.zeros(len(meas), bool)
     for round_ in range(12 if robust else 1):
         p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
         x, outcomes, fixed, ident = ider.run(strat, x0, p, user_fixed=user_fixed)
-        r = pr.residual(pr.to_scaled(x), pr.pack_data(
-            meas.q_internal, meas.tool, meas.length, weights)).full().ravel()
+        r = (
+            pr.residual(
+                pr.to_scaled(x), pr.pack_data(meas.q_internal, meas.tool, meas.length, weights)
+            )
+            .full()
+            .ravel()
+        )
         if not robust:
             break
         # data snooping with re-admission: a blunder spreads into its neighbours' residuals
@@ -674,13 +817,19 @@ def _identify(model: str | Path | MachineSpec | Machine,
         if not new.any() and not back.any():
             break
         rejected = (rejected | new) & ~back
-        log.info("robust round %d: rejected %d, re-admitted %d readings", round_ + 1,
-                 int(new.sum()), int(back.sum()))
+        log.info(
+            "robust round %d: rejected %d, re-admitted %d readings",
+            round_ + 1,
+            int(new.sum()),
+            int(back.sum()),
+        )
 
     for o in outcomes:
         if not o.success:
-            raise SolverError(f"identification ({strategy}) did not converge after "
-                              f"{o.iterations} iterations", status=o.status)
+            raise SolverError(
+                f"identification ({strategy}) did not converge after {o.iterations} iterations",
+                status=o.status,
+            )
 
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
     cov = ider.covariance(x, p, fixed)
@@ -699,8 +848,9 @@ def _identify(model: str | Path | MachineSpec | Machine,
     base_fixed = fixed.copy()
     base_fixed[list(ident.pivots)] = False
     _, first = layout.poses  # one reading of every distinct pose
-    null_field, sets = ider.field_null_space(x, p, base_fixed, meas.q_internal[first],
-                                             meas.tool[first])
+    null_field, sets = ider.field_null_space(
+        x, p, base_fixed, meas.q_internal[first], meas.tool[first]
+    )
     split_gauge(ident, nt, sets, pr.scale[:nt])
     # a parameter taking part in an unidentifiable direction has no value of its own: its
     # value depends on which variable was held (reported), so it gets no uncertainty
@@ -708,10 +858,12 @@ def _identify(model: str | Path | MachineSpec | Machine,
     datum_table = condition_table(pr.conditions, pr.datum_active, theta)
     n_not = int((~datum_table["imposed"]).sum())
     if n_not:
-        notes.append(f"datum `{em.datum}`: {int(datum_table['imposed'].sum())} of "
-                     f"{len(datum_table)} conditions imposed; the other {n_not} would have "
-                     "constrained what the data determine and take the values the data give "
-                     "(datum.csv)")
+        notes.append(
+            f"datum `{em.datum}`: {int(datum_table['imposed'].sum())} of "
+            f"{len(datum_table)} conditions imposed; the other {n_not} would have "
+            "constrained what the data determine and take the values the data give "
+            "(datum.csv)"
+        )
     nps = ins.n_station_params
     var_st = np.abs(np.diag(cov)[ider.is_station]).reshape(-1, max(nps, 1))
     stations_out = pd.DataFrame({"station": meas.station_ids})
@@ -720,7 +872,7 @@ def _identify(model: str | Path | MachineSpec | Machine,
     for j, name in enumerate(ins.station_param_names):
         unit = ins.station_param_units[j]
         f, rep = (1e3, "um") if unit == "mm" else ((1e6, "urad") if unit == "rad" else (1.0, ""))
-        base = name[:-len(unit) - 1] if name.endswith("_" + unit) else name
+        base = name[: -len(unit) - 1] if name.endswith("_" + unit) else name
         col = f"std_{base}_{rep}" if rep else f"std_{base}"
         stations_out[col] = np.sqrt(var_st[:, j]) * f
     stations_out["fixed"] = True if getattr(strat, "hold_stations", False) else st_fixed
@@ -729,14 +881,40 @@ def _identify(model: str | Path | MachineSpec | Machine,
     residuals["normalised_residual"] = resid_w
     residuals["rejected"] = rejected
     rej = residuals.loc[rejected].assign(row=meas.rows[rejected])
-    conditions = {**ider.phase_conditions,
-                  "jacobian_scaled": ident.condition,
-                  "jacobian_unscaled": ident.condition_unscaled,
-                  "chi2_per_dof": chi2}
-    state = SolverState(np.array(x, float), fixed.copy(),
-                        np.where(rejected, 0.0, weights), pr.datum_active.copy(),
-                        list(pr.names), ider.solver_name, ins.name, pr.fingerprint())
-    return IdentificationResult(machine, em, strategy, theta, cov_theta, identifiable,
-                                stations_out, frame, residuals, ident, outcomes, conditions,
-                                rej, time.perf_counter() - t_start, sigma_source, notes,
-                                datum_table, null_field, state)
+    conditions = {
+        **ider.phase_conditions,
+        "jacobian_scaled": ident.condition,
+        "jacobian_unscaled": ident.condition_unscaled,
+        "chi2_per_dof": chi2,
+    }
+    state = SolverState(
+        np.array(x, float),
+        fixed.copy(),
+        np.where(rejected, 0.0, weights),
+        pr.datum_active.copy(),
+        list(pr.names),
+        ider.solver_name,
+        ins.name,
+        pr.fingerprint(),
+    )
+    return IdentificationResult(
+        machine,
+        em,
+        strategy,
+        theta,
+        cov_theta,
+        identifiable,
+        stations_out,
+        frame,
+        residuals,
+        ident,
+        outcomes,
+        conditions,
+        rej,
+        time.perf_counter() - t_start,
+        sigma_source,
+        notes,
+        datum_table,
+        null_field,
+        state,
+    )

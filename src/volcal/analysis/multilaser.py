@@ -103,6 +103,7 @@ difference in percentage from initial optimization values and the actual point's
 the start values of x1 x2 y2 and the offsets are scaled by a too (another reading of the
 column); the points-only strategy always fixes the instrument at its analytic values.
 """
+
 from __future__ import annotations
 
 import math
@@ -120,12 +121,33 @@ from volcal.measurement.instruments.multilaser import FRAME_NAMES, MultiLaserIns
 from volcal.measurement.multilateration import multilaterate
 
 __all__ = [
-    "LASERS", "FRAME_NAMES", "GEOMETRY_NAMES", "OFFSET_NAMES", "STRATEGIES",
-    "rotation_matrix", "laser_origins", "geometry_from_distances", "distances_from_geometry",
-    "MultiLaserInstrument", "HPTI", "NoiseModel", "Experiment", "HPTIData", "paper_mesh",
-    "section5_experiment", "simulate", "HPTIEstimator", "JacobianReport", "Estimate",
-    "trial_rng", "StudyRunner", "limit_blas_threads", "Case", "cases_from_config",
-    "experiment_from_config", "noise_from_config",
+    "LASERS",
+    "FRAME_NAMES",
+    "GEOMETRY_NAMES",
+    "OFFSET_NAMES",
+    "STRATEGIES",
+    "rotation_matrix",
+    "laser_origins",
+    "geometry_from_distances",
+    "distances_from_geometry",
+    "MultiLaserInstrument",
+    "HPTI",
+    "NoiseModel",
+    "Experiment",
+    "HPTIData",
+    "paper_mesh",
+    "section5_experiment",
+    "simulate",
+    "HPTIEstimator",
+    "JacobianReport",
+    "Estimate",
+    "trial_rng",
+    "StudyRunner",
+    "limit_blas_threads",
+    "Case",
+    "cases_from_config",
+    "experiment_from_config",
+    "noise_from_config",
 ]
 
 LASERS = ("laser1", "laser2", "laser3")
@@ -142,8 +164,14 @@ GROUPS = ("points", "frame", "geometry", "offsets")
 def rotation_matrix(r: Sequence[float]) -> np.ndarray:
     """R = Rz(rz) Ry(ry) Rx(rx) for r = (rx, ry, rz) in rad (numpy)."""
     rx, ry, rz = (float(v) for v in r)
-    cx, sx, cy, sy, cz, sz = (math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry),
-                              math.cos(rz), math.sin(rz))
+    cx, sx, cy, sy, cz, sz = (
+        math.cos(rx),
+        math.sin(rx),
+        math.cos(ry),
+        math.sin(ry),
+        math.cos(rz),
+        math.sin(rz),
+    )
     Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
     Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
     Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
@@ -168,16 +196,19 @@ def geometry_from_distances(d12: float, d13: float, d23: float) -> np.ndarray:
     x2 = (d12 * d12 + d13 * d13 - d23 * d23) / (2.0 * d12)
     yy = d13 * d13 - x2 * x2
     if yy <= 0:
-        raise ValueError(f"the distances d12={d12:g}, d13={d13:g}, d23={d23:g} mm do not form "
-                         "a triangle (laser 3 would lie on the x axis or off it)")
+        raise ValueError(
+            f"the distances d12={d12:g}, d13={d13:g}, d23={d23:g} mm do not form "
+            "a triangle (laser 3 would lie on the x axis or off it)"
+        )
     return np.array([d12, x2, math.sqrt(yy)])
 
 
 def distances_from_geometry(geometry: Sequence[float]) -> np.ndarray:
     """(d12, d13, d23) in mm of the laser origins of (x1, x2, y2)."""
     Q = laser_origins(geometry)
-    return np.array([np.linalg.norm(Q[1] - Q[0]), np.linalg.norm(Q[2] - Q[0]),
-                     np.linalg.norm(Q[2] - Q[1])])
+    return np.array(
+        [np.linalg.norm(Q[1] - Q[0]), np.linalg.norm(Q[2] - Q[0]), np.linalg.norm(Q[2] - Q[1])]
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -224,8 +255,10 @@ class HPTI:
     def lengths(self, points_machine: np.ndarray) -> np.ndarray:
         """(N, 3) noise-free readings (mm) of the three lasers."""
         PI = self.to_instrument(points_machine)
-        return (np.linalg.norm(PI[:, None, :] - self.origins[None], axis=-1)
-                - np.asarray(self.offsets)[None, :])
+        return (
+            np.linalg.norm(PI[:, None, :] - self.origins[None], axis=-1)
+            - np.asarray(self.offsets)[None, :]
+        )
 
 
 @dataclass(frozen=True)
@@ -250,8 +283,7 @@ class NoiseModel:
 
     def __post_init__(self) -> None:
         if self.drift_mode not in ("common", "per_laser"):
-            raise ValueError("drift_mode must be 'common' or 'per_laser', got "
-                             f"{self.drift_mode!r}")
+            raise ValueError(f"drift_mode must be 'common' or 'per_laser', got {self.drift_mode!r}")
         if self.dwell_s <= 0 or self.length_sigma_mm < 0 or self.offset_sigma_mm < 0:
             raise ValueError("dwell_s must be > 0 s; sigmas must be >= 0 mm")
 
@@ -328,14 +360,22 @@ class HPTIData:
 
         N = self.n_points
         P = np.repeat(self.points_nominal, 3, axis=0)
-        return pd.DataFrame({
-            "station": np.tile(LASERS, N), "point": np.repeat(np.arange(N), 3),
-            "X": P[:, 0], "Y": P[:, 1], "Z": P[:, 2], "length": self.lengths.ravel(),
-            "time": np.repeat(self.times, 3)})
+        return pd.DataFrame(
+            {
+                "station": np.tile(LASERS, N),
+                "point": np.repeat(np.arange(N), 3),
+                "X": P[:, 0],
+                "Y": P[:, 1],
+                "Z": P[:, 2],
+                "length": self.lengths.ravel(),
+                "time": np.repeat(self.times, 3),
+            }
+        )
 
 
-def paper_mesh(x=(0.0, 1000.0, 250.0), y=(0.0, 600.0, 200.0), z=(300.0, 600.0, 150.0)
-               ) -> np.ndarray:
+def paper_mesh(
+    x=(0.0, 1000.0, 250.0), y=(0.0, 600.0, 200.0), z=(300.0, 600.0, 150.0)
+) -> np.ndarray:
     """Regular mesh (start, stop, step) per axis, mm, x varying slowest.
 
     Paper sec. 5: 0 <= x <= 1000 step 250, 0 <= y <= 600 step 200, 300 <= z <= 600 "with
@@ -347,19 +387,34 @@ def paper_mesh(x=(0.0, 1000.0, 250.0), y=(0.0, 600.0, 200.0), z=(300.0, 600.0, 1
     return np.c_[g[0].ravel(), g[1].ravel(), g[2].ravel()]
 
 
-def section5_experiment(*, d12: float = 1000.0, d13: float = 1166.1904, d23: float = 600.0,
-                        offsets: Sequence[float] = (100.0, 100.0, 100.0),
-                        frame: Sequence[float] = (0.0,) * 6, noise: NoiseModel | None = None,
-                        mesh: np.ndarray | None = None, point_sigma_mm: float = 0.0
-                        ) -> Experiment:
+def section5_experiment(
+    *,
+    d12: float = 1000.0,
+    d13: float = 1166.1904,
+    d23: float = 600.0,
+    offsets: Sequence[float] = (100.0, 100.0, 100.0),
+    frame: Sequence[float] = (0.0,) * 6,
+    noise: NoiseModel | None = None,
+    mesh: np.ndarray | None = None,
+    point_sigma_mm: float = 0.0,
+) -> Experiment:
     """Paper 001 section 5: 60-point mesh, d12 = 1000, d13 = 1166.1904, d23 = 600 mm
     (x1 = 1000, x2 = 1000, y2 = 600 mm), tests in the ICRS (frame = identity).  The paper
     gives no offset values; 100 mm per laser is an assumption (it matters only when the
     offsets are estimated)."""
-    inst = HPTI.from_distances(d12, d13, d23, offsets=tuple(float(o) for o in offsets),
-                               frame=tuple(float(f) for f in frame))
-    return Experiment(paper_mesh() if mesh is None else np.asarray(mesh, float), inst,
-                      NoiseModel() if noise is None else noise, float(point_sigma_mm))
+    inst = HPTI.from_distances(
+        d12,
+        d13,
+        d23,
+        offsets=tuple(float(o) for o in offsets),
+        frame=tuple(float(f) for f in frame),
+    )
+    return Experiment(
+        paper_mesh() if mesh is None else np.asarray(mesh, float),
+        inst,
+        NoiseModel() if noise is None else noise,
+        float(point_sigma_mm),
+    )
 
 
 def simulate(exp: Experiment, rng: np.random.Generator | int) -> HPTIData:
@@ -399,8 +454,7 @@ def simulate(exp: Experiment, rng: np.random.Generator | int) -> HPTIData:
     off_err = g.normal(0.0, 1.0, 3) * nz.offset_sigma_mm
     L = exp.instrument.lengths(Pt) + f_points + white[:N]
     d = distances_from_geometry(exp.instrument.geometry) + f_dist + white[N]
-    return HPTIData(L, t_p, d, np.asarray(exp.instrument.offsets) + off_err, Pn, Pt,
-                    exp.instrument)
+    return HPTIData(L, t_p, d, np.asarray(exp.instrument.offsets) + off_err, Pn, Pt, exp.instrument)
 
 
 # --------------------------------------------------------------------------------------
@@ -442,12 +496,20 @@ class JacobianReport:
         return self.unknowns - self.rank
 
     def as_dict(self) -> dict:
-        return {"step": self.step, "unknowns": self.unknowns, "readings": self.readings,
-                "rank": self.rank, "redundancy": self.redundancy, "null": self.null,
-                "condition": self.condition, "gauge": "; ".join(self.gauge),
-                "gauge_fixed": ", ".join(self.gauge_fixed),
-                "unidentifiable": ", ".join(self.unidentifiable_leads),
-                "fixed_unidentifiable": self.fixed_unidentifiable, "damping": self.damping}
+        return {
+            "step": self.step,
+            "unknowns": self.unknowns,
+            "readings": self.readings,
+            "rank": self.rank,
+            "redundancy": self.redundancy,
+            "null": self.null,
+            "condition": self.condition,
+            "gauge": "; ".join(self.gauge),
+            "gauge_fixed": ", ".join(self.gauge_fixed),
+            "unidentifiable": ", ".join(self.unidentifiable_leads),
+            "fixed_unidentifiable": self.fixed_unidentifiable,
+            "damping": self.damping,
+        }
 
 
 @dataclass
@@ -482,31 +544,48 @@ class HPTIEstimator:
     except for rank-deficient steps, see :meth:`_step`).
     """
 
-    def __init__(self, n_points: int, *, tol: float = 1e-10, max_iter: int = 200,
-                 verbose: bool = False, ipopt_options: dict | None = None):
+    def __init__(
+        self,
+        n_points: int,
+        *,
+        tol: float = 1e-10,
+        max_iter: int = 200,
+        verbose: bool = False,
+        ipopt_options: dict | None = None,
+    ):
         N = int(n_points)
         self.n_points = N
         self.n_readings = 3 * N
-        self.names = [f"P{p}.{c}_mm" for p in range(N) for c in "xyz"] + list(FRAME_NAMES) \
-            + list(GEOMETRY_NAMES) + list(OFFSET_NAMES)
+        self.names = (
+            [f"P{p}.{c}_mm" for p in range(N) for c in "xyz"]
+            + list(FRAME_NAMES)
+            + list(GEOMETRY_NAMES)
+            + list(OFFSET_NAMES)
+        )
         n = self.n_x = 3 * N + 12
-        self.slices = {"points": slice(0, 3 * N), "frame": slice(3 * N, 3 * N + 6),
-                       "geometry": slice(3 * N + 6, 3 * N + 9),
-                       "offsets": slice(3 * N + 9, 3 * N + 12)}
+        self.slices = {
+            "points": slice(0, 3 * N),
+            "frame": slice(3 * N, 3 * N + 6),
+            "geometry": slice(3 * N + 6, 3 * N + 9),
+            "offsets": slice(3 * N + 9, 3 * N + 12),
+        }
         self.scale = np.full(n, 1e-3)
-        self.scale[3 * N + 3:3 * N + 6] = 1e-6
+        self.scale[3 * N + 3 : 3 * N + 6] = 1e-6
         self.instrument = MultiLaserInstrument()
 
         # one point: three simultaneous readings, one SX expression per reading
         P, fr = ca.SX.sym("P", 3), ca.SX.sym("frame", 6)
         ge, of = ca.SX.sym("geometry", 3), ca.SX.sym("offsets", 3)
-        Q: list[Any] = [ca.vertcat(0, 0, 0), ca.vertcat(ge[0], 0, 0),
-                        ca.vertcat(ge[1], ge[2], 0)]
-        m = ca.vertcat(*[self.instrument.reading(P, ca.vertcat(Q[i], of[i]), fr)
-                         for i in range(3)])
-        self.point_function = ca.Function("hpti_point", [P, fr, ge, of], [m],
-                                          ["P_machine", "frame", "geometry", "offsets"],
-                                          ["lengths"], {"cse": True})
+        Q: list[Any] = [ca.vertcat(0, 0, 0), ca.vertcat(ge[0], 0, 0), ca.vertcat(ge[1], ge[2], 0)]
+        m = ca.vertcat(*[self.instrument.reading(P, ca.vertcat(Q[i], of[i]), fr) for i in range(3)])
+        self.point_function = ca.Function(
+            "hpti_point",
+            [P, fr, ge, of],
+            [m],
+            ["P_machine", "frame", "geometry", "offsets"],
+            ["lengths"],
+            {"cse": True},
+        )
 
         xs = ca.MX.sym("x", n)
         ref, sc = ca.MX.sym("ref", n), ca.MX.sym("scale", n)
@@ -514,27 +593,41 @@ class HPTIEstimator:
         mu = ca.MX.sym("damping")
         p = ca.vertcat(ref, sc, meas, w, mu)
         xp = ref + xs * sc
-        Pm = ca.reshape(xp[:3 * N], 3, N)
-        vals = self.point_function.map(N)(Pm, xp[3 * N:3 * N + 6], xp[3 * N + 6:3 * N + 9],
-                                          xp[3 * N + 9:])
+        Pm = ca.reshape(xp[: 3 * N], 3, N)
+        vals = self.point_function.map(N)(
+            Pm, xp[3 * N : 3 * N + 6], xp[3 * N + 6 : 3 * N + 9], xp[3 * N + 9 :]
+        )
         r = w * (ca.vec(vals) - meas)
         J = ca.jacobian(r, xs)
         # built in MX with map, then expanded to SX: for a few hundred variables the SX
         # evaluation is several times faster than the MX graph
-        self.residual_jacobian = ca.Function("hpti_rJ", [xs, p], [r, J], ["x", "p"],
-                                             ["r", "J"]).expand()
+        self.residual_jacobian = ca.Function(
+            "hpti_rJ", [xs, p], [r, J], ["x", "p"], ["r", "J"]
+        ).expand()
         lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", 0)
         H = lam_f * (ca.mtimes(J.T, J) + mu * ca.MX.eye(n))
-        hess = ca.Function("nlp_hess_l", [xs, p, lam_f, lam_g], [ca.triu(H)],
-                           ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"]).expand()
-        opts = {"expand": True, "ipopt.print_level": 5 if verbose else 0, "print_time": False,
-                "ipopt.sb": "yes", "ipopt.tol": tol, "ipopt.max_iter": max_iter,
-                "ipopt.acceptable_tol": 1e-8, "ipopt.acceptable_iter": 3,
-                "ipopt.nlp_scaling_method": "none", "error_on_fail": False,
-                "hess_lag": hess}
+        hess = ca.Function(
+            "nlp_hess_l",
+            [xs, p, lam_f, lam_g],
+            [ca.triu(H)],
+            ["x", "p", "lam_f", "lam_g"],
+            ["triu_hess_gamma_x_x"],
+        ).expand()
+        opts = {
+            "expand": True,
+            "ipopt.print_level": 5 if verbose else 0,
+            "print_time": False,
+            "ipopt.sb": "yes",
+            "ipopt.tol": tol,
+            "ipopt.max_iter": max_iter,
+            "ipopt.acceptable_tol": 1e-8,
+            "ipopt.acceptable_iter": 3,
+            "ipopt.nlp_scaling_method": "none",
+            "error_on_fail": False,
+            "hess_lag": hess,
+        }
         opts.update({f"ipopt.{k}": v for k, v in (ipopt_options or {}).items()})
-        self.solver = ca.nlpsol("hpti", "ipopt", {"x": xs, "p": p, "f": 0.5 * ca.sumsqr(r)},
-                                opts)
+        self.solver = ca.nlpsol("hpti", "ipopt", {"x": xs, "p": p, "f": 0.5 * ca.sumsqr(r)}, opts)
         self._gauge_cache: dict = {}
 
     # ---- helpers -----------------------------------------------------------------------
@@ -551,12 +644,17 @@ class HPTIEstimator:
 
     def unpack(self, x: np.ndarray) -> tuple[np.ndarray, HPTI]:
         x = np.asarray(x, float).ravel()
-        return x[:3 * self.n_points].reshape(-1, 3), HPTI.from_vector(x[3 * self.n_points:])
+        return x[: 3 * self.n_points].reshape(-1, 3), HPTI.from_vector(x[3 * self.n_points :])
 
     def _p(self, ref, lengths, weights, scale=None, damping=0.0):
         sc = self.scale if scale is None else np.asarray(scale, float)
-        return np.r_[ref, sc, np.asarray(lengths, float).ravel(),
-                     np.asarray(weights, float).ravel(), float(damping)]
+        return np.r_[
+            ref,
+            sc,
+            np.asarray(lengths, float).ravel(),
+            np.asarray(weights, float).ravel(),
+            float(damping),
+        ]
 
     def jacobian(self, x: np.ndarray, lengths: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """Whitened Jacobian (3N, n_x) w.r.t. the unit-scaled variables (1 um, 1 urad) at x
@@ -572,8 +670,9 @@ class HPTIEstimator:
         return self.scale / np.where(norms > 0, norms, 1.0)
 
     # ---- rank analysis and gauge -------------------------------------------------------
-    def analyse(self, x: np.ndarray, lengths, weights, free: np.ndarray, step: str = ""
-                ) -> tuple[np.ndarray, JacobianReport]:
+    def analyse(
+        self, x: np.ndarray, lengths, weights, free: np.ndarray, step: str = ""
+    ) -> tuple[np.ndarray, JacobianReport]:
         """Detect and fix gauge freedoms among the free variables, then analyse the rest.
 
         Gauge = null directions of the Jacobian over the free point and frame columns (the
@@ -593,16 +692,32 @@ class HPTIEstimator:
             for pv in g.pivots:
                 free[pv] = False
                 fixed_names.append(self.names[pv])
-        a = analyse_jacobian(J, self.names, fixed=~free,
-                             prefer=self.mask("geometry", "offsets").astype(float))
-        rep = JacobianReport(step, int(free.sum()), int(J.shape[0]), int(a.rank),
-                             float(a.condition), gauge, fixed_names, list(a.combinations),
-                             [int(i) for i in a.pivots])
+        a = analyse_jacobian(
+            J, self.names, fixed=~free, prefer=self.mask("geometry", "offsets").astype(float)
+        )
+        rep = JacobianReport(
+            step,
+            int(free.sum()),
+            int(J.shape[0]),
+            int(a.rank),
+            float(a.condition),
+            gauge,
+            fixed_names,
+            list(a.combinations),
+            [int(i) for i in a.pivots],
+        )
         return free, rep
 
     # ---- solves ------------------------------------------------------------------------
-    def solve(self, x_ref: np.ndarray, lengths, weights, free: np.ndarray, scale=None,
-              damping: float = 0.0):
+    def solve(
+        self,
+        x_ref: np.ndarray,
+        lengths,
+        weights,
+        free: np.ndarray,
+        scale=None,
+        damping: float = 0.0,
+    ):
         """IPOPT from x_ref (physical) with the free variables; returns (x, status, ok,
         iterations, seconds).  scale: physical units per scaled unit (default 1 um /
         1 urad)."""
@@ -611,8 +726,9 @@ class HPTIEstimator:
         lb, ub = np.full(n, -np.inf), np.full(n, np.inf)
         lb[~free] = ub[~free] = 0.0
         t0 = time.perf_counter()
-        sol = self.solver(x0=np.zeros(n), p=self._p(x_ref, lengths, weights, sc, damping),
-                          lbx=lb, ubx=ub)
+        sol = self.solver(
+            x0=np.zeros(n), p=self._p(x_ref, lengths, weights, sc, damping), lbx=lb, ubx=ub
+        )
         dt = time.perf_counter() - t0
         st = self.solver.stats()
         status = str(st.get("return_status", "unknown"))
@@ -620,8 +736,18 @@ class HPTIEstimator:
         ok = status in _OK and bool(np.all(np.isfinite(x)))
         return x, status, ok, int(st.get("iter_count", -1)), dt
 
-    def _step(self, step, x_ref, lengths, weights, free, cache_key, scaling="units",
-              fix_unidentifiable=False, damping_rel=1e-5):
+    def _step(
+        self,
+        step,
+        x_ref,
+        lengths,
+        weights,
+        free,
+        cache_key,
+        scaling="units",
+        fix_unidentifiable=False,
+        damping_rel=1e-5,
+    ):
         """Gauge detection and rank analysis (cached per key: they depend on the layout and
         the free set, not on the noise), then the solve.
 
@@ -658,9 +784,14 @@ class HPTIEstimator:
             return self.jacobi_scale(x, lengths, weights)
         raise ValueError(f"scaling must be 'units' or 'jacobian', got {scaling!r}")
 
-    def start_values(self, data: HPTIData, accuracy: float = 1.0, *,
-                     scale_instrument: bool = False, frame0: Sequence[float] | None = None
-                     ) -> np.ndarray:
+    def start_values(
+        self,
+        data: HPTIData,
+        accuracy: float = 1.0,
+        *,
+        scale_instrument: bool = False,
+        frame0: Sequence[float] | None = None,
+    ) -> np.ndarray:
         """Start values: points a * nominal (machine frame), x1 x2 y2 analytic from the
         measured distances and the characterised offsets (both times a when
         ``scale_instrument``), the frame at ``frame0`` (default identity)."""
@@ -672,14 +803,23 @@ class HPTIEstimator:
         inst = HPTI(tuple(geom), tuple(off), tuple(frame0) if frame0 is not None else (0.0,) * 6)
         return self.pack(a * np.asarray(data.points_nominal, float), inst)
 
-    def estimate(self, data: HPTIData, strategy: str, accuracy: float = 1.0, *,
-                 scale_instrument: bool = False, weights: np.ndarray | None = None,
-                 phase1: Sequence[str] = ("frame", "geometry", "offsets"),
-                 calibration_points: Sequence[int] | None = None,
-                 joint_groups: Sequence[str] = ("points", "frame", "geometry", "offsets"),
-                 fix_unidentifiable: bool = False, scaling: str = "units",
-                 damping_rel: float = 1e-5, start: np.ndarray | None = None,
-                 cache_key=None) -> Estimate:
+    def estimate(
+        self,
+        data: HPTIData,
+        strategy: str,
+        accuracy: float = 1.0,
+        *,
+        scale_instrument: bool = False,
+        weights: np.ndarray | None = None,
+        phase1: Sequence[str] = ("frame", "geometry", "offsets"),
+        calibration_points: Sequence[int] | None = None,
+        joint_groups: Sequence[str] = ("points", "frame", "geometry", "offsets"),
+        fix_unidentifiable: bool = False,
+        scaling: str = "units",
+        damping_rel: float = 1e-5,
+        start: np.ndarray | None = None,
+        cache_key=None,
+    ) -> Estimate:
         """Estimate the points with one strategy (see the module docstring).
 
         weights: (N, 3) 1/sigma of the readings (default ones); phase1: variable groups of
@@ -696,25 +836,41 @@ class HPTIEstimator:
         cache_key: reuse the gauge detection of an earlier call with the same key (same
         layout, strategy, accuracy)."""
         if data.n_points != self.n_points:
-            raise ValueError(f"this estimator is built for {self.n_points} points, the data "
-                             f"have {data.n_points}")
+            raise ValueError(
+                f"this estimator is built for {self.n_points} points, the data have {data.n_points}"
+            )
         N = self.n_points
         L = np.asarray(data.lengths, float)
         W = np.ones((N, 3)) if weights is None else np.broadcast_to(weights, (N, 3)).astype(float)
         t0 = time.perf_counter()
         if strategy == "sphere":
             inst = HPTI(tuple(data.geometry_analytic), tuple(data.offsets_characterised))
-            ml = multilaterate(inst.origins, np.asarray(inst.offsets), L, method="sphere",
-                               side=np.array([0.0, 0.0, 1.0]), side_type="normal",
-                               max_residual_rms=None)
+            ml = multilaterate(
+                inst.origins,
+                np.asarray(inst.offsets),
+                L,
+                method="sphere",
+                side=np.array([0.0, 0.0, 1.0]),
+                side_type="normal",
+                max_residual_rms=None,
+            )
             PI = ml.points
-            return Estimate(strategy, PI, PI.copy(), inst, bool(np.all(ml.converged)),
-                            [ml.status], 0, time.perf_counter() - t0)
+            return Estimate(
+                strategy,
+                PI,
+                PI.copy(),
+                inst,
+                bool(np.all(ml.converged)),
+                [ml.status],
+                0,
+                time.perf_counter() - t0,
+            )
         x0 = self.start_values(data, accuracy, scale_instrument=scale_instrument)
         if start is not None:
             x0 = np.asarray(start, float).ravel().copy()
             if x0.shape != (self.n_x,):
                 raise ValueError(f"start must have {self.n_x} values, got {x0.shape}")
+
         def key(s):
             return None if cache_key is None else (cache_key, s)
 
@@ -723,8 +879,9 @@ class HPTIEstimator:
             if start is None:
                 x0 = self.start_values(data, accuracy, scale_instrument=False)
             free = self.mask("points", "frame")
-            x, st, ok, it, _, rep = self._step("points-only", x0, L, W, free, key("p"),
-                                               scaling, fix_unidentifiable, damping_rel)
+            x, st, ok, it, _, rep = self._step(
+                "points-only", x0, L, W, free, key("p"), scaling, fix_unidentifiable, damping_rel
+            )
             reports.append(rep)
             status.append(st)
             iters += it
@@ -735,24 +892,48 @@ class HPTIEstimator:
                 use = np.zeros(N, bool)
                 use[np.asarray(calibration_points, int)] = True
                 W1[~use] = 0.0
-            x1, st, ok, it, _, rep = self._step("two-phase: 1 instrument", x0, L, W1,
-                                                self.mask(*phase1), key("1"), scaling,
-                                                fix_unidentifiable, damping_rel)
+            x1, st, ok, it, _, rep = self._step(
+                "two-phase: 1 instrument",
+                x0,
+                L,
+                W1,
+                self.mask(*phase1),
+                key("1"),
+                scaling,
+                fix_unidentifiable,
+                damping_rel,
+            )
             reports.append(rep)
             status.append(st)
             iters += it
             ok_all &= ok
-            x, st, ok, it, _, rep = self._step("two-phase: 2 points", x1, L, W,
-                                               self.mask("points"), key("2"), scaling,
-                                               fix_unidentifiable, damping_rel)
+            x, st, ok, it, _, rep = self._step(
+                "two-phase: 2 points",
+                x1,
+                L,
+                W,
+                self.mask("points"),
+                key("2"),
+                scaling,
+                fix_unidentifiable,
+                damping_rel,
+            )
             reports.append(rep)
             status.append(st)
             iters += it
             ok_all &= ok
         elif strategy == "joint":
-            x, st, ok, it, _, rep = self._step("joint", x0, L, W, self.mask(*joint_groups),
-                                               key("j"), scaling, fix_unidentifiable,
-                                               damping_rel)
+            x, st, ok, it, _, rep = self._step(
+                "joint",
+                x0,
+                L,
+                W,
+                self.mask(*joint_groups),
+                key("j"),
+                scaling,
+                fix_unidentifiable,
+                damping_rel,
+            )
             reports.append(rep)
             status.append(st)
             iters += it
@@ -760,8 +941,17 @@ class HPTIEstimator:
         else:
             raise ValueError(f"unknown strategy {strategy!r}; strategies: {STRATEGIES}")
         PM, inst = self.unpack(x)
-        return Estimate(strategy, inst.to_instrument(PM), PM, inst, ok_all, status, iters,
-                        time.perf_counter() - t0, reports)
+        return Estimate(
+            strategy,
+            inst.to_instrument(PM),
+            PM,
+            inst,
+            ok_all,
+            status,
+            iters,
+            time.perf_counter() - t0,
+            reports,
+        )
 
 
 # --------------------------------------------------------------------------------------
@@ -773,8 +963,9 @@ def limit_blas_threads(n: int | dict = 1) -> dict:
     the previous state.  See :mod:`volcal.base.threads` for why."""
     from threadpoolctl import threadpool_info, threadpool_limits
 
-    before = {i["filepath"]: i["num_threads"] for i in threadpool_info()
-              if i.get("user_api") == "blas"}
+    before = {
+        i["filepath"]: i["num_threads"] for i in threadpool_info() if i.get("user_api") == "blas"
+    }
     if isinstance(n, dict):
         for path, k in n.items():
             threadpool_limits(limits={path: k})
@@ -802,11 +993,14 @@ def noise_from_config(d: dict) -> NoiseModel:
         drift = replace(PAPER001_DRIFT, random_phase=bool(d.get("random_phase", True)))
     elif name != "none":
         raise ValueError(f"drift must be 'paper001' or 'none', got {name!r}")
-    return NoiseModel(drift=drift, drift_mode=d.get("drift_mode", "common"),
-                      drift_on_readings=bool(d.get("drift_on_readings", True)),
-                      dwell_s=float(d.get("dwell_s", 10.0)),
-                      length_sigma_mm=1e-3 * float(d.get("length_sigma_um", 0.1)),
-                      offset_sigma_mm=1e-3 * float(d.get("offset_sigma_um", 0.0)))
+    return NoiseModel(
+        drift=drift,
+        drift_mode=d.get("drift_mode", "common"),
+        drift_on_readings=bool(d.get("drift_on_readings", True)),
+        dwell_s=float(d.get("dwell_s", 10.0)),
+        length_sigma_mm=1e-3 * float(d.get("length_sigma_um", 0.1)),
+        offset_sigma_mm=1e-3 * float(d.get("offset_sigma_um", 0.0)),
+    )
 
 
 def experiment_from_config(cfg: dict, scenario: str | None = None) -> Experiment:
@@ -819,22 +1013,37 @@ def experiment_from_config(cfg: dict, scenario: str | None = None) -> Experiment
     if scenario is not None and scenario not in scen:
         raise ValueError(f"unknown scenario {scenario!r}; scenarios: {list(scen)}")
     noise = noise_from_config(scen[scenario] if scenario is not None else {})
-    pts = paper_mesh(tuple(mesh.get("x_mm", (0, 1000, 250))),
-                     tuple(mesh.get("y_mm", (0, 600, 200))),
-                     tuple(mesh.get("z_mm", (300, 600, 150))))
-    frame = list(ins.get("frame_translation_mm", (0.0, 0.0, 0.0))) + \
-        list(ins.get("frame_rotation_rad", (0.0, 0.0, 0.0)))
+    pts = paper_mesh(
+        tuple(mesh.get("x_mm", (0, 1000, 250))),
+        tuple(mesh.get("y_mm", (0, 600, 200))),
+        tuple(mesh.get("z_mm", (300, 600, 150))),
+    )
+    frame = list(ins.get("frame_translation_mm", (0.0, 0.0, 0.0))) + list(
+        ins.get("frame_rotation_rad", (0.0, 0.0, 0.0))
+    )
     point_sigma = scen[scenario].get("point_sigma_um", 0.0) if scenario is not None else 0.0
-    return section5_experiment(d12=float(ins.get("d12_mm", 1000.0)),
-                               d13=float(ins.get("d13_mm", 1166.1904)),
-                               d23=float(ins.get("d23_mm", 600.0)),
-                               offsets=ins.get("offsets_mm", (100.0, 100.0, 100.0)),
-                               frame=frame, noise=noise, mesh=pts,
-                               point_sigma_mm=1e-3 * float(point_sigma))
+    return section5_experiment(
+        d12=float(ins.get("d12_mm", 1000.0)),
+        d13=float(ins.get("d13_mm", 1166.1904)),
+        d23=float(ins.get("d23_mm", 600.0)),
+        offsets=ins.get("offsets_mm", (100.0, 100.0, 100.0)),
+        frame=frame,
+        noise=noise,
+        mesh=pts,
+        point_sigma_mm=1e-3 * float(point_sigma),
+    )
 
 
-_CASE_KEYS = {"name", "strategy", "phase1", "groups", "scaling", "fix_unidentifiable",
-              "calibration_points", "note"}
+_CASE_KEYS = {
+    "name",
+    "strategy",
+    "phase1",
+    "groups",
+    "scaling",
+    "fix_unidentifiable",
+    "calibration_points",
+    "note",
+}
 
 
 @dataclass(frozen=True)
@@ -864,25 +1073,31 @@ def cases_from_config(cfg: dict) -> list[Case]:
     for d in raw:
         bad = sorted(set(d) - _CASE_KEYS)
         if bad:
-            raise ValueError(f"[[case]] {d.get('name')!r}: unknown key(s) {bad}; allowed "
-                             f"{sorted(_CASE_KEYS)}")
+            raise ValueError(
+                f"[[case]] {d.get('name')!r}: unknown key(s) {bad}; allowed {sorted(_CASE_KEYS)}"
+            )
         strat = d.get("strategy", d.get("name"))
         if strat not in STRATEGIES:
-            raise ValueError(f"[[case]] {d.get('name')!r}: unknown strategy {strat!r}; "
-                             f"strategies: {STRATEGIES}")
+            raise ValueError(
+                f"[[case]] {d.get('name')!r}: unknown strategy {strat!r}; strategies: {STRATEGIES}"
+            )
         for key in ("phase1", "groups"):
             for gname in d.get(key, ()):
                 if gname not in GROUPS:
-                    raise ValueError(f"[[case]] {d.get('name')!r}: {key} has unknown group "
-                                     f"{gname!r}; groups: {GROUPS}")
+                    raise ValueError(
+                        f"[[case]] {d.get('name')!r}: {key} has unknown group "
+                        f"{gname!r}; groups: {GROUPS}"
+                    )
         cal = d.get("calibration_points", "all")
-        kw: dict[str, Any] = dict(phase1=tuple(d.get("phase1", Case.phase1)),
-                  groups=tuple(d.get("groups", Case.groups)),
-                  scaling=str(d.get("scaling", "units")),
-                  fix_unidentifiable=bool(d.get("fix_unidentifiable", False)),
-                  calibration_points=None if cal == "all" else tuple(int(i) for i in cal))
+        kw: dict[str, Any] = dict(
+            phase1=tuple(d.get("phase1", Case.phase1)),
+            groups=tuple(d.get("groups", Case.groups)),
+            scaling=str(d.get("scaling", "units")),
+            fix_unidentifiable=bool(d.get("fix_unidentifiable", False)),
+            calibration_points=None if cal == "all" else tuple(int(i) for i in cal),
+        )
         name = str(d.get("name", strat))
-        for a in ([None] if strat == "sphere" else accs):
+        for a in [None] if strat == "sphere" else accs:
             out.append(Case(name, strat, a, **kw))
     return out
 
@@ -903,8 +1118,10 @@ class StudyRunner:
         self.experiment = experiment_from_config(cfg, scenario)
         applies = st.get("initial_accuracy_applies_to", "points")
         if applies not in ("points", "points+instrument"):
-            raise ValueError("initial_accuracy_applies_to must be 'points' or "
-                             f"'points+instrument', got {applies!r}")
+            raise ValueError(
+                "initial_accuracy_applies_to must be 'points' or "
+                f"'points+instrument', got {applies!r}"
+            )
         self.scale_instrument = applies == "points+instrument"
         self.cases = cases_from_config(cfg)
         if threads_one:
@@ -925,12 +1142,18 @@ class StudyRunner:
 
     def estimate(self, data: HPTIData, case: Case, *, cache: bool = True) -> Estimate:
         return self.estimator.estimate(
-            data, case.strategy, 1.0 if case.accuracy is None else case.accuracy,
+            data,
+            case.strategy,
+            1.0 if case.accuracy is None else case.accuracy,
             scale_instrument=self.scale_instrument,
             weights=np.full((data.n_points, 3), 1.0 / self.sigma),
-            phase1=case.phase1, calibration_points=case.calibration_points,
-            joint_groups=case.groups, fix_unidentifiable=case.fix_unidentifiable,
-            scaling=case.scaling, cache_key=(case.name, case.accuracy) if cache else None)
+            phase1=case.phase1,
+            calibration_points=case.calibration_points,
+            joint_groups=case.groups,
+            fix_unidentifiable=case.fix_unidentifiable,
+            scaling=case.scaling,
+            cache_key=(case.name, case.accuracy) if cache else None,
+        )
 
     def simulate(self, index: int) -> HPTIData:
         return simulate(self.experiment, trial_rng(self.seed, index))
@@ -948,8 +1171,13 @@ class StudyRunner:
             ok[c] = e.success
             it[c] = e.iterations
             geom[c] = e.instrument.geometry
-        return {"index": int(index), "errors_um": err, "success": ok, "iterations": it,
-                "geometry_mm": geom}
+        return {
+            "index": int(index),
+            "errors_um": err,
+            "success": ok,
+            "iterations": it,
+            "geometry_mm": geom,
+        }
 
     def jacobian_reports(self) -> list[tuple[Case, JacobianReport]]:
         """The rank analysis of every NLP step (and of the per-point system the sphere
@@ -962,8 +1190,9 @@ class StudyRunner:
                 est = self.estimator
                 x0 = est.start_values(data, 1.0)
                 W = np.full((data.n_points, 3), 1.0 / self.sigma)
-                _, rep = est.analyse(x0, data.lengths, W, est.mask("points"),
-                                     "sphere: points in the ICRS")
+                _, rep = est.analyse(
+                    x0, data.lengths, W, est.mask("points"), "sphere: points in the ICRS"
+                )
                 out.append((case, rep))
                 continue
             e = self.estimate(data, case, cache=False)

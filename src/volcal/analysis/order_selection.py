@@ -34,6 +34,7 @@ DataFrame with one row per candidate fit (``sweep, axis, kind, order, orders, n_
 criterion, value, chi2, k, n_readings, status, chosen``), written by
 :func:`volcal.outputs.results.save_result` as ``order_selection.csv`` and summarised in report.md.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -54,9 +55,11 @@ log = logging.getLogger(__name__)
 __all__ = ["select_orders", "CANDIDATES", "CRITERIA", "with_orders", "axis_orders"]
 
 #: candidate orders per basis kind (Legendre degree, Fourier harmonics, B-spline segments)
-CANDIDATES: dict[str, tuple[int, ...]] = {"poly": (1, 2, 3, 4, 5, 6),
-                                          "fourier": (1, 2, 3, 4, 5),
-                                          "bspline": (1, 2, 3, 4, 5, 6, 7, 8)}
+CANDIDATES: dict[str, tuple[int, ...]] = {
+    "poly": (1, 2, 3, 4, 5, 6),
+    "fourier": (1, 2, 3, 4, 5),
+    "bspline": (1, 2, 3, 4, 5, 6, 7, 8),
+}
 CRITERIA = ("bic", "cv")
 #: standard uncertainty (mm) that takes a held-out reading out of a cross-validation fit
 HELD_OUT_SIGMA_MM = 1e6
@@ -88,8 +91,11 @@ def axis_orders(em: ErrorModel) -> dict[str, tuple[str, int]]:
 def with_orders(em: ErrorModel, orders: Mapping[str, int]) -> ErrorModel:
     """``em`` with the component error motions of each axis in ``orders`` at that order
     (kinds kept; tables and constants untouched)."""
-    forms = {s.name: (_with_order(f, orders[s.axis]) if s.axis in orders else f)
-             for s, f in zip(em.errors, em.forms) if s.kind == "component"}
+    forms = {
+        s.name: (_with_order(f, orders[s.axis]) if s.axis in orders else f)
+        for s, f in zip(em.errors, em.forms)
+        if s.kind == "component"
+    }
     return ErrorModel(em.spec, forms, datum=em.datum)
 
 
@@ -112,12 +118,22 @@ def _label(orders: Mapping[str, int], kinds: Mapping[str, str]) -> str:
     return " ".join(f"{a}={kinds[a]}:{n}" for a, n in orders.items())
 
 
-def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: int = 5,
-                  candidates: Mapping[str, Iterable[int]] | None = None,
-                  error_model: ErrorModel | None = None,
-                  forms: Mapping[str, ErrorForm] | None = None, datum: Datum = "iso230",
-                  max_sweeps: int = 3, seed: int = 0, progress: bool = False,
-                  **identify_options: Any):
+def select_orders(
+    model,
+    data,
+    stations=None,
+    *,
+    criterion: str = "bic",
+    folds: int = 5,
+    candidates: Mapping[str, Iterable[int]] | None = None,
+    error_model: ErrorModel | None = None,
+    forms: Mapping[str, ErrorForm] | None = None,
+    datum: Datum = "iso230",
+    max_sweeps: int = 3,
+    seed: int = 0,
+    progress: bool = False,
+    **identify_options: Any,
+):
     """Identify with per-axis orders chosen by ``criterion`` (module docstring).
 
     model, data, stations: as :func:`volcal.analysis.identify.identify`; criterion: ``"bic"`` or
@@ -142,20 +158,29 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
 
     t0 = time.perf_counter()
     if criterion not in CRITERIA:
-        raise InputError(f"unknown order criterion {criterion!r}; expected one of "
-                         f"{list(CRITERIA)}", source="order_criterion")
+        raise InputError(
+            f"unknown order criterion {criterion!r}; expected one of {list(CRITERIA)}",
+            source="order_criterion",
+        )
     if isinstance(folds, bool) or not isinstance(folds, (int, np.integer)) or folds < 2:
-        raise InputError(f"expected at least 2 cross-validation folds, got {folds!r}",
-                         source="cv_folds")
+        raise InputError(
+            f"expected at least 2 cross-validation folds, got {folds!r}", source="cv_folds"
+        )
     identify_options.pop("degree", None)
     machine = model if isinstance(model, Machine) else Machine.from_model(model)
     spec = machine.spec
     st_table = None
     if stations is not None:
-        st_table = stations if isinstance(stations, pd.DataFrame) and "x_mm" in stations \
-            and "dead_length_given" in stations else load_stations(stations)
-    meas = data if isinstance(data, Measurements) else load_measurements(
-        data, spec, stations=st_table)
+        st_table = (
+            stations
+            if isinstance(stations, pd.DataFrame)
+            and "x_mm" in stations
+            and "dead_length_given" in stations
+            else load_stations(stations)
+        )
+    meas = (
+        data if isinstance(data, Measurements) else load_measurements(data, spec, stations=st_table)
+    )
     em0 = error_model or build_error_model(spec, degree=3, datum=datum, forms=dict(forms or {}))
     cand = {**CANDIDATES, **{k: tuple(int(n) for n in v) for k, v in (candidates or {}).items()}}
     for kind, ns in cand.items():
@@ -169,8 +194,10 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
     for a, (kind, _) in start.items():
         ok = [n for n in sorted(set(cand[kind])) if _n_params(kind, n) <= n_pos[a]]
         options[a] = ok or [min(cand[kind])]
-    orders = {a: (n0 if n0 in options[a] else min(options[a], key=lambda n: abs(n - n0)))
-              for a, (_, n0) in start.items()}
+    orders = {
+        a: (n0 if n0 in options[a] else min(options[a], key=lambda n: abs(n - n0)))
+        for a, (_, n0) in start.items()
+    }
 
     # cross-validation: folds of poses and the standard uncertainty of every reading
     if criterion == "cv":
@@ -191,6 +218,7 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
     cache: dict[tuple, dict[str, Any]] = {}
     results: dict[tuple, Any] = {}
     from tqdm import tqdm
+
     bar = tqdm(desc="order selection", unit="fit", disable=not progress, leave=False)
 
     def fit(em: ErrorModel, m):
@@ -201,40 +229,61 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
         if key in cache:
             return cache[key]
         em = with_orders(em0, orders_)
-        row: dict[str, Any] = {"orders": _label(orders_, kinds), "n_params": em.n_params,
-                               "criterion": criterion}
+        row: dict[str, Any] = {
+            "orders": _label(orders_, kinds),
+            "n_params": em.n_params,
+            "criterion": criterion,
+        }
         try:
             if criterion == "bic":
                 res = fit(em, meas)
                 used = ~np.asarray(res.residuals["rejected"], bool)
                 r = res.residuals["normalised_residual"].to_numpy(float)[used]
-                chi2 = float(np.sum(r ** 2))
-                k = (res.identifiability.rank if res.identifiability is not None
-                     else int(np.sum(res.identifiable)))
+                chi2 = float(np.sum(r**2))
+                k = (
+                    res.identifiability.rank
+                    if res.identifiability is not None
+                    else int(np.sum(res.identifiable))
+                )
                 n = int(used.sum())
-                row.update(value=chi2 + k * math.log(n), chi2=chi2, k=k, n_readings=n,
-                           status=res.status)
+                row.update(
+                    value=chi2 + k * math.log(n), chi2=chi2, k=k, n_readings=n, status=res.status
+                )
                 results[key] = res
             else:
                 held_chi2, train_chi2, k, statuses = 0.0, 0.0, 0, []
                 for f in range(k_folds):
                     held = fold_of_reading == f
-                    m = dataclasses.replace(meas, sigma=np.where(held, HELD_OUT_SIGMA_MM,
-                                                                 meas.sigma))
+                    m = dataclasses.replace(
+                        meas, sigma=np.where(held, HELD_OUT_SIGMA_MM, meas.sigma)
+                    )
                     res = fit(em, m)
                     resid_mm = res.residuals["residual_um"].to_numpy(float) * 1e-3
                     used = ~np.asarray(res.residuals["rejected"], bool)
                     held_chi2 += float(np.sum((resid_mm[held] / sig[held]) ** 2))
-                    train_chi2 += float(np.sum((resid_mm[~held & used]
-                                                / sig[~held & used]) ** 2))
-                    k = max(k, res.identifiability.rank if res.identifiability is not None
-                            else int(np.sum(res.identifiable)))
+                    train_chi2 += float(np.sum((resid_mm[~held & used] / sig[~held & used]) ** 2))
+                    k = max(
+                        k,
+                        res.identifiability.rank
+                        if res.identifiability is not None
+                        else int(np.sum(res.identifiable)),
+                    )
                     statuses.append(res.status)
-                row.update(value=held_chi2, chi2=train_chi2, k=k, n_readings=len(meas),
-                           status="; ".join(dict.fromkeys(statuses)))
+                row.update(
+                    value=held_chi2,
+                    chi2=train_chi2,
+                    k=k,
+                    n_readings=len(meas),
+                    status="; ".join(dict.fromkeys(statuses)),
+                )
         except SolverError as exc:
-            row.update(value=math.inf, chi2=math.nan, k=0, n_readings=len(meas),
-                       status=f"failed: {exc.status or exc}")
+            row.update(
+                value=math.inf,
+                chi2=math.nan,
+                k=0,
+                n_readings=len(meas),
+                status=f"failed: {exc.status or exc}",
+            )
         log.info("order selection: %s -> %s %.6g", row["orders"], criterion, row["value"])
         bar.update(1)
         bar.set_postfix_str(row["orders"], refresh=False)
@@ -264,23 +313,41 @@ def select_orders(model, data, stations=None, *, criterion: str = "bic", folds: 
             break
     key = tuple(orders.values())
     if math.isinf(cache[key]["value"]):
-        raise SolverError("order selection: no candidate error model could be identified",
-                          status=cache[key]["status"])
+        raise SolverError(
+            "order selection: no candidate error model could be identified",
+            status=cache[key]["status"],
+        )
     chosen_label = _label(orders, kinds)
     res = results.get(key)
     if res is None:  # cv: the final fit on all readings
         res = fit(with_orders(em0, orders), meas)
-    table = pd.DataFrame(rows, columns=["sweep", "axis", "kind", "order", "orders", "n_params",
-                                        "criterion", "value", "chi2", "k", "n_readings",
-                                        "status"])
+    table = pd.DataFrame(
+        rows,
+        columns=[
+            "sweep",
+            "axis",
+            "kind",
+            "order",
+            "orders",
+            "n_params",
+            "criterion",
+            "value",
+            "chi2",
+            "k",
+            "n_readings",
+            "status",
+        ],
+    )
     table["chosen"] = table["orders"] == chosen_label
     res.order_selection = table
     bar.close()
     n_fits = len(cache) * (k_folds if criterion == "cv" else 1) + (criterion == "cv")
     what = "BIC (chi2 + k ln N)" if criterion == "bic" else f"{k_folds}-fold cross-validation"
-    res.notes.append(f"error-basis orders chosen per axis by {what}: "
-                     + ", ".join(f"{a} {kinds[a]} {n}" for a, n in orders.items())
-                     + f" ({len(cache)} candidates, {n_fits} fits, {sweeps} sweep(s); "
-                     "order_selection.csv)")
+    res.notes.append(
+        f"error-basis orders chosen per axis by {what}: "
+        + ", ".join(f"{a} {kinds[a]} {n}" for a, n in orders.items())
+        + f" ({len(cache)} candidates, {n_fits} fits, {sweeps} sweep(s); "
+        "order_selection.csv)"
+    )
     res.seconds = time.perf_counter() - t0
     return res

@@ -1,4 +1,5 @@
 """Exceptions shared by every part of volcal."""
+
 from __future__ import annotations
 
 
@@ -9,8 +10,14 @@ class InputError(ValueError):
     shows it, header = row 1), the column or key, and what was expected.
     """
 
-    def __init__(self, message: str, *, source: str | None = None, row: int | None = None,
-                 column: str | None = None):
+    def __init__(
+        self,
+        message: str,
+        *,
+        source: str | None = None,
+        row: int | None = None,
+        column: str | None = None,
+    ):
         where = []
         if source is not None:
             where.append(str(source))

@@ -20,6 +20,7 @@ through :func:`write_folder`:
 :func:`check_out_dir` runs the same checks up front: commands call it before any solving,
 so a bad output path costs no computing time.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -36,16 +37,23 @@ from pathlib import Path
 
 from volcal.base.exceptions import InputError
 
-__all__ = ["check_out_dir", "write_folder", "verify_manifest", "output_policy", "MANIFEST",
-           "folder_lock"]
+__all__ = [
+    "check_out_dir",
+    "write_folder",
+    "verify_manifest",
+    "output_policy",
+    "MANIFEST",
+    "folder_lock",
+]
 
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = "volcal-output-manifest"
 
 # None: Python API (an earlier output of the same kind is replaced); False: command line
 # without --force (refused); True: command line with --force (replaced)
-_FORCE: contextvars.ContextVar[bool | None] = contextvars.ContextVar("volcal_output_force",
-                                                                     default=None)
+_FORCE: contextvars.ContextVar[bool | None] = contextvars.ContextVar(
+    "volcal_output_force", default=None
+)
 
 
 @contextlib.contextmanager
@@ -75,8 +83,11 @@ def _read_manifest(folder: Path) -> dict | None:
         doc = json.loads(f.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return None
-    if not isinstance(doc, dict) or doc.get("format") != MANIFEST_FORMAT \
-            or not isinstance(doc.get("files"), dict):
+    if (
+        not isinstance(doc, dict)
+        or doc.get("format") != MANIFEST_FORMAT
+        or not isinstance(doc.get("files"), dict)
+    ):
         return None
     return doc
 
@@ -93,8 +104,9 @@ def verify_manifest(folder: str | Path, *, required: bool = False) -> None:
         return
     doc = _read_manifest(folder)
     if doc is None:
-        raise InputError(f"{MANIFEST} is unreadable or not a volcal manifest",
-                         source=str(folder / MANIFEST))
+        raise InputError(
+            f"{MANIFEST} is unreadable or not a volcal manifest", source=str(folder / MANIFEST)
+        )
     missing, changed = [], []
     for rel, digest in doc["files"].items():
         p = folder / rel
@@ -105,21 +117,34 @@ def verify_manifest(folder: str | Path, *, required: bool = False) -> None:
     if missing or changed:
         why = []
         if changed:
-            why.append(f"changed since volcal wrote it: {', '.join(changed[:5])}"
-                       f"{', ...' if len(changed) > 5 else ''}")
+            why.append(
+                f"changed since volcal wrote it: {', '.join(changed[:5])}"
+                f"{', ...' if len(changed) > 5 else ''}"
+            )
         if missing:
             why.append(f"missing: {', '.join(missing[:5])}{', ...' if len(missing) > 5 else ''}")
-        raise InputError(f"the folder does not match its {MANIFEST} ({'; '.join(why)}); "
-                         "it was edited or mixed with another run: write it again",
-                         source=str(folder))
+        raise InputError(
+            f"the folder does not match its {MANIFEST} ({'; '.join(why)}); "
+            "it was edited or mixed with another run: write it again",
+            source=str(folder),
+        )
 
 
 def _write_manifest(folder: Path, what: str) -> None:
     from volcal import __version__
-    files = {p.relative_to(folder).as_posix(): _sha256(p)
-             for p in sorted(folder.rglob("*")) if p.is_file() and p != folder / MANIFEST}
-    doc = {"format": MANIFEST_FORMAT, "format_version": 1, "what": what,
-           "volcal_version": __version__, "files": files}
+
+    files = {
+        p.relative_to(folder).as_posix(): _sha256(p)
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p != folder / MANIFEST
+    }
+    doc = {
+        "format": MANIFEST_FORMAT,
+        "format_version": 1,
+        "what": what,
+        "volcal_version": __version__,
+        "files": files,
+    }
     (folder / MANIFEST).write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
 
 
@@ -149,16 +174,26 @@ def _check_parents(out: Path) -> None:
     while not anc.exists() and anc != anc.parent:
         anc = anc.parent
     if anc.exists() and not anc.is_dir():
-        raise InputError(f"{anc} is a file, not a folder; cannot create the output folder "
-                         "there", source=str(out))
+        raise InputError(
+            f"{anc} is a file, not a folder; cannot create the output folder there", source=str(out)
+        )
     if not os.access(anc, os.W_OK | os.X_OK):
-        raise InputError(f"cannot write in {anc} (permission denied); choose another output "
-                         "folder", source=str(out))
+        raise InputError(
+            f"cannot write in {anc} (permission denied); choose another output folder",
+            source=str(out),
+        )
 
 
-def check_out_dir(out: str | Path, allowed: Iterable[str], what: str,
-                  marker: str | None = None, *, inputs: Iterable[str | Path | None] = (),
-                  allowed_dirs: Iterable[str] = (), force: bool | None = None) -> Path:
+def check_out_dir(
+    out: str | Path,
+    allowed: Iterable[str],
+    what: str,
+    marker: str | None = None,
+    *,
+    inputs: Iterable[str | Path | None] = (),
+    allowed_dirs: Iterable[str] = (),
+    force: bool | None = None,
+) -> Path:
     """Raise :class:`InputError` (naming ``out``) unless ``out`` can be written.
 
     ``out`` must be absent, an empty folder, or an earlier output of ``what``: its manifest
@@ -182,51 +217,72 @@ def check_out_dir(out: str | Path, allowed: Iterable[str], what: str,
             continue
         rp = Path(os.path.realpath(p))
         if _inside(rp, ro):
-            raise InputError(f"the input {p} is {'the' if rp == ro else 'inside the'} output "
-                             "folder, which is replaced; write the output elsewhere "
-                             "(inputs are never modified)", source=str(given))
+            raise InputError(
+                f"the input {p} is {'the' if rp == ro else 'inside the'} output "
+                "folder, which is replaced; write the output elsewhere "
+                "(inputs are never modified)",
+                source=str(given),
+            )
         if rp.is_dir() and _inside(ro, rp):
-            raise InputError(f"the output folder lies inside the input folder {p}; write it "
-                             "elsewhere (inputs are never modified)", source=str(given))
+            raise InputError(
+                f"the output folder lies inside the input folder {p}; write it "
+                "elsewhere (inputs are never modified)",
+                source=str(given),
+            )
     _check_parents(out)
     if out.exists() or out.is_symlink():
         if not out.is_dir():
-            raise InputError("exists and is not a folder; expected a folder for the results",
-                             source=str(given))
+            raise InputError(
+                "exists and is not a folder; expected a folder for the results", source=str(given)
+            )
         try:
             items = list(out.iterdir())
         except OSError as exc:
-            raise InputError(f"cannot read the folder: {exc.strerror or exc}",
-                             source=str(given)) from None
+            raise InputError(
+                f"cannot read the folder: {exc.strerror or exc}", source=str(given)
+            ) from None
         if not items:
             return given
         doc = _read_manifest(out)
         if doc is not None and doc.get("what") != what:
-            raise InputError(f"the folder holds the output of {doc.get('what')}, not of "
-                             f"{what}; choose a new or empty folder", source=str(given))
+            raise InputError(
+                f"the folder holds the output of {doc.get('what')}, not of "
+                f"{what}; choose a new or empty folder",
+                source=str(given),
+            )
         listed = {r.split("/")[0] for r in doc["files"]} if doc is not None else set()
-        other = sorted(p.name for p in items
-                       if not ((p.name in allowed and p.is_file())
-                               or (p.name in allowed_dirs and p.is_dir())
-                               or p.name in listed or p.name == MANIFEST))
+        other = sorted(
+            p.name
+            for p in items
+            if not (
+                (p.name in allowed and p.is_file())
+                or (p.name in allowed_dirs and p.is_dir())
+                or p.name in listed
+                or p.name == MANIFEST
+            )
+        )
         only_dirs = all(p.name in allowed_dirs for p in items)
-        if (doc is None and marker is not None and not (out / marker).is_file()
-                and not only_dirs):
+        if doc is None and marker is not None and not (out / marker).is_file() and not only_dirs:
             other = other or [f"(no {marker})"]
         if other:
-            raise InputError(f"the folder exists and holds other files, not results of "
-                             f"{what} ({', '.join(other[:5])}"
-                             f"{', ...' if len(other) > 5 else ''}); choose a new or "
-                             "empty folder", source=str(given))
+            raise InputError(
+                f"the folder exists and holds other files, not results of "
+                f"{what} ({', '.join(other[:5])}"
+                f"{', ...' if len(other) > 5 else ''}); choose a new or "
+                "empty folder",
+                source=str(given),
+            )
         if doc is None:
             if only_dirs:
                 return given  # an interrupted run: resumed, not replaced
         if force is False:
-            raise InputError(f"the folder holds an earlier output of {what}; pass --force to "
-                             "replace it, or choose a new folder", source=str(given))
+            raise InputError(
+                f"the folder holds an earlier output of {what}; pass --force to "
+                "replace it, or choose a new folder",
+                source=str(given),
+            )
         if not os.access(out.parent, os.W_OK | os.X_OK):
-            raise InputError(f"cannot replace it: {out.parent} is not writable",
-                             source=str(given))
+            raise InputError(f"cannot replace it: {out.parent} is not writable", source=str(given))
     return given
 
 
@@ -248,9 +304,11 @@ def folder_lock(out: str | Path) -> Iterator[None]:
         except OSError as exc:
             os.close(fd)
             if exc.errno in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-                raise InputError("another volcal process is writing this folder right now "
-                                 f"(lock {lock.name}); wait for it or choose another folder",
-                                 source=str(out)) from None
+                raise InputError(
+                    "another volcal process is writing this folder right now "
+                    f"(lock {lock.name}); wait for it or choose another folder",
+                    source=str(out),
+                ) from None
             raise
         # the previous holder may have removed the file between our open and lock
         try:
@@ -268,10 +326,17 @@ def folder_lock(out: str | Path) -> Iterator[None]:
         os.close(fd)
 
 
-def write_folder(out_dir: str | Path, allowed: Iterable[str], what: str,
-                 writer: Callable[[Path], None], *, marker: str | None = None,
-                 inputs: Iterable[str | Path | None] = (), allowed_dirs: Iterable[str] = (),
-                 force: bool | None = None) -> Path:
+def write_folder(
+    out_dir: str | Path,
+    allowed: Iterable[str],
+    what: str,
+    writer: Callable[[Path], None],
+    *,
+    marker: str | None = None,
+    inputs: Iterable[str | Path | None] = (),
+    allowed_dirs: Iterable[str] = (),
+    force: bool | None = None,
+) -> Path:
     """Call ``writer(tmp)`` to fill a temporary folder next to ``out_dir``, add the
     manifest and rename it to ``out_dir`` (checked by :func:`check_out_dir` first and again
     under the lock).  On any error, Ctrl-C or SIGTERM (turned into KeyboardInterrupt by the
@@ -279,13 +344,13 @@ def write_folder(out_dir: str | Path, allowed: Iterable[str], what: str,
     allowed = tuple(allowed) + (MANIFEST,)
     allowed_dirs, inputs = tuple(allowed_dirs), tuple(inputs)
     out = Path(out_dir).absolute()
-    check_out_dir(out, allowed, what, marker, inputs=inputs, allowed_dirs=allowed_dirs,
-                  force=force)
+    check_out_dir(out, allowed, what, marker, inputs=inputs, allowed_dirs=allowed_dirs, force=force)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise InputError(f"cannot create the output folder: {exc.strerror or exc}",
-                         source=str(out_dir)) from None
+        raise InputError(
+            f"cannot create the output folder: {exc.strerror or exc}", source=str(out_dir)
+        ) from None
     with folder_lock(out):
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
         try:
@@ -294,8 +359,15 @@ def write_folder(out_dir: str | Path, allowed: Iterable[str], what: str,
             _apply_umask(tmp)
             if out.exists():
                 # it may have changed meanwhile
-                check_out_dir(out, allowed, what, marker, inputs=inputs,
-                              allowed_dirs=allowed_dirs, force=force)
+                check_out_dir(
+                    out,
+                    allowed,
+                    what,
+                    marker,
+                    inputs=inputs,
+                    allowed_dirs=allowed_dirs,
+                    force=force,
+                )
                 old = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
                 os.rename(out, old)
                 try:

@@ -1,11 +1,13 @@
 """Small numerical kernels shared by the layers (numpy only)."""
+
 from __future__ import annotations
 
 import numpy as np
 
 
-def scale_columns(J: np.ndarray, fixed: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def scale_columns(
+    J: np.ndarray, fixed: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The free columns of J scaled to unit norm: (free indices, d, J[:, free] * d).
 
     Rank and null-space decisions are taken on the scaled matrix so that they do not depend

@@ -7,6 +7,7 @@ separate processes would fight over the cores anyway.  volcal therefore runs its
 with one BLAS thread: the command line for the whole process, the library inside
 :func:`blas_threads` blocks around its heavy work.  Implemented with ``threadpoolctl``.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator

@@ -4,6 +4,7 @@ Inside the code lengths are in mm and angles in rad (DESIGN.md). Reports, tables
 solver's scaled variables use um and urad: a unit step of a scaled variable is a typical
 uncertainty of the quantity, and a reported value reads in the units metrologists use.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable
@@ -19,8 +20,9 @@ def report_factor(unit: str) -> float:
     try:
         return REPORT[unit][0]
     except KeyError:
-        raise ValueError(f"unknown internal unit {unit!r}; expected one of {list(REPORT)}") \
-            from None
+        raise ValueError(
+            f"unknown internal unit {unit!r}; expected one of {list(REPORT)}"
+        ) from None
 
 
 def report_unit(unit: str) -> str:

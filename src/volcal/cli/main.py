@@ -5,6 +5,7 @@ Each subcommand lives next to the code it drives and registers itself through an
 ``func`` returns a process exit code.  Exit codes: 0 success, 1 a computation that ran
 but failed (solver did not converge, ...), 2 bad usage or bad input.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -30,7 +31,6 @@ _COMMANDS = [
 ]
 
 
-
 class UserError(Exception):
     """An error caused by the user's input: printed without a traceback, exit code 2."""
 
@@ -41,9 +41,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="Identify machine-tool geometric errors from multilateration length data.",
     )
     parser.add_argument("-q", "--quiet", action="store_true", help="print only errors")
-    parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="more output (repeat for debug output)")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more output (repeat for debug output)"
+    )
     from volcal import __version__
+
     parser.add_argument("--version", action="version", version=f"volcal {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for modname in _COMMANDS:
@@ -51,14 +53,28 @@ def build_parser() -> argparse.ArgumentParser:
     # -q / -v also after the command name (`volcal identify ... -q`); SUPPRESS keeps a
     # value given before the command when the command line does not repeat it
     for cmd in sub.choices.values():
-        cmd.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
-                         help="print only errors")
-        cmd.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS,
-                         help="more output (repeat for debug output)")
+        cmd.add_argument(
+            "-q",
+            "--quiet",
+            action="store_true",
+            default=argparse.SUPPRESS,
+            help="print only errors",
+        )
+        cmd.add_argument(
+            "-v",
+            "--verbose",
+            action="count",
+            default=argparse.SUPPRESS,
+            help="more output (repeat for debug output)",
+        )
         if "--force" not in cmd._option_string_actions:
-            cmd.add_argument("--force", action="store_true", default=False,
-                             help="replace an earlier output of this command in the output "
-                                  "folder (never an input or a folder volcal did not write)")
+            cmd.add_argument(
+                "--force",
+                action="store_true",
+                default=False,
+                help="replace an earlier output of this command in the output "
+                "folder (never an input or a folder volcal did not write)",
+            )
     return parser
 
 
@@ -91,19 +107,26 @@ def _exit_soon(code: int, seconds: float = 10.0) -> None:  # pragma: no cover - 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    level = logging.ERROR if args.quiet else (logging.DEBUG if args.verbose > 1 else
-                                              logging.INFO if args.verbose else logging.WARNING)
+    level = (
+        logging.ERROR
+        if args.quiet
+        else (
+            logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING
+        )
+    )
     logging.basicConfig(level=level, format="%(levelname)s: %(message)s")
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
     # small dense problems: one BLAS thread is much faster than a contended pool
     from volcal.base.threads import set_blas_threads
+
     set_blas_threads(1)
     import signal
     import threading
 
     from volcal.base.folders import output_policy
+
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _terminate)
         prev_int = signal.getsignal(signal.SIGINT)
@@ -128,12 +151,16 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         # read-only folder, a file where a folder is expected, a full disk, ...
         where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
-        print(f"volcal {args.command}: error: {exc.strerror or exc}{where}; nothing was "
-              "written", file=sys.stderr)
+        print(
+            f"volcal {args.command}: error: {exc.strerror or exc}{where}; nothing was written",
+            file=sys.stderr,
+        )
         return 2
     except KeyboardInterrupt:
-        print(f"volcal {args.command}: interrupted; no partial output was left behind",
-              file=sys.stderr)
+        print(
+            f"volcal {args.command}: interrupted; no partial output was left behind",
+            file=sys.stderr,
+        )
         if _SIGNALLED:
             _exit_soon(130)
         return 130

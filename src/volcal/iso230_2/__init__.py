@@ -57,6 +57,7 @@ slips read correctly here: the ISO band is x̄ ± 2s (the text reads "+3s" for o
 and eq. 3's wording ("difference between the target and the actual position") is taken as
 its formula gives it: actual minus target.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -76,17 +77,38 @@ from .plane import (
 from .report import OUTPUT_FILES, markdown_report, plot, write_report
 
 __all__ = [
-    "evaluate", "write_report", "example_path", "Iso230Result", "AxisResult",
-    "load_readings", "AxisReadings", "AxisUnits", "LINEAR", "ROTARY",
-    "iso230_2_parameters", "IsoParameters",
-    "fit_polynomial", "fit_axis_model", "PolynomialModel", "gls", "type_a_uncertainty",
+    "evaluate",
+    "write_report",
+    "example_path",
+    "Iso230Result",
+    "AxisResult",
+    "load_readings",
+    "AxisReadings",
+    "AxisUnits",
+    "LINEAR",
+    "ROTARY",
+    "iso230_2_parameters",
+    "IsoParameters",
+    "fit_polynomial",
+    "fit_axis_model",
+    "PolynomialModel",
+    "gls",
+    "type_a_uncertainty",
     "mpe_to_standard_uncertainty",
-    "fit_plane", "PlaneModel", "load_plane", "evaluate_plane", "PlaneResult",
-    "write_plane_report", "markdown_report", "plot", "OUTPUT_FILES",
+    "fit_plane",
+    "PlaneModel",
+    "load_plane",
+    "evaluate_plane",
+    "PlaneResult",
+    "write_plane_report",
+    "markdown_report",
+    "plot",
+    "OUTPUT_FILES",
 ]
 
 
 def example_path() -> Path:
     """Path of the bundled example data set ``volcal/data/iso230_2_example.csv``."""
     from importlib.resources import files
+
     return Path(str(files("volcal") / "data" / "iso230_2_example.csv"))

@@ -27,6 +27,7 @@ position + 2, i.e. the row it would have once saved with ``to_csv(index=False)``
 
 Internally positions and deviations are in mm (linear) or rad (rotary).
 """
+
 from __future__ import annotations
 
 import csv
@@ -47,12 +48,12 @@ __all__ = ["AxisUnits", "LINEAR", "ROTARY", "AxisReadings", "load_readings"]
 class AxisUnits:
     """Units of an axis: the internal unit and the unit used in files and reports."""
 
-    kind: str                 # "linear" or "rotary"
-    internal: str             # "mm" or "rad" (positions and deviations inside the code)
-    position: str             # report unit of positions: "mm" or "deg"
-    deviation: str            # report unit of deviations: "um" or "arcsec"
-    position_scale: float     # report position = internal * position_scale
-    deviation_scale: float    # report deviation = internal * deviation_scale
+    kind: str  # "linear" or "rotary"
+    internal: str  # "mm" or "rad" (positions and deviations inside the code)
+    position: str  # report unit of positions: "mm" or "deg"
+    deviation: str  # report unit of deviations: "um" or "arcsec"
+    position_scale: float  # report position = internal * position_scale
+    deviation_scale: float  # report deviation = internal * deviation_scale
 
 
 LINEAR = AxisUnits("linear", "mm", "mm", "um", 1.0, 1000.0)
@@ -91,9 +92,18 @@ _VALUE_COLS = {  # name -> (units, form)
     "deviation_arcsec": (ROTARY, "deviation"),
     "actual_deg": (ROTARY, "actual"),
 }
-_DIRECTIONS = {"+": "up", "up": "up", "pos": "up", "positive": "up",
-               "-": "down", "down": "down", "neg": "down", "negative": "down",
-               "\u2191": "up", "\u2193": "down"}
+_DIRECTIONS = {
+    "+": "up",
+    "up": "up",
+    "pos": "up",
+    "positive": "up",
+    "-": "down",
+    "down": "down",
+    "neg": "down",
+    "negative": "down",
+    "\u2191": "up",
+    "\u2193": "down",
+}
 # target values closer than this (in file units: mm or deg) are the same target
 _TARGET_DECIMALS = 6
 
@@ -118,21 +128,27 @@ def _read_csv(path: Path) -> tuple[pd.DataFrame, np.ndarray]:
     except csv.Error as exc:
         raise InputError(f"malformed CSV: {exc}", source=src) from None
     if not records or not any(h.strip() for h in records[0]):
-        raise InputError("the file is empty or its first line is blank; expected a header "
-                         "row", source=src, row=1)
+        raise InputError(
+            "the file is empty or its first line is blank; expected a header row", source=src, row=1
+        )
     header = [h.strip() for h in records[0]]
     names = [h.lower() for h in header]
     for k, name in enumerate(names):
         if name and names.index(name) != k:
-            raise InputError(f"column '{header[k]}' appears twice in the header",
-                             source=src, row=1, column=header[k])
+            raise InputError(
+                f"column '{header[k]}' appears twice in the header",
+                source=src,
+                row=1,
+                column=header[k],
+            )
     rows, numbers = [], []
     for r, rec in enumerate(records[1:], start=2):
         if not any(c.strip() for c in rec):
             continue
         if len(rec) != len(header):
-            raise InputError(f"{len(rec)} fields, but the header has {len(header)}", source=src,
-                             row=r)
+            raise InputError(
+                f"{len(rec)} fields, but the header has {len(header)}", source=src, row=r
+            )
         rows.append(rec)
         numbers.append(r)
     return pd.DataFrame(rows, columns=header, dtype=object), np.array(numbers, dtype=int)
@@ -159,8 +175,9 @@ def load_readings(data, *, source: str | None = None) -> list[AxisReadings]:
 
     original = {c.strip().lower(): c for c in df.columns}
     if len(original) != len(df.columns):
-        raise InputError("two columns have the same name (ignoring case and blanks)",
-                         source=src, row=1)
+        raise InputError(
+            "two columns have the same name (ignoring case and blanks)", source=src, row=1
+        )
     df = df.rename(columns={c: c.strip().lower() for c in df.columns})
     cols = set(df.columns)
 
@@ -168,43 +185,71 @@ def load_readings(data, *, source: str | None = None) -> list[AxisReadings]:
     targets = [c for c in _TARGET_COLS if c in cols]
     values = [c for c in _VALUE_COLS if c in cols]
     if len(targets) > 1:
-        raise InputError("mixed units: both 'target_mm' and 'target_deg' are present; use "
-                         "one target column per file (target_mm for linear axes, target_deg "
-                         "for rotary axes)", source=src, row=1, column=original[targets[1]])
+        raise InputError(
+            "mixed units: both 'target_mm' and 'target_deg' are present; use "
+            "one target column per file (target_mm for linear axes, target_deg "
+            "for rotary axes)",
+            source=src,
+            row=1,
+            column=original[targets[1]],
+        )
     if len(values) > 1:
-        raise InputError(f"mixed units: columns {', '.join(repr(original[v]) for v in values)} "
-                         "are all present; give exactly one of deviation_um or actual_mm "
-                         "(linear axis) or deviation_arcsec or actual_deg (rotary axis)",
-                         source=src, row=1, column=original[values[1]])
-    for need, hint in (("axis", "the axis name, e.g. X"),
-                       ("cycle", "the cycle number 1..n"),
-                       ("direction", "the approach direction + or -")):
+        raise InputError(
+            f"mixed units: columns {', '.join(repr(original[v]) for v in values)} "
+            "are all present; give exactly one of deviation_um or actual_mm "
+            "(linear axis) or deviation_arcsec or actual_deg (rotary axis)",
+            source=src,
+            row=1,
+            column=original[values[1]],
+        )
+    for need, hint in (
+        ("axis", "the axis name, e.g. X"),
+        ("cycle", "the cycle number 1..n"),
+        ("direction", "the approach direction + or -"),
+    ):
         if need not in cols:
-            raise InputError(f"missing column '{need}' ({hint}); columns found: "
-                             f"{', '.join(map(repr, df.columns))}", source=src, row=1,
-                             column=need)
+            raise InputError(
+                f"missing column '{need}' ({hint}); columns found: "
+                f"{', '.join(map(repr, df.columns))}",
+                source=src,
+                row=1,
+                column=need,
+            )
     if not targets:
         unitless = [original[c] for c in cols if c in ("target", "position", "target_position")]
         extra = f" (column '{unitless[0]}' has no unit in its name)" if unitless else ""
-        raise InputError("missing target column: expected 'target_mm' (linear axis) or "
-                         f"'target_deg' (rotary axis){extra}", source=src, row=1,
-                         column="target_mm")
+        raise InputError(
+            "missing target column: expected 'target_mm' (linear axis) or "
+            f"'target_deg' (rotary axis){extra}",
+            source=src,
+            row=1,
+            column="target_mm",
+        )
     if not values:
         unitless = [original[c] for c in cols if c in ("deviation", "actual", "error")]
         extra = f" (column '{unitless[0]}' has no unit in its name)" if unitless else ""
-        raise InputError("missing value column: expected 'deviation_um' or 'actual_mm' "
-                         "(linear axis), or 'deviation_arcsec' or 'actual_deg' (rotary axis)"
-                         f"{extra}", source=src, row=1, column="deviation_um")
+        raise InputError(
+            "missing value column: expected 'deviation_um' or 'actual_mm' "
+            "(linear axis), or 'deviation_arcsec' or 'actual_deg' (rotary axis)"
+            f"{extra}",
+            source=src,
+            row=1,
+            column="deviation_um",
+        )
     tcol, vcol = targets[0], values[0]
     units = _TARGET_COLS[tcol]
     vunits, form = _VALUE_COLS[vcol]
     if vunits is not units:
-        raise InputError(f"mixed units: target column '{original[tcol]}' is for a "
-                         f"{units.kind} axis but value column '{original[vcol]}' is for a "
-                         f"{vunits.kind} axis", source=src, row=1, column=original[vcol])
+        raise InputError(
+            f"mixed units: target column '{original[tcol]}' is for a "
+            f"{units.kind} axis but value column '{original[vcol]}' is for a "
+            f"{vunits.kind} axis",
+            source=src,
+            row=1,
+            column=original[vcol],
+        )
     if len(df) == 0:
-        raise InputError("no readings: the table has a header but no data rows", source=src,
-                         row=2)
+        raise InputError("no readings: the table has a header but no data rows", source=src, row=2)
 
     # --- cell by cell ---------------------------------------------------------------------
     n_rows = len(df)
@@ -217,39 +262,62 @@ def load_readings(data, *, source: str | None = None) -> list[AxisReadings]:
     def number(raw, r, col, what):
         text = "" if raw is None else str(raw).strip()
         if text == "" or text.lower() == "nan":
-            raise InputError(f"empty cell; expected {what}", source=src, row=r,
-                             column=original[col])
+            raise InputError(
+                f"empty cell; expected {what}", source=src, row=r, column=original[col]
+            )
         try:
             x = float(text)
         except ValueError:
-            raise InputError(f"'{text}' is not a number; expected {what}", source=src, row=r,
-                             column=original[col]) from None
+            raise InputError(
+                f"'{text}' is not a number; expected {what}",
+                source=src,
+                row=r,
+                column=original[col],
+            ) from None
         if not math.isfinite(x):
-            raise InputError(f"'{text}' is not finite; expected {what}", source=src, row=r,
-                             column=original[col])
+            raise InputError(
+                f"'{text}' is not finite; expected {what}", source=src, row=r, column=original[col]
+            )
         return x
 
     tu = "mm" if units is LINEAR else "deg"
-    vu = {"deviation_um": "um", "actual_mm": "mm", "deviation_arcsec": "arcsec",
-          "actual_deg": "deg"}[vcol]
-    for k, rec in enumerate(df[["axis", "cycle", "direction", tcol, vcol]].itertuples(
-            index=False, name=None)):
+    vu = {
+        "deviation_um": "um",
+        "actual_mm": "mm",
+        "deviation_arcsec": "arcsec",
+        "actual_deg": "deg",
+    }[vcol]
+    for k, rec in enumerate(
+        df[["axis", "cycle", "direction", tcol, vcol]].itertuples(index=False, name=None)
+    ):
         r = int(rownum[k])
         a = "" if rec[0] is None else str(rec[0]).strip()
         if a == "" or a.lower() == "nan":
-            raise InputError("empty cell; expected the axis name, e.g. X", source=src, row=r,
-                             column=original["axis"])
+            raise InputError(
+                "empty cell; expected the axis name, e.g. X",
+                source=src,
+                row=r,
+                column=original["axis"],
+            )
         axis[k] = a
         c = number(rec[1], r, "cycle", "the cycle number, an integer 1..n")
         if c != int(c) or c < 1:
-            raise InputError(f"'{str(rec[1]).strip()}' is not a cycle number; expected an "
-                             "integer 1..n", source=src, row=r, column=original["cycle"])
+            raise InputError(
+                f"'{str(rec[1]).strip()}' is not a cycle number; expected an integer 1..n",
+                source=src,
+                row=r,
+                column=original["cycle"],
+            )
         cycle[k] = int(c)
         d = "" if rec[2] is None else str(rec[2]).strip().lower()
         if d not in _DIRECTIONS:
-            raise InputError(f"'{str(rec[2]).strip()}' is not a direction; expected '+' or "
-                             "'up' (positive approach), '-' or 'down' (negative approach)",
-                             source=src, row=r, column=original["direction"])
+            raise InputError(
+                f"'{str(rec[2]).strip()}' is not a direction; expected '+' or "
+                "'up' (positive approach), '-' or 'down' (negative approach)",
+                source=src,
+                row=r,
+                column=original["direction"],
+            )
         direction[k] = _DIRECTIONS[d]
         target[k] = number(rec[3], r, tcol, f"the target position in {tu}")
         value[k] = number(rec[4], r, vcol, f"the {form} in {vu}")
@@ -259,37 +327,63 @@ def load_readings(data, *, source: str | None = None) -> list[AxisReadings]:
     axes_in_order = list(dict.fromkeys(axis.tolist()))
     for name in axes_in_order:
         rows = np.flatnonzero(axis == name)
-        out.append(_one_axis(name, rows, cycle, direction, target, value, units, form,
-                             src, original, tcol, vcol, rownum))
+        out.append(
+            _one_axis(
+                name,
+                rows,
+                cycle,
+                direction,
+                target,
+                value,
+                units,
+                form,
+                src,
+                original,
+                tcol,
+                vcol,
+                rownum,
+            )
+        )
     return out
 
 
-def _one_axis(name, rows, cycle, direction, target, value, units, form, src, original,
-              tcol, vcol, rownum) -> AxisReadings:
+def _one_axis(
+    name, rows, cycle, direction, target, value, units, form, src, original, tcol, vcol, rownum
+) -> AxisReadings:
     tu = "mm" if units is LINEAR else "deg"
     tkey = np.round(target[rows], _TARGET_DECIMALS)
     dirs = set(direction[rows])
     if dirs != {"up", "down"}:
         only = "+" if "up" in dirs else "-"
-        raise InputError(f"axis {name}: readings only in direction '{only}'; ISO 230-2 "
-                         "bidirectional evaluation needs both '+' and '-' approaches",
-                         source=src, column=original["direction"])
+        raise InputError(
+            f"axis {name}: readings only in direction '{only}'; ISO 230-2 "
+            "bidirectional evaluation needs both '+' and '-' approaches",
+            source=src,
+            column=original["direction"],
+        )
     # cycles: 1..n without gaps, same n in both directions
     n_by_dir = {}
     for d, sym in (("up", "+"), ("down", "-")):
         cyc = sorted(set(cycle[rows][direction[rows] == d].tolist()))
         missing = sorted(set(range(1, max(cyc) + 1)) - set(cyc))
         if missing:
-            raise InputError(f"axis {name}, direction '{sym}': missing cycle(s) "
-                             f"{', '.join(map(str, missing))} (cycles found: "
-                             f"{', '.join(map(str, cyc))}); cycles must be numbered 1..n "
-                             "without gaps", source=src, column=original["cycle"])
+            raise InputError(
+                f"axis {name}, direction '{sym}': missing cycle(s) "
+                f"{', '.join(map(str, missing))} (cycles found: "
+                f"{', '.join(map(str, cyc))}); cycles must be numbered 1..n "
+                "without gaps",
+                source=src,
+                column=original["cycle"],
+            )
         n_by_dir[d] = len(cyc)
     if n_by_dir["up"] != n_by_dir["down"]:
-        raise InputError(f"axis {name}: unequal cycle counts: direction '+' has "
-                         f"{n_by_dir['up']} cycles, direction '-' has {n_by_dir['down']}; "
-                         "ISO 230-2 needs the same number of cycles n in both directions",
-                         source=src, column=original["cycle"])
+        raise InputError(
+            f"axis {name}: unequal cycle counts: direction '+' has "
+            f"{n_by_dir['up']} cycles, direction '-' has {n_by_dir['down']}; "
+            "ISO 230-2 needs the same number of cycles n in both directions",
+            source=src,
+            column=original["cycle"],
+        )
     n = n_by_dir["up"]
 
     # runs: (cycle, direction) -> row indices in file order
@@ -304,10 +398,14 @@ def _one_axis(name, rows, cycle, direction, target, value, units, form, src, ori
         seen: dict[float, int] = {}
         for k, t in zip(ks, keys):
             if t in seen:
-                raise InputError(f"axis {name}, cycle {c}, direction '{sym}': second reading "
-                                 f"at target {_fmt(t)} {tu} (first at row {rownum[seen[t]]}); "
-                                 "each run must hold each target once", source=src,
-                                 row=int(rownum[k]), column=original[tcol])
+                raise InputError(
+                    f"axis {name}, cycle {c}, direction '{sym}': second reading "
+                    f"at target {_fmt(t)} {tu} (first at row {rownum[seen[t]]}); "
+                    "each run must hold each target once",
+                    source=src,
+                    row=int(rownum[k]),
+                    column=original[tcol],
+                )
             seen[t] = k
         if len(keys) >= 3:
             step = np.sign(np.diff(keys))
@@ -319,8 +417,11 @@ def _one_axis(name, rows, cycle, direction, target, value, units, form, src, ori
                     f"targets out of order: axis {name}, cycle {c}, direction '{sym}': target "
                     f"{_fmt(keys[bad[0] + 1])} {tu} follows {_fmt(keys[bad[0]])} {tu} after "
                     f"{'ascending' if ref > 0 else 'descending'} targets; list the rows of a "
-                    "run in ascending or descending target order", source=src,
-                    row=int(rownum[k]), column=original[tcol])
+                    "run in ascending or descending target order",
+                    source=src,
+                    row=int(rownum[k]),
+                    column=original[tcol],
+                )
     # every run covers the same targets
     all_targets = np.unique(tkey)
     runs_with = {t: 0 for t in all_targets}
@@ -332,27 +433,44 @@ def _one_axis(name, rows, cycle, direction, target, value, units, form, src, ori
         if runs_with[t] * 2 <= n_runs:
             # rare target: most likely a typo in the rows that hold it
             k = int(rows[np.flatnonzero(tkey == t)[0]])
-            raise InputError(f"axis {name}: target {_fmt(t)} {tu} appears in only "
-                             f"{runs_with[t]} of {n_runs} runs (cycle x direction); every run "
-                             "must cover the same targets "
-                             f"({', '.join(_fmt(v) for v in common)} {tu})", source=src,
-                             row=int(rownum[k]), column=original[tcol])
+            raise InputError(
+                f"axis {name}: target {_fmt(t)} {tu} appears in only "
+                f"{runs_with[t]} of {n_runs} runs (cycle x direction); every run "
+                "must cover the same targets "
+                f"({', '.join(_fmt(v) for v in common)} {tu})",
+                source=src,
+                row=int(rownum[k]),
+                column=original[tcol],
+            )
     for t in all_targets:
         if runs_with[t] == n_runs:
             continue
-        lacking = [f"cycle {c} '{'+' if d == 'up' else '-'}'" for (c, d), ks in sorted(runs.items())
-                   if t not in set(np.round(target[ks], _TARGET_DECIMALS).tolist())]
-        raise InputError(f"axis {name}: no reading at target {_fmt(t)} {tu} in "
-                         f"{', '.join(lacking)}; every run must cover the same targets",
-                         source=src, column=original[tcol])
+        lacking = [
+            f"cycle {c} '{'+' if d == 'up' else '-'}'"
+            for (c, d), ks in sorted(runs.items())
+            if t not in set(np.round(target[ks], _TARGET_DECIMALS).tolist())
+        ]
+        raise InputError(
+            f"axis {name}: no reading at target {_fmt(t)} {tu} in "
+            f"{', '.join(lacking)}; every run must cover the same targets",
+            source=src,
+            column=original[tcol],
+        )
     m = all_targets.size
     if m < 2:
-        raise InputError(f"axis {name}: only {m} target position; at least 2 are needed "
-                         "(ISO 230-2 asks for at least 5)", source=src, column=original[tcol])
+        raise InputError(
+            f"axis {name}: only {m} target position; at least 2 are needed "
+            "(ISO 230-2 asks for at least 5)",
+            source=src,
+            column=original[tcol],
+        )
     if n < 2:
-        raise InputError(f"axis {name}: only {n} cycle; at least 2 are needed to estimate "
-                         "the standard uncertainty s_i (ISO 230-2 asks for 5)", source=src,
-                         column=original["cycle"])
+        raise InputError(
+            f"axis {name}: only {n} cycle; at least 2 are needed to estimate "
+            "the standard uncertainty s_i (ISO 230-2 asks for 5)",
+            source=src,
+            column=original["cycle"],
+        )
 
     up = np.empty((m, n))
     down = np.empty((m, n))
@@ -364,17 +482,23 @@ def _one_axis(name, rows, cycle, direction, target, value, units, form, src, ori
             dev = value[k]
         else:
             dev = value[k] - target[k]
-            if units is ROTARY:            # wrap to (-180, 180] deg
+            if units is ROTARY:  # wrap to (-180, 180] deg
                 dev = -((-dev + 180.0) % 360.0 - 180.0)
         (up if direction[k] == "up" else down)[i, j] = dev
 
     # target positions: mean of the (rounded-equal) file values, converted to internal units
     tgt = np.array([target[rows][tkey == t].mean() for t in all_targets])
     if units is LINEAR:
-        targets_int = tgt                                   # mm
-        scale_dev = 1e-3 if form == "deviation" else 1.0    # um -> mm / mm
+        targets_int = tgt  # mm
+        scale_dev = 1e-3 if form == "deviation" else 1.0  # um -> mm / mm
     else:
         targets_int = np.deg2rad(tgt)
         scale_dev = (math.pi / 180.0 / 3600.0) if form == "deviation" else math.pi / 180.0
-    return AxisReadings(axis=name, units=units, targets=targets_int, up=up * scale_dev,
-                        down=down * scale_dev, source=src)
+    return AxisReadings(
+        axis=name,
+        units=units,
+        targets=targets_int,
+        up=up * scale_dev,
+        down=down * scale_dev,
+        source=src,
+    )

@@ -30,6 +30,7 @@ GLS (the tests check the identity).
 Internally the polynomial is built on the normalised variable t = (P - centre) / half_range
 for conditioning; :meth:`PolynomialModel.raw` converts to coefficients of powers of P.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -37,8 +38,15 @@ from math import comb
 
 import numpy as np
 
-__all__ = ["gls", "PolynomialModel", "fit_polynomial", "fit_axis_model", "to_raw_matrix",
-           "type_a_uncertainty", "TYPE_A_METHODS"]
+__all__ = [
+    "gls",
+    "PolynomialModel",
+    "fit_polynomial",
+    "fit_axis_model",
+    "to_raw_matrix",
+    "type_a_uncertainty",
+    "TYPE_A_METHODS",
+]
 
 
 def gls(X, y, V):
@@ -53,8 +61,10 @@ def gls(X, y, V):
     try:
         L = np.linalg.cholesky(V)
     except np.linalg.LinAlgError:
-        raise ValueError("the covariance matrix of the mean deviations is not positive "
-                         "definite (a zero standard uncertainty?)") from None
+        raise ValueError(
+            "the covariance matrix of the mean deviations is not positive "
+            "definite (a zero standard uncertainty?)"
+        ) from None
     # (np.linalg.solve on the small triangular factors: much faster than
     # scipy's solve_triangular at these sizes, and as accurate)
     Xw = np.linalg.solve(L, X)
@@ -62,8 +72,10 @@ def gls(X, y, V):
     Q, R = np.linalg.qr(Xw)
     d = np.abs(np.diag(R))
     if d.size == 0 or d.min() <= 1e-12 * d.max():
-        raise ValueError("the design matrix is rank deficient: too few distinct target "
-                         "positions for the polynomial degree")
+        raise ValueError(
+            "the design matrix is rank deficient: too few distinct target "
+            "positions for the polynomial degree"
+        )
     beta = np.linalg.solve(R, Q.T @ yw)
     Rinv = np.linalg.solve(R, np.eye(R.shape[0]))
     cov = Rinv @ Rinv.T
@@ -77,7 +89,7 @@ def to_raw_matrix(degree: int, center: float, half_range: float) -> np.ndarray:
     T = np.zeros((p, p))
     for k in range(p):
         for l in range(k + 1):
-            T[l, k] = comb(k, l) * (-center) ** (k - l) / half_range ** k
+            T[l, k] = comb(k, l) * (-center) ** (k - l) / half_range**k
     return T
 
 
@@ -101,8 +113,10 @@ def type_a_uncertainty(readings, floor: float = 0.0, method: str = "gum-s1") -> 
     u = readings.std(axis=1, ddof=1) / np.sqrt(n)
     if method == "gum-s1":
         if n < 4:
-            raise ValueError(f"the GUM-S1 type A uncertainty needs n >= 4 readings per mean, "
-                             f"got {n}; use the paper's s/sqrt(n) instead")
+            raise ValueError(
+                f"the GUM-S1 type A uncertainty needs n >= 4 readings per mean, "
+                f"got {n}; use the paper's s/sqrt(n) instead"
+            )
         u = u * np.sqrt((n - 1) / (n - 3))
     elif method != "paper":
         raise ValueError(f"unknown type A method {method!r}; expected one of {TYPE_A_METHODS}")
@@ -124,16 +138,16 @@ class PolynomialModel:
     half_range: float
     lower: float
     upper: float
-    positions: np.ndarray          # the target positions fitted
-    means: np.ndarray              # (K, m) mean deviations fitted
-    u_means: np.ndarray            # (K, m) their type A standard uncertainties
-    u_instrument: float            # std of the constant (fully correlated) instrument error
-    u_scale: float                 # relative std of the length-proportional instrument error
-    reference: float               # P_ref of the length-proportional term
+    positions: np.ndarray  # the target positions fitted
+    means: np.ndarray  # (K, m) mean deviations fitted
+    u_means: np.ndarray  # (K, m) their type A standard uncertainties
+    u_instrument: float  # std of the constant (fully correlated) instrument error
+    u_scale: float  # relative std of the length-proportional instrument error
+    reference: float  # P_ref of the length-proportional term
     beta: np.ndarray
     cov: np.ndarray
-    chi2: tuple[float, ...]        # per curve, with its own block of the covariance
-    dof: int                       # per curve: m - (d + 1)
+    chi2: tuple[float, ...]  # per curve, with its own block of the covariance
+    dof: int  # per curve: m - (d + 1)
 
     @property
     def p(self) -> int:
@@ -181,8 +195,9 @@ class PolynomialModel:
         return W @ self.beta, W @ self.cov @ W.T
 
 
-def _fit_curves(labels, positions, means, u_means, *, degree, u_instrument, u_scale,
-                reference) -> PolynomialModel:
+def _fit_curves(
+    labels, positions, means, u_means, *, degree, u_instrument, u_scale, reference
+) -> PolynomialModel:
     P = np.asarray(positions, dtype=float)
     means = np.atleast_2d(np.asarray(means, dtype=float))
     u_means = np.atleast_2d(np.asarray(u_means, dtype=float))
@@ -193,12 +208,16 @@ def _fit_curves(labels, positions, means, u_means, *, degree, u_instrument, u_sc
         raise ValueError(f"degree must be an integer >= 0, got {degree}")
     degree = int(degree)
     if np.unique(P).size < degree + 1:
-        raise ValueError(f"a polynomial of degree {degree} needs at least {degree + 1} "
-                         f"distinct target positions, got {np.unique(P).size}")
+        raise ValueError(
+            f"a polynomial of degree {degree} needs at least {degree + 1} "
+            f"distinct target positions, got {np.unique(P).size}"
+        )
     if np.any(~np.isfinite(u_means)) or np.any(u_means <= 0.0):
-        raise ValueError("every mean needs a positive standard uncertainty; a target whose "
-                         "readings are all equal has s_i = 0 (give the reading resolution "
-                         "as a floor)")
+        raise ValueError(
+            "every mean needs a positive standard uncertainty; a target whose "
+            "readings are all equal has s_i = 0 (give the reading resolution "
+            "as a floor)"
+        )
     if u_instrument < 0 or u_scale < 0:
         raise ValueError("instrument uncertainties must be >= 0")
     lower, upper = float(P.min()), float(P.max())
@@ -211,25 +230,48 @@ def _fit_curves(labels, positions, means, u_means, *, degree, u_instrument, u_sc
     y = means.reshape(-1)
     one = np.ones(K * m)
     d = np.tile(P - ref, K)
-    V = np.diag(u_means.reshape(-1) ** 2) + u_instrument ** 2 * np.outer(one, one) \
-        + u_scale ** 2 * np.outer(d, d)
+    V = (
+        np.diag(u_means.reshape(-1) ** 2)
+        + u_instrument**2 * np.outer(one, one)
+        + u_scale**2 * np.outer(d, d)
+    )
     beta, cov, _ = gls(X, y, V)
     chi2 = []
     for c in range(K):
         sl = slice(c * m, (c + 1) * m)
         r = X[sl] @ beta - y[sl]
         chi2.append(float(r @ np.linalg.solve(V[sl, sl], r)))
-    return PolynomialModel(labels=tuple(labels), degree=degree, center=center,
-                           half_range=half, lower=lower, upper=upper, positions=P.copy(),
-                           means=means.copy(), u_means=u_means.copy(),
-                           u_instrument=float(u_instrument), u_scale=float(u_scale),
-                           reference=ref, beta=beta, cov=cov, chi2=tuple(chi2),
-                           dof=m - (degree + 1))
+    return PolynomialModel(
+        labels=tuple(labels),
+        degree=degree,
+        center=center,
+        half_range=half,
+        lower=lower,
+        upper=upper,
+        positions=P.copy(),
+        means=means.copy(),
+        u_means=u_means.copy(),
+        u_instrument=float(u_instrument),
+        u_scale=float(u_scale),
+        reference=ref,
+        beta=beta,
+        cov=cov,
+        chi2=tuple(chi2),
+        dof=m - (degree + 1),
+    )
 
 
-def fit_polynomial(positions, means, u_means, *, degree: int = 3, u_instrument: float = 0.0,
-                   u_scale: float = 0.0, reference: float | None = None,
-                   label: str = "fit") -> PolynomialModel:
+def fit_polynomial(
+    positions,
+    means,
+    u_means,
+    *,
+    degree: int = 3,
+    u_instrument: float = 0.0,
+    u_scale: float = 0.0,
+    reference: float | None = None,
+    label: str = "fit",
+) -> PolynomialModel:
     """Fit one curve: the paper's model for one approach direction.
 
     ``means`` are the mean deviations x̄_i at ``positions`` P_i, ``u_means`` their type A
@@ -238,13 +280,30 @@ def fit_polynomial(positions, means, u_means, *, degree: int = 3, u_instrument: 
     uncertainty of a length-proportional instrument error zeroed at ``reference`` (default:
     the smallest position).  All in one consistent unit system.
     """
-    return _fit_curves((label,), positions, [means], [u_means], degree=degree,
-                       u_instrument=u_instrument, u_scale=u_scale, reference=reference)
+    return _fit_curves(
+        (label,),
+        positions,
+        [means],
+        [u_means],
+        degree=degree,
+        u_instrument=u_instrument,
+        u_scale=u_scale,
+        reference=reference,
+    )
 
 
-def fit_axis_model(targets, up, down, *, degree: int = 3, u_instrument: float = 0.0,
-                   u_scale: float = 0.0, reference: float | None = None,
-                   u_floor: float = 0.0, type_a: str = "gum-s1") -> PolynomialModel:
+def fit_axis_model(
+    targets,
+    up,
+    down,
+    *,
+    degree: int = 3,
+    u_instrument: float = 0.0,
+    u_scale: float = 0.0,
+    reference: float | None = None,
+    u_floor: float = 0.0,
+    type_a: str = "gum-s1",
+) -> PolynomialModel:
     """Fit both approach directions from the raw deviations ``up``, ``down`` (m x n).
 
     The means are averages over the cycles; their standard uncertainties come from
@@ -253,7 +312,16 @@ def fit_axis_model(targets, up, down, *, degree: int = 3, u_instrument: float = 
     up = np.asarray(up, dtype=float)
     down = np.asarray(down, dtype=float)
     means = np.vstack([up.mean(axis=1), down.mean(axis=1)])
-    u = np.vstack([type_a_uncertainty(up, u_floor, type_a),
-                   type_a_uncertainty(down, u_floor, type_a)])
-    return _fit_curves(("up", "down"), targets, means, u, degree=degree,
-                       u_instrument=u_instrument, u_scale=u_scale, reference=reference)
+    u = np.vstack(
+        [type_a_uncertainty(up, u_floor, type_a), type_a_uncertainty(down, u_floor, type_a)]
+    )
+    return _fit_curves(
+        ("up", "down"),
+        targets,
+        means,
+        u,
+        degree=degree,
+        u_instrument=u_instrument,
+        u_scale=u_scale,
+        reference=reference,
+    )

@@ -25,6 +25,7 @@ A                       max_i(x̄_i↑ + 2 s_i↑, x̄_i↓ + 2 s_i↓) - min_i(
 
 The functions are unit-agnostic: the parameters come out in the unit of the deviations.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -87,14 +88,15 @@ def iso230_2_parameters(up, down) -> IsoParameters:
     up = np.asarray(up, dtype=float)
     down = np.asarray(down, dtype=float)
     if up.ndim != 2 or up.shape != down.shape:
-        raise ValueError(f"up and down must be m x n arrays of the same shape, got "
-                         f"{up.shape} and {down.shape}")
+        raise ValueError(
+            f"up and down must be m x n arrays of the same shape, got {up.shape} and {down.shape}"
+        )
     m, n = up.shape
     if n < 2:
         raise ValueError("at least 2 cycles are needed to estimate s_i")
-    mean_up = up.mean(axis=1)                      # mean over the cycles j, per target i
+    mean_up = up.mean(axis=1)  # mean over the cycles j, per target i
     mean_down = down.mean(axis=1)
-    s_up = up.std(axis=1, ddof=1)                  # 1/(n-1)
+    s_up = up.std(axis=1, ddof=1)  # 1/(n-1)
     s_down = down.std(axis=1, ddof=1)
     B_i = mean_up - mean_down
     R_up_i = 4.0 * s_up
@@ -105,11 +107,22 @@ def iso230_2_parameters(up, down) -> IsoParameters:
     hi = np.concatenate([mean_up + 2.0 * s_up, mean_down + 2.0 * s_down])
     lo = np.concatenate([mean_up - 2.0 * s_up, mean_down - 2.0 * s_down])
     return IsoParameters(
-        n=n, m=m, mean_up=mean_up, mean_down=mean_down, s_up=s_up, s_down=s_down,
-        mean_bidir=mean_bidir, B_i=B_i, R_up_i=R_up_i, R_down_i=R_down_i, R_i=R_i,
+        n=n,
+        m=m,
+        mean_up=mean_up,
+        mean_down=mean_down,
+        s_up=s_up,
+        s_down=s_down,
+        mean_bidir=mean_bidir,
+        B_i=B_i,
+        R_up_i=R_up_i,
+        R_down_i=R_down_i,
+        R_i=R_i,
         B=float(np.max(np.abs(B_i))),
         B_mean=float(np.mean(B_i)),
-        R_up=float(R_up_i.max()), R_down=float(R_down_i.max()), R=float(R_i.max()),
+        R_up=float(R_up_i.max()),
+        R_down=float(R_down_i.max()),
+        R=float(R_i.max()),
         E_up=float(mean_up.max() - mean_up.min()),
         E_down=float(mean_down.max() - mean_down.min()),
         E=float(both.max() - both.min()),

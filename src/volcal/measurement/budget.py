@@ -55,6 +55,7 @@ integer seed); the functions never use global random state.
 
 The budget file format is described in docs/budget.md.
 """
+
 from __future__ import annotations
 
 import math
@@ -71,18 +72,39 @@ import numpy as np
 from volcal.base.exceptions import InputError
 
 __all__ = [
-    "Source", "DriftModel", "Budget", "PAPER001_DRIFT", "LENGTH_UNITS", "ANGLE_UNITS",
-    "RATE_UNITS", "load_budget", "budget_from_dict", "bundled_budgets", "default_budget",
+    "Source",
+    "DriftModel",
+    "Budget",
+    "PAPER001_DRIFT",
+    "LENGTH_UNITS",
+    "ANGLE_UNITS",
+    "RATE_UNITS",
+    "load_budget",
+    "budget_from_dict",
+    "bundled_budgets",
+    "default_budget",
 ]
 
 #: factor from the unit to mm
 LENGTH_UNITS = {"mm": 1.0, "um": 1e-3, "µm": 1e-3, "nm": 1e-6}
 #: factor from the unit to rad
-ANGLE_UNITS = {"rad": 1.0, "mrad": 1e-3, "urad": 1e-6, "µrad": 1e-6, "deg": math.pi / 180.0,
-               "arcsec": math.pi / 648000.0}
+ANGLE_UNITS = {
+    "rad": 1.0,
+    "mrad": 1e-3,
+    "urad": 1e-6,
+    "µrad": 1e-6,
+    "deg": math.pi / 180.0,
+    "arcsec": math.pi / 648000.0,
+}
 #: factor from the unit to mm/s
-RATE_UNITS = {"mm/s": 1.0, "um/s": 1e-3, "µm/s": 1e-3, "nm/s": 1e-6, "um/min": 1e-3 / 60.0,
-              "um/h": 1e-3 / 3600.0}
+RATE_UNITS = {
+    "mm/s": 1.0,
+    "um/s": 1e-3,
+    "µm/s": 1e-3,
+    "nm/s": 1e-6,
+    "um/min": 1e-3 / 60.0,
+    "um/h": 1e-3 / 3600.0,
+}
 
 _DISTRIBUTIONS = ("normal", "rectangular")
 _AXIS_RE = re.compile(r"^axis:([A-Z][A-Z0-9]{0,3})$")
@@ -94,14 +116,16 @@ def _rng(rng: np.random.Generator | int) -> np.random.Generator:
         return rng
     if isinstance(rng, (int, np.integer)) and not isinstance(rng, bool):
         return np.random.default_rng(int(rng))
-    raise TypeError("expected a numpy.random.Generator or an integer seed, got "
-                    f"{type(rng).__name__}")
+    raise TypeError(
+        f"expected a numpy.random.Generator or an integer seed, got {type(rng).__name__}"
+    )
 
 
 def _number(value: Any, where: str, key: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(f"expected a number, got {type(value).__name__} {value!r}",
-                         source=where, column=key)
+        raise InputError(
+            f"expected a number, got {type(value).__name__} {value!r}", source=where, column=key
+        )
     v = float(value)
     if not math.isfinite(v):
         raise InputError(f"expected a finite number, got {value!r}", source=where, column=key)
@@ -180,8 +204,7 @@ class Source:
             raise ValueError(f"source '{self.name}' is {self.distribution}, not rectangular")
         return self._magnitude(L_mm) * self.scale
 
-    def standard_uncertainty(self, L_mm: np.ndarray | float | None = None
-                             ) -> np.ndarray | float:
+    def standard_uncertainty(self, L_mm: np.ndarray | float | None = None) -> np.ndarray | float:
         """Standard uncertainty u in internal units (mm, rad or mm/s); U/k or a/sqrt(3).
 
         ``L_mm`` (measured length, mm) matters for length sources with ``per_metre``.
@@ -190,8 +213,12 @@ class Source:
         div = float(self.k or 1.0) if self.distribution == "normal" else _SQRT3
         return self._magnitude(L_mm) * self.scale / div
 
-    def sample(self, size: int | tuple[int, ...], rng: np.random.Generator | int,
-               L_mm: np.ndarray | None = None) -> np.ndarray:
+    def sample(
+        self,
+        size: int | tuple[int, ...],
+        rng: np.random.Generator | int,
+        L_mm: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Independent draws, internal units; with ``L_mm`` its shape is the shape of L."""
         g = _rng(rng)
         if L_mm is not None:
@@ -205,44 +232,63 @@ def _check_source(s: Any, where: str) -> None:
     """Validate the fields of a Source (or of a namespace holding them)."""
     _text(s.name, where, "name")
     if s.distribution not in _DISTRIBUTIONS:
-        raise InputError(f"expected \"normal\" or \"rectangular\", got {s.distribution!r}",
-                         source=where, column="distribution")
+        raise InputError(
+            f'expected "normal" or "rectangular", got {s.distribution!r}',
+            source=where,
+            column="distribution",
+        )
     if not isinstance(s.applies_to, str) or not (
-            s.applies_to in ("length", "drift") or _AXIS_RE.match(s.applies_to)):
-        raise InputError("expected \"length\", \"drift\" or \"axis:<NAME>\" (an axis name of "
-                         f"1-4 upper-case letters/digits, e.g. \"axis:X\"), got {s.applies_to!r}",
-                         source=where, column="applies_to")
+        s.applies_to in ("length", "drift") or _AXIS_RE.match(s.applies_to)
+    ):
+        raise InputError(
+            'expected "length", "drift" or "axis:<NAME>" (an axis name of '
+            f'1-4 upper-case letters/digits, e.g. "axis:X"), got {s.applies_to!r}',
+            source=where,
+            column="applies_to",
+        )
     mag = _number(s.magnitude, where, "magnitude")
     if mag < 0:
-        raise InputError(f"expected a magnitude >= 0, got {mag:g}", source=where,
-                         column="magnitude")
+        raise InputError(
+            f"expected a magnitude >= 0, got {mag:g}", source=where, column="magnitude"
+        )
     target = "axis" if s.applies_to.startswith("axis:") else s.applies_to
     if target == "length":
         units, what = LENGTH_UNITS, "a length unit"
     elif target == "drift":
         units, what = RATE_UNITS, "a drift-rate unit"
     else:
-        units, what = {**LENGTH_UNITS, **ANGLE_UNITS}, "a length unit (linear axis) or an " \
-            "angle unit (rotary axis)"
+        units, what = (
+            {**LENGTH_UNITS, **ANGLE_UNITS},
+            "a length unit (linear axis) or an angle unit (rotary axis)",
+        )
     if s.unit not in units:
-        raise InputError(f"expected {what}, one of {list(units)}, got {s.unit!r}",
-                         source=where, column="unit")
+        raise InputError(
+            f"expected {what}, one of {list(units)}, got {s.unit!r}", source=where, column="unit"
+        )
     if s.distribution == "normal":
         if s.k is None:
-            raise InputError("a normal source needs its coverage factor k (the magnitude is the "
-                             "expanded uncertainty U = k u)", source=where, column="k")
+            raise InputError(
+                "a normal source needs its coverage factor k (the magnitude is the "
+                "expanded uncertainty U = k u)",
+                source=where,
+                column="k",
+            )
         k = _number(s.k, where, "k")
         if k <= 0:
             raise InputError(f"expected k > 0, got {k:g}", source=where, column="k")
     elif s.k is not None:
-        raise InputError("k applies to normal sources only (a rectangular magnitude is the "
-                         "half-width a)", source=where, column="k")
+        raise InputError(
+            "k applies to normal sources only (a rectangular magnitude is the half-width a)",
+            source=where,
+            column="k",
+        )
     pm = _number(s.per_metre, where, "per_metre")
     if pm < 0:
         raise InputError(f"expected per_metre >= 0, got {pm:g}", source=where, column="per_metre")
     if pm != 0 and target != "length":
-        raise InputError("per_metre applies to length sources only", source=where,
-                         column="per_metre")
+        raise InputError(
+            "per_metre applies to length sources only", source=where, column="per_metre"
+        )
     if not isinstance(s.note, str):
         raise InputError(f"expected a string, got {s.note!r}", source=where, column="note")
 
@@ -270,8 +316,9 @@ class DriftModel:
     def __post_init__(self) -> None:
         n = len(self.amplitude_mm)
         if n == 0 or len(self.omega_rad_s) != n or len(self.phase_rad) != n:
-            raise ValueError("a drift model needs equally many amplitudes, frequencies and "
-                             "phases (at least one)")
+            raise ValueError(
+                "a drift model needs equally many amplitudes, frequencies and phases (at least one)"
+            )
 
     @property
     def sigma_mm(self) -> float:
@@ -296,14 +343,16 @@ class DriftModel:
 
 #: Paper 001, eq. (2), amplitudes read in metres (converted to mm), t in s, omega in rad/s.
 PAPER001_DRIFT = DriftModel(
-    amplitude_mm=tuple(a * 1e3 for a in (6.058e-6, 1.833e-6, 8.939e-6, 2.593e-6, 1.833e-6,
-                                         2.133e-6, 1.870e-6, 1.77e-6)),
+    amplitude_mm=tuple(
+        a * 1e3
+        for a in (6.058e-6, 1.833e-6, 8.939e-6, 2.593e-6, 1.833e-6, 2.133e-6, 1.870e-6, 1.77e-6)
+    ),
     omega_rad_s=(6.283, 1263.0, 1257.0, 62.83, 1250.0, 75.4, 18.85, 31.42),
     phase_rad=(-1.362, 1.377, 0.3743, -2.088, 2.565, 2.734, 2.042, 3.104),
     random_phase=True,
     name="paper001",
     note="Aguado et al. 2021, eq. (2): drift and vibration of a telescopic laser instrument; "
-         "amplitudes read in metres",
+    "amplitudes read in metres",
 )
 
 _DRIFT_PRESETS = {"paper001": PAPER001_DRIFT}
@@ -337,8 +386,11 @@ class Budget:
         axes = [s.axis for s in self.sources if s.axis is not None]
         dup = sorted({a for a in axes if axes.count(a) > 1})
         if dup:
-            raise InputError(f"more than one source for axis {dup}; give one positioning "
-                             "repeatability per axis", source=where, column="source.applies_to")
+            raise InputError(
+                f"more than one source for axis {dup}; give one positioning repeatability per axis",
+                source=where,
+                column="source.applies_to",
+            )
 
     # -- selections
 
@@ -369,8 +421,7 @@ class Budget:
             var = var + np.asarray(s.standard_uncertainty(L)) ** 2
         return np.sqrt(var)
 
-    def sample_length_errors(self, L_mm: np.ndarray, rng: np.random.Generator | int
-                             ) -> np.ndarray:
+    def sample_length_errors(self, L_mm: np.ndarray, rng: np.random.Generator | int) -> np.ndarray:
         """One error draw (mm) per length reading L (mm): the sum of independent draws of
         every length source, each reading independent of the others."""
         g = _rng(rng)
@@ -399,8 +450,9 @@ class Budget:
         s = self.axis_sources.get(axis_name)
         return 0.0 if s is None else float(s.standard_uncertainty())
 
-    def sample_axis_errors(self, axis_names: list[str] | tuple[str, ...], n: int,
-                           rng: np.random.Generator | int) -> np.ndarray:
+    def sample_axis_errors(
+        self, axis_names: list[str] | tuple[str, ...], n: int, rng: np.random.Generator | int
+    ) -> np.ndarray:
         """Positioning errors, shape (n, len(axis_names)): one row per positioning of the
         machine (one visit of a commanded pose), columns in ``axis_names`` order, mm for
         axes with a length unit, rad for axes with an angle unit, 0 for axes without a
@@ -421,18 +473,27 @@ class Budget:
         names = list(spec.axis_names)
         for a, s in self.axis_sources.items():
             if a not in names:
-                raise InputError(f"source '{s.name}' applies to axis {a}, which the model "
-                                 f"'{spec.name}' does not have (axes: {', '.join(names)})",
-                                 source=where, column="applies_to")
+                raise InputError(
+                    f"source '{s.name}' applies to axis {a}, which the model "
+                    f"'{spec.name}' does not have (axes: {', '.join(names)})",
+                    source=where,
+                    column="applies_to",
+                )
             rotary = spec.axis(a).is_rotary
             if rotary and s.unit not in ANGLE_UNITS:
-                raise InputError(f"source '{s.name}': axis {a} is rotary; expected an angle "
-                                 f"unit {list(ANGLE_UNITS)}, got {s.unit!r}", source=where,
-                                 column="unit")
+                raise InputError(
+                    f"source '{s.name}': axis {a} is rotary; expected an angle "
+                    f"unit {list(ANGLE_UNITS)}, got {s.unit!r}",
+                    source=where,
+                    column="unit",
+                )
             if not rotary and s.unit not in LENGTH_UNITS:
-                raise InputError(f"source '{s.name}': axis {a} is linear; expected a length "
-                                 f"unit {list(LENGTH_UNITS)}, got {s.unit!r}", source=where,
-                                 column="unit")
+                raise InputError(
+                    f"source '{s.name}': axis {a} is linear; expected a length "
+                    f"unit {list(LENGTH_UNITS)}, got {s.unit!r}",
+                    source=where,
+                    column="unit",
+                )
 
     # -- drift
 
@@ -465,10 +526,19 @@ class Budget:
         rows = []
         for s in self.sources:
             u = s.standard_uncertainty(L_mm if s.target == "length" else None)
-            rows.append({"name": s.name, "applies_to": s.applies_to,
-                         "distribution": s.distribution, "magnitude": s.magnitude,
-                         "per_metre": s.per_metre, "unit": s.unit, "k": s.k,
-                         "standard_uncertainty": float(u), "internal_unit": s.internal_unit})
+            rows.append(
+                {
+                    "name": s.name,
+                    "applies_to": s.applies_to,
+                    "distribution": s.distribution,
+                    "magnitude": s.magnitude,
+                    "per_metre": s.per_metre,
+                    "unit": s.unit,
+                    "k": s.k,
+                    "standard_uncertainty": float(u),
+                    "internal_unit": s.internal_unit,
+                }
+            )
         return pd.DataFrame(rows)
 
 
@@ -476,8 +546,7 @@ class Budget:
 # files
 
 _TOP_KEYS = {"name", "description", "reference", "source", "drift"}
-_SOURCE_KEYS = {"name", "applies_to", "distribution", "magnitude", "unit", "k", "per_metre",
-                "note"}
+_SOURCE_KEYS = {"name", "applies_to", "distribution", "magnitude", "unit", "k", "per_metre", "note"}
 _DRIFT_KEYS = {"preset", "unit", "terms", "random_phase", "note"}
 _TERM_KEYS = {"amplitude", "omega_rad_s", "phase_rad"}
 
@@ -486,10 +555,18 @@ def _unknown(d: dict, allowed: set[str], where: str, what: str) -> None:
     bad = sorted(set(d) - allowed)
     if bad:
         import difflib
-        hints = [f"'{b}' (did you mean '{m[0]}'?)" if (m := difflib.get_close_matches(
-            b, sorted(allowed), n=1)) else f"'{b}'" for b in bad]
-        raise InputError(f"unknown {what} key(s) {', '.join(hints)}; allowed: {sorted(allowed)}",
-                         source=where, column=bad[0])
+
+        hints = [
+            f"'{b}' (did you mean '{m[0]}'?)"
+            if (m := difflib.get_close_matches(b, sorted(allowed), n=1))
+            else f"'{b}'"
+            for b in bad
+        ]
+        raise InputError(
+            f"unknown {what} key(s) {', '.join(hints)}; allowed: {sorted(allowed)}",
+            source=where,
+            column=bad[0],
+        )
 
 
 def _drift_from_dict(d: Any, where: str) -> DriftModel:
@@ -498,44 +575,63 @@ def _drift_from_dict(d: Any, where: str) -> DriftModel:
     _unknown(d, _DRIFT_KEYS, where, "[drift]")
     random_phase = d.get("random_phase", True)
     if not isinstance(random_phase, bool):
-        raise InputError(f"expected true or false, got {random_phase!r}", source=where,
-                         column="drift.random_phase")
+        raise InputError(
+            f"expected true or false, got {random_phase!r}",
+            source=where,
+            column="drift.random_phase",
+        )
     note = _text(d.get("note", ""), where, "drift.note", empty_ok=True)
     if "preset" in d:
         if "terms" in d or "unit" in d:
-            raise InputError("give either preset or unit + terms, not both", source=where,
-                             column="drift.preset")
+            raise InputError(
+                "give either preset or unit + terms, not both", source=where, column="drift.preset"
+            )
         p = d["preset"]
         if p not in _DRIFT_PRESETS:
-            raise InputError(f"unknown drift preset {p!r}; presets: {sorted(_DRIFT_PRESETS)}",
-                             source=where, column="drift.preset")
-        return replace(_DRIFT_PRESETS[p], random_phase=random_phase,
-                       note=note or _DRIFT_PRESETS[p].note)
+            raise InputError(
+                f"unknown drift preset {p!r}; presets: {sorted(_DRIFT_PRESETS)}",
+                source=where,
+                column="drift.preset",
+            )
+        return replace(
+            _DRIFT_PRESETS[p], random_phase=random_phase, note=note or _DRIFT_PRESETS[p].note
+        )
     if "terms" not in d:
-        raise InputError("expected preset = \"paper001\" or unit + terms", source=where,
-                         column="drift.terms")
+        raise InputError(
+            'expected preset = "paper001" or unit + terms', source=where, column="drift.terms"
+        )
     unit = d.get("unit")
     if unit not in LENGTH_UNITS:
-        raise InputError(f"expected the amplitude unit, one of {list(LENGTH_UNITS)}, got "
-                         f"{unit!r}", source=where, column="drift.unit")
+        raise InputError(
+            f"expected the amplitude unit, one of {list(LENGTH_UNITS)}, got {unit!r}",
+            source=where,
+            column="drift.unit",
+        )
     terms = d["terms"]
     if not isinstance(terms, list) or not terms:
-        raise InputError("expected a non-empty array of {amplitude, omega_rad_s, phase_rad} "
-                         "tables", source=where, column="drift.terms")
+        raise InputError(
+            "expected a non-empty array of {amplitude, omega_rad_s, phase_rad} tables",
+            source=where,
+            column="drift.terms",
+        )
     A, w, ph = [], [], []
     for i, t in enumerate(terms):
         key = f"drift.terms[{i + 1}]"
         if not isinstance(t, dict):
-            raise InputError("expected a table {amplitude = ..., omega_rad_s = ..., "
-                             "phase_rad = ...}", source=where, column=key)
+            raise InputError(
+                "expected a table {amplitude = ..., omega_rad_s = ..., phase_rad = ...}",
+                source=where,
+                column=key,
+            )
         _unknown(t, _TERM_KEYS, where, key)
         for k in ("amplitude", "omega_rad_s"):
             if k not in t:
                 raise InputError("missing required key", source=where, column=f"{key}.{k}")
         a = _number(t["amplitude"], where, f"{key}.amplitude")
         if a < 0:
-            raise InputError(f"expected an amplitude >= 0, got {a:g}", source=where,
-                             column=f"{key}.amplitude")
+            raise InputError(
+                f"expected an amplitude >= 0, got {a:g}", source=where, column=f"{key}.amplitude"
+            )
         A.append(a * LENGTH_UNITS[unit])
         w.append(_number(t["omega_rad_s"], where, f"{key}.omega_rad_s"))
         ph.append(_number(t.get("phase_rad", 0.0), where, f"{key}.phase_rad"))
@@ -585,7 +681,7 @@ def bundled_budgets() -> dict[str, Path]:
     out = {}
     for p in sorted(root.iterdir(), key=lambda p: p.name):
         if p.name.startswith("budget_") and p.name.endswith(".toml"):
-            out[p.name[len("budget_"):-len(".toml")]] = Path(str(p))
+            out[p.name[len("budget_") : -len(".toml")]] = Path(str(p))
     return out
 
 
@@ -600,8 +696,11 @@ def load_budget(path_or_name: str | Path | Budget = "paper002") -> Budget:
     else:
         path = Path(path_or_name)
         if not path.is_file():
-            raise InputError(f"no bundled budget named {str(path_or_name)!r} and no such file; "
-                             f"bundled budgets: {sorted(bundled)}", source=str(path_or_name))
+            raise InputError(
+                f"no bundled budget named {str(path_or_name)!r} and no such file; "
+                f"bundled budgets: {sorted(bundled)}",
+                source=str(path_or_name),
+            )
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:

@@ -50,6 +50,7 @@ Shapes that are plainly wrong raise :class:`volcal.base.exceptions.InputError`.
 ``residual_rms`` is always the RMS of the geometric (sqrt) residual ``||P - Q|| - (d + l)`` in
 mm, whatever the method, so that methods can be compared.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -161,25 +162,37 @@ class StationCalibrations:
     def __getitem__(self, k: int) -> StationCalibration:
         """The k-th station (position in ``stations``, not its id) as a StationCalibration."""
         return StationCalibration(
-            position=self.positions[k].copy(), dead_length=float(self.dead_lengths[k]),
-            residual_rms=float(self.residual_rms[k]), iterations=int(self.iterations[k]),
+            position=self.positions[k].copy(),
+            dead_length=float(self.dead_lengths[k]),
+            residual_rms=float(self.residual_rms[k]),
+            iterations=int(self.iterations[k]),
             condition=float(self.condition[k]),
             condition_lower_bound=float(self.condition_lower_bound[k]),
             condition_scaled=float(self.condition_scaled[k]),
             condition_taylor=float(self.condition_taylor[k]),
-            converged=bool(self.converged[k]), status=str(self.status[k]), method=self.method,
-            n_readings=int(self.n_readings[k]))
+            converged=bool(self.converged[k]),
+            status=str(self.status[k]),
+            method=self.method,
+            n_readings=int(self.n_readings[k]),
+        )
 
     def to_frame(self):
         """pandas DataFrame with columns station, x, y, z, dead_length (mm), residual_rms_um,
         converged, status (the ``stations.csv`` layout plus diagnostics)."""
         import pandas as pd
 
-        return pd.DataFrame({
-            "station": self.stations, "x": self.positions[:, 0], "y": self.positions[:, 1],
-            "z": self.positions[:, 2], "dead_length": self.dead_lengths,
-            "residual_rms_um": 1e3 * self.residual_rms, "converged": self.converged,
-            "status": self.status})
+        return pd.DataFrame(
+            {
+                "station": self.stations,
+                "x": self.positions[:, 0],
+                "y": self.positions[:, 1],
+                "z": self.positions[:, 2],
+                "dead_length": self.dead_lengths,
+                "residual_rms_um": 1e3 * self.residual_rms,
+                "converged": self.converged,
+                "status": self.status,
+            }
+        )
 
 
 @dataclass(frozen=True)
@@ -288,8 +301,9 @@ def _scaled_solve(A: np.ndarray, b: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return x
 
 
-def _taylor_step(diff: np.ndarray, w: np.ndarray, target: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _taylor_step(
+    diff: np.ndarray, w: np.ndarray, target: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One weighted Gauss-Newton (Taylor) step of a batch of range problems: for each
     problem b the unknown X_b with ranges ||X_b - A_bm|| ~ target_bm (weights w_bm, 0 drops a
     range), linearised at the current X_b where diff = X_b - A_bm (B, M, 3).  Returns (the
@@ -330,14 +344,15 @@ def _plane(anchors: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return c, vt[:, -1, :]
 
 
-def _geometric_rms(X: np.ndarray, anchors: np.ndarray, ranges: np.ndarray,
-                   mask: np.ndarray) -> np.ndarray:
+def _geometric_rms(
+    X: np.ndarray, anchors: np.ndarray, ranges: np.ndarray, mask: np.ndarray
+) -> np.ndarray:
     """RMS over masked readings of ``||X - anchor|| - range`` (B,), mm."""
     t = np.linalg.norm(X[:, None, :] - anchors, axis=-1)
     r = np.where(mask, t - ranges, 0.0)
     n = mask.sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.sqrt((r ** 2).sum(axis=1) / n)
+        return np.sqrt((r**2).sum(axis=1) / n)
 
 
 # --------------------------------------------------------------------------------------------
@@ -374,16 +389,16 @@ class _RangeProblem:
             Jx = diff / tt[..., None]
             Jo = -np.ones_like(t)
         else:
-            t2 = (diff ** 2).sum(axis=-1)
-            r = (t2 - rho ** 2) * w
-            mag = (t2 + rho ** 2) * np.abs(w)
+            t2 = (diff**2).sum(axis=-1)
+            r = (t2 - rho**2) * w
+            mag = (t2 + rho**2) * np.abs(w)
             Jx = 2.0 * diff
             Jo = -2.0 * rho
         J = Jx * w[..., None]
         if self.est:
             J = np.concatenate([J, (Jo * w)[..., None]], axis=-1)
         dr = 4 * _EPS * mag
-        noise = (2 * np.abs(r) * dr + dr ** 2).sum(axis=1)
+        noise = (2 * np.abs(r) * dr + dr**2).sum(axis=1)
         return r, J, noise
 
 
@@ -415,7 +430,7 @@ def _lm(problem: _RangeProblem, x0: np.ndarray, max_iter: int, xtol: float):
     reason[done] = "no finite start value"
     all_idx = np.arange(B)
     r, J, noise = problem.eval(x, all_idx)
-    cost = (r ** 2).sum(axis=1)
+    cost = (r**2).sum(axis=1)
     eye = np.eye(p)
     m = problem.w != 0
     scale = np.abs(np.where(m, problem.base, 0.0)).sum(axis=1) / np.maximum(m.sum(axis=1), 1)
@@ -431,7 +446,8 @@ def _lm(problem: _RangeProblem, x0: np.ndarray, max_iter: int, xtol: float):
         xa = x[act]
         gn = -_solve_stack(H, g)
         small = np.all(np.isfinite(gn), axis=1) & (
-            np.linalg.norm(gn, axis=1) <= xtol * (np.linalg.norm(xa, axis=1) + scale[act]))
+            np.linalg.norm(gn, axis=1) <= xtol * (np.linalg.norm(xa, axis=1) + scale[act])
+        )
         fin = act[small]
         conv[fin] = True
         done[fin] = True
@@ -449,11 +465,14 @@ def _lm(problem: _RangeProblem, x0: np.ndarray, max_iter: int, xtol: float):
         step = -_solve_stack(H + lam[act, None, None] * dg[:, :, None] * eye, g)
         xn = xa + step
         rn, Jn, nn = problem.eval(xn, act)
-        cn = (rn ** 2).sum(axis=1)
+        cn = (rn**2).sum(axis=1)
         # accept unless the cost rose by more than its rounding level (below that level the
         # cost cannot rank two iterates; the step test above decides convergence)
-        acc = np.all(np.isfinite(xn), axis=1) & np.isfinite(cn) & (
-            cn <= cost[act] + 2 * (noise[act] + nn))
+        acc = (
+            np.all(np.isfinite(xn), axis=1)
+            & np.isfinite(cn)
+            & (cn <= cost[act] + 2 * (noise[act] + nn))
+        )
         ia = act[acc]
         x[ia], r[ia], J[ia], cost[ia], noise[ia] = xn[acc], rn[acc], Jn[acc], cn[acc], nn[acc]
         lam[ia] = np.maximum(lam[ia] / 10.0, 1e-12)
@@ -514,11 +533,11 @@ def _station_case_b(P, l, mask, w, est, d_fixed):
     ones = np.ones_like(l)
     if est:
         M = np.concatenate([-2 * P, (-2 * l)[..., None], ones[..., None]], axis=-1)
-        rhs = l ** 2 - (P ** 2).sum(-1)
+        rhs = l**2 - (P**2).sum(-1)
     else:
         rho = l + d_fixed[:, None]
         M = np.concatenate([-2 * P, ones[..., None]], axis=-1)
-        rhs = rho ** 2 - (P ** 2).sum(-1)
+        rhs = rho**2 - (P**2).sum(-1)
     Mw = M * (w * mask)[..., None]
     rw = rhs * (w * mask)
     A = 0.5 * np.einsum("kmi,kmj->kij", Mw, Mw)
@@ -538,15 +557,15 @@ def _station_paper002(P, l, mask, est, d_fixed):
     first = np.argmax(mask, axis=1)
     P1 = P[np.arange(K), first]
     l1 = l[np.arange(K), first]
-    Kj = (P ** 2).sum(-1)
-    K1 = (P1 ** 2).sum(-1)
+    Kj = (P**2).sum(-1)
+    K1 = (P1**2).sum(-1)
     G = P - P1[:, None, :]
     if est:
         G = np.concatenate([G, (l - l1[:, None])[..., None]], axis=-1)
-        h = 0.5 * (Kj - K1[:, None] - l ** 2 + (l1 ** 2)[:, None])
+        h = 0.5 * (Kj - K1[:, None] - l**2 + (l1**2)[:, None])
     else:
         rho, rho1 = l + d_fixed[:, None], l1 + d_fixed
-        h = 0.5 * (Kj - K1[:, None] - rho ** 2 + (rho1 ** 2)[:, None])
+        h = 0.5 * (Kj - K1[:, None] - rho**2 + (rho1**2)[:, None])
     m = mask.copy()
     m[np.arange(K), first] = False
     G = G * m[..., None]
@@ -562,8 +581,10 @@ def _group(station_index, points, lengths, sigma):
     points = _as_array(points, "points", "(N, 3)", 2, 3)
     lengths = _as_array(lengths, "lengths", "(N,)", 1)
     if points.shape[0] != N or lengths.shape[0] != N:
-        raise InputError(f"station_index, points and lengths must have the same length, got "
-                         f"{N}, {points.shape[0]}, {lengths.shape[0]}")
+        raise InputError(
+            f"station_index, points and lengths must have the same length, got "
+            f"{N}, {points.shape[0]}, {lengths.shape[0]}"
+        )
     if sigma is None:
         sig = np.ones(N)
     else:
@@ -609,23 +630,34 @@ def _initial_stations(initial, stations, K):
             v = _as_array(val, f"initial[{key!r}]", "(3,) or (4,)", 1)
             if v.shape[0] not in (3, 4):
                 raise InputError(f"initial[{key!r}] must have 3 or 4 values, got {v.shape[0]}")
-            x0[pos[key], :v.shape[0]] = v
+            x0[pos[key], : v.shape[0]] = v
         return x0
     v = np.asarray(initial, dtype=float)
     if v.ndim == 1:
         v = v[None, :]
     if v.ndim != 2 or v.shape[0] != K or v.shape[1] not in (3, 4):
-        raise InputError(f"initial must have shape ({K}, 3) or ({K}, 4) (x, y, z[, d] in mm), "
-                         f"got {np.shape(initial)}")
-    x0[:, :v.shape[1]] = v
+        raise InputError(
+            f"initial must have shape ({K}, 3) or ({K}, 4) (x, y, z[, d] in mm), "
+            f"got {np.shape(initial)}"
+        )
+    x0[:, : v.shape[1]] = v
     return x0
 
 
-def calibrate_stations(station_index: Sequence[Any] | np.ndarray, points: np.ndarray,
-                       lengths: np.ndarray, method: str = "sqrt", *, sigma=None, initial=None,
-                       estimate_dead_length: bool = True, dead_length=0.0,
-                       max_iter: int = 100, xtol: float = 1e-12,
-                       max_residual_rms: float | None = 1.0) -> StationCalibrations:
+def calibrate_stations(
+    station_index: Sequence[Any] | np.ndarray,
+    points: np.ndarray,
+    lengths: np.ndarray,
+    method: str = "sqrt",
+    *,
+    sigma=None,
+    initial=None,
+    estimate_dead_length: bool = True,
+    dead_length=0.0,
+    max_iter: int = 100,
+    xtol: float = 1e-12,
+    max_residual_rms: float | None = 1.0,
+) -> StationCalibrations:
     """Self-calibrate every station on known points, all stations in one batch.
 
     Parameters
@@ -670,13 +702,20 @@ def calibrate_stations(station_index: Sequence[Any] | np.ndarray, points: np.nda
     x0_given = _initial_stations(initial, stations, K)
 
     # requirements per method
-    need = {"sqrt": n_unknown, "squared": n_unknown, "linear": n_unknown + 1,
-            "linear_taylor": n_unknown + 1, "paper002": n_unknown + 1}[method]
+    need = {
+        "sqrt": n_unknown,
+        "squared": n_unknown,
+        "linear": n_unknown + 1,
+        "linear_taylor": n_unknown + 1,
+        "paper002": n_unknown + 1,
+    }[method]
     status = np.full(K, "", dtype=object)
     few = counts < need
     for k in np.flatnonzero(few):
-        status[k] = (f"too few readings: {counts[k]} < {need} needed by method {method!r}"
-                     f"{' with the dead length estimated' if est else ''}")
+        status[k] = (
+            f"too few readings: {counts[k]} < {need} needed by method {method!r}"
+            f"{' with the dead length estimated' if est else ''}"
+        )
     rank = np.zeros(K, dtype=int)
     rank[~few] = _geometry(P[~few], mask[~few]) if np.any(~few) else rank[~few]
     # Coplanar points: the squared equations are linear in (x, y, z, 1) so every linear method
@@ -684,8 +723,10 @@ def calibrate_stations(station_index: Sequence[Any] | np.ndarray, points: np.nda
     # picks one). Collinear points leave the station on a circle: singular for every method.
     bad_geo = (~few) & (rank < 2)
     for k in np.flatnonzero(bad_geo):
-        status[k] = ("points collinear (or coincident): the station lies anywhere on a circle; "
-                     "not identifiable")
+        status[k] = (
+            "points collinear (or coincident): the station lies anywhere on a circle; "
+            "not identifiable"
+        )
     ok = ~few & ~bad_geo
 
     pos = np.full((K, 3), np.nan)
@@ -713,16 +754,18 @@ def calibrate_stations(station_index: Sequence[Any] | np.ndarray, points: np.nda
         pos[good] = x[good, :3]
         dl[good] = x[good, 3] if est else dfix[good]
         for k in np.flatnonzero(ok & ~good):
-            status[k] = (f"Case B system singular (scaled condition {cs[k]:.3g})"
-                         + ("; points coplanar" if rank[k] == 2 else ""))
+            status[k] = f"Case B system singular (scaled condition {cs[k]:.3g})" + (
+                "; points coplanar" if rank[k] == 2 else ""
+            )
         conv = good.copy()
         for k in np.flatnonzero(good):
             status[k] = "solved (linear normal equations)"
         if method == "linear_taylor" and np.any(good):
             idx = np.flatnonzero(good)
             Q0 = pos[idx]
-            dQ, ct, gt = _taylor_step(Q0[:, None, :] - P[idx], W[idx] * mask[idx],
-                                      dl[idx][:, None] + L[idx])
+            dQ, ct, gt = _taylor_step(
+                Q0[:, None, :] - P[idx], W[idx] * mask[idx], dl[idx][:, None] + L[idx]
+            )
             cond_t[idx] = ct
             pos[idx[gt]] = Q0[gt] + dQ[gt]
             iters[idx[gt]] = 1
@@ -739,8 +782,9 @@ def calibrate_stations(station_index: Sequence[Any] | np.ndarray, points: np.nda
         dl[good] = x[good, 3] if est else dfix[good]
         conv = good.copy()
         for k in np.flatnonzero(ok & ~good):
-            status[k] = (f"paper 002 system singular (scaled condition {cs[k]:.3g})"
-                         + ("; points coplanar" if rank[k] == 2 else ""))
+            status[k] = f"paper 002 system singular (scaled condition {cs[k]:.3g})" + (
+                "; points coplanar" if rank[k] == 2 else ""
+            )
         for k in np.flatnonzero(good):
             status[k] = "solved (paper 002 linear least squares)"
     else:  # sqrt / squared
@@ -758,9 +802,11 @@ def calibrate_stations(station_index: Sequence[Any] | np.ndarray, points: np.nda
             if est:
                 x0[use, 3] = xs[use, 3]
             for k in np.flatnonzero(need_start & ~good):
-                status[k] = ("no start value: the paper 002 linear start is singular"
-                             + (" (points coplanar: two mirror solutions; pass initial=)"
-                                if rank[k] == 2 else ""))
+                status[k] = "no start value: the paper 002 linear start is singular" + (
+                    " (points coplanar: two mirror solutions; pass initial=)"
+                    if rank[k] == 2
+                    else ""
+                )
         run = ok & np.all(np.isfinite(x0[:, :3]), axis=1)
         idx = np.flatnonzero(run)
         if idx.size:
@@ -776,12 +822,17 @@ def calibrate_stations(station_index: Sequence[Any] | np.ndarray, points: np.nda
                     conv[k] = True
                     pos[k] = xs[jj, :3]
                     dl[k] = xs[jj, 3] if est else dfix[k]
-                    status[k] = "converged" + (" (points coplanar: the mirror solution fits "
-                                               "equally well; kept the one nearest the start)"
-                                               if rank[k] == 2 else "")
+                    status[k] = "converged" + (
+                        " (points coplanar: the mirror solution fits "
+                        "equally well; kept the one nearest the start)"
+                        if rank[k] == 2
+                        else ""
+                    )
                 elif cv[jj]:
-                    status[k] = (f"singular at the solution (scaled condition {cs[jj]:.3g}); "
-                                 "the station is not identifiable from these points")
+                    status[k] = (
+                        f"singular at the solution (scaled condition {cs[jj]:.3g}); "
+                        "the station is not identifiable from these points"
+                    )
                 else:
                     status[k] = str(why[jj])
     # geometric residual RMS (for every method)
@@ -790,22 +841,42 @@ def calibrate_stations(station_index: Sequence[Any] | np.ndarray, points: np.nda
     if max_residual_rms is not None:
         for k in np.flatnonzero(conv & ~(rms <= max_residual_rms)):
             conv[k] = False
-            status[k] = (f"residual RMS {rms[k]:.3g} mm > max_residual_rms = "
-                         f"{max_residual_rms:g} mm (local minimum or inconsistent data)")
+            status[k] = (
+                f"residual RMS {rms[k]:.3g} mm > max_residual_rms = "
+                f"{max_residual_rms:g} mm (local minimum or inconsistent data)"
+            )
     pos[~conv] = np.nan
     dl[~conv] = np.nan
     return StationCalibrations(
-        stations=stations, positions=pos, dead_lengths=dl, residual_rms=rms, iterations=iters,
-        condition=cond, condition_lower_bound=cond_lb, condition_scaled=cond_s,
-        condition_taylor=cond_t, converged=conv, status=status.astype(str), method=method,
-        n_readings=counts)
+        stations=stations,
+        positions=pos,
+        dead_lengths=dl,
+        residual_rms=rms,
+        iterations=iters,
+        condition=cond,
+        condition_lower_bound=cond_lb,
+        condition_scaled=cond_s,
+        condition_taylor=cond_t,
+        converged=conv,
+        status=status.astype(str),
+        method=method,
+        n_readings=counts,
+    )
 
 
-def calibrate_station(points: np.ndarray, lengths: np.ndarray, method: str = "sqrt",
-                      initial=None, estimate_dead_length: bool = True, *, sigma=None,
-                      dead_length: float = 0.0, max_iter: int = 100,
-                      xtol: float = 1e-12,
-                      max_residual_rms: float | None = 1.0) -> StationCalibration:
+def calibrate_station(
+    points: np.ndarray,
+    lengths: np.ndarray,
+    method: str = "sqrt",
+    initial=None,
+    estimate_dead_length: bool = True,
+    *,
+    sigma=None,
+    dead_length: float = 0.0,
+    max_iter: int = 100,
+    xtol: float = 1e-12,
+    max_residual_rms: float | None = 1.0,
+) -> StationCalibration:
     """Self-calibrate one station on known points.
 
     Parameters
@@ -831,14 +902,23 @@ def calibrate_station(points: np.ndarray, lengths: np.ndarray, method: str = "sq
     if initial is not None:
         initial = _as_array(initial, "initial", "(3,) or (4,)", 1)
         if initial.shape[0] not in (3, 4):
-            raise InputError(f"initial must have 3 or 4 values (x, y, z[, d] in mm), "
-                             f"got {initial.shape[0]}")
+            raise InputError(
+                f"initial must have 3 or 4 values (x, y, z[, d] in mm), got {initial.shape[0]}"
+            )
         initial = initial[None, :]
-    res = calibrate_stations(np.zeros(len(points), dtype=int), points, lengths, method,
-                             sigma=sigma, initial=initial,
-                             estimate_dead_length=estimate_dead_length,
-                             dead_length=dead_length, max_iter=max_iter, xtol=xtol,
-                             max_residual_rms=max_residual_rms)
+    res = calibrate_stations(
+        np.zeros(len(points), dtype=int),
+        points,
+        lengths,
+        method,
+        sigma=sigma,
+        initial=initial,
+        estimate_dead_length=estimate_dead_length,
+        dead_length=dead_length,
+        max_iter=max_iter,
+        xtol=xtol,
+        max_residual_rms=max_residual_rms,
+    )
     return res[0]
 
 
@@ -887,9 +967,9 @@ def _sphere(Q, rho, mask, side, side_type):
     ey = w / jj[:, None]
     ez = np.cross(ex, ey)
     Dd = np.where(D > 0, D, 1.0)
-    x = (r[:, 0] ** 2 - r[:, 1] ** 2 + D ** 2) / (2 * Dd)
-    y = (r[:, 0] ** 2 - r[:, 2] ** 2 + i ** 2 + j ** 2) / (2 * jj) - i * x / jj
-    zz = r[:, 0] ** 2 - x ** 2 - y ** 2
+    x = (r[:, 0] ** 2 - r[:, 1] ** 2 + D**2) / (2 * Dd)
+    y = (r[:, 0] ** 2 - r[:, 2] ** 2 + i**2 + j**2) / (2 * jj) - i * x / jj
+    zz = r[:, 0] ** 2 - x**2 - y**2
     z2[idx] = zz
     tol = 64 * _EPS * r[:, 0] ** 2  # rounding level of z^2
     noreal = zz < -tol
@@ -901,8 +981,11 @@ def _sphere(Q, rho, mask, side, side_type):
     if side is not None:
         s = np.asarray(side, dtype=float)
         s = np.broadcast_to(s, (N, 3))[idx]
-        ref = np.einsum("ni,ni->n", s - Q1, ez) if side_type == "point" else \
-            np.einsum("ni,ni->n", s, ez)
+        ref = (
+            np.einsum("ni,ni->n", s - Q1, ez)
+            if side_type == "point"
+            else np.einsum("ni,ni->n", s, ez)
+        )
         pick_plus = ref >= 0
         choose = np.where(pick_plus[:, None], rp, rm)
         undecided = ref == 0
@@ -917,7 +1000,7 @@ def _sphere(Q, rho, mask, side, side_type):
             rr = rho[idx]
             ep = np.where(m, np.linalg.norm(rp[:, None] - Q[None], axis=-1) - rr, 0.0)
             em = np.where(m, np.linalg.norm(rm[:, None] - Q[None], axis=-1) - rr, 0.0)
-            cp, cm = (ep ** 2).sum(1), (em ** 2).sum(1)
+            cp, cm = (ep**2).sum(1), (em**2).sum(1)
             choose = np.where((cp <= cm)[:, None], rp, rm)
             undecided = ~extra
     P[idx] = choose
@@ -930,10 +1013,12 @@ def _sphere(Q, rho, mask, side, side_type):
         if degenerate[jx]:
             reason[n] = "the three stations are collinear (or coincident): no unique intersection"
         elif noreal[jx]:
-            reason[n] = (f"the three spheres do not intersect (z^2 = {zz[jx]:.3g} mm^2 < 0)")
+            reason[n] = f"the three spheres do not intersect (z^2 = {zz[jx]:.3g} mm^2 < 0)"
         else:
-            reason[n] = ("two roots and nothing to choose between them: pass side= (a point, "
-                         "or a normal with side_type='normal')")
+            reason[n] = (
+                "two roots and nothing to choose between them: pass side= (a point, "
+                "or a normal with side_type='normal')"
+            )
     good = idx[~bad]
     reason[good] = "solved (sphere intersection)"
     more = good[cnt[good] > 3]
@@ -944,14 +1029,25 @@ def _sphere(Q, rho, mask, side, side_type):
         for u, key in enumerate(uniq):
             reason[more[inv.ravel() == u]] = (
                 f"solved (sphere intersection); used stations {tuple(int(v) for v in key[:3])} "
-                f"only, the other {key[3] - 3} reading(s) ignored{tail}")
+                f"only, the other {key[3] - 3} reading(s) ignored{tail}"
+            )
     return P, used, z2, roots, ok, reason, startable
 
 
-def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.ndarray,
-                  method: str = "sqrt", initial=None, *, sigma=None, side=None,
-                  side_type: str = "point", max_iter: int = 100, xtol: float = 1e-12,
-                  max_residual_rms: float | None = 1.0) -> Multilateration:
+def multilaterate(
+    stations: np.ndarray,
+    dead_lengths: np.ndarray,
+    lengths: np.ndarray,
+    method: str = "sqrt",
+    initial=None,
+    *,
+    sigma=None,
+    side=None,
+    side_type: str = "point",
+    max_iter: int = 100,
+    xtol: float = 1e-12,
+    max_residual_rms: float | None = 1.0,
+) -> Multilateration:
     """Positions of N points from K stations with known positions and dead lengths.
 
     Parameters
@@ -1009,8 +1105,9 @@ def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.nd
         try:
             s = np.broadcast_to(s, (N, K))
         except ValueError:
-            raise InputError(f"sigma must be a scalar, ({K},) or ({N}, {K}), "
-                             f"got {s.shape}") from None
+            raise InputError(
+                f"sigma must be a scalar, ({K},) or ({N}, {K}), got {s.shape}"
+            ) from None
         if np.any(~(s[mask] > 0)):
             raise InputError("sigma must be positive (mm)")
         W = np.where(mask, 1.0 / np.where(mask, s, 1.0), 0.0)
@@ -1026,8 +1123,9 @@ def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.nd
         try:
             x_init = np.broadcast_to(x_init, (N, 3)).copy()
         except ValueError:
-            raise InputError(f"initial must have shape (3,) or ({N}, 3), "
-                             f"got {x_init.shape}") from None
+            raise InputError(
+                f"initial must have shape (3,) or ({N}, 3), got {x_init.shape}"
+            ) from None
 
     cnt = mask.sum(axis=1)
     anchors = np.broadcast_to(Q, (N, K, 3))
@@ -1041,8 +1139,7 @@ def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.nd
             patterns = mk[first]
         else:
             patterns, inverse = np.unique(mk, axis=0, return_inverse=True)
-        rank[has3] = _geometry(np.broadcast_to(Q, (len(patterns), K, 3)),
-                               patterns)[inverse.ravel()]
+        rank[has3] = _geometry(np.broadcast_to(Q, (len(patterns), K, 3)), patterns)[inverse.ravel()]
 
     pts = np.full((N, 3), np.nan)
     iters = np.zeros(N, dtype=int)
@@ -1057,7 +1154,7 @@ def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.nd
     def linear(sel):
         """Case B analogue for the points in sel: rows [-2 Q_k, 1], rhs rho^2 - |Q_k|^2."""
         Mrow = np.concatenate([-2 * Q, np.ones((K, 1))], axis=1)  # (K, 4)
-        rhs = rho[sel] ** 2 - (Q ** 2).sum(1)[None, :]
+        rhs = rho[sel] ** 2 - (Q**2).sum(1)[None, :]
         w2 = W[sel] ** 2
         A = 0.5 * np.einsum("nk,ki,kj->nij", w2, Mrow, Mrow)
         b = 0.5 * np.einsum("nk,ki,nk->ni", w2, Mrow, rhs)
@@ -1077,9 +1174,11 @@ def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.nd
             conv[sel[good]] = True
             for j in np.flatnonzero(~good):
                 n = sel[j]
-                pstat[n] = (f"linear system singular (scaled condition {cs[j]:.3g})"
-                            + ("; stations coplanar" if rank[n] == 2 else "")
-                            + ("; stations collinear" if rank[n] < 2 else ""))
+                pstat[n] = (
+                    f"linear system singular (scaled condition {cs[j]:.3g})"
+                    + ("; stations coplanar" if rank[n] == 2 else "")
+                    + ("; stations collinear" if rank[n] < 2 else "")
+                )
             pstat[sel[good]] = "solved (linear normal equations)"
         for n in np.flatnonzero(few_lin):
             pstat[n] = f"too few readings: {cnt[n]} < 4 needed by method {method!r}"
@@ -1101,8 +1200,13 @@ def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.nd
         pstat[:] = why
         idx = np.flatnonzero(ok)
         if idx.size:
-            prob = _RangeProblem(Q[used[idx]], np.take_along_axis(rho[idx], used[idx], 1),
-                                 np.take_along_axis(W[idx], used[idx], 1), "sqrt", False)
+            prob = _RangeProblem(
+                Q[used[idx]],
+                np.take_along_axis(rho[idx], used[idx], 1),
+                np.take_along_axis(W[idx], used[idx], 1),
+                "sqrt",
+                False,
+            )
             c, lb, cs = _normal_conditions(prob, pts[idx])
             cond[idx], cond_lb[idx], cond_s[idx] = c, lb, cs
     else:  # sqrt / squared
@@ -1116,9 +1220,9 @@ def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.nd
                 x0[sel[good]] = x[good]
             need = np.flatnonzero(has3 & ~collinear & np.isnan(x0[:, 0]))
             if need.size and side is not None:
-                Ps, _, _, _, _, _, oks = _sphere(Q, rho[need], mask[need],
-                                                 side if side.ndim == 1 else side[need],
-                                                 side_type)
+                Ps, _, _, _, _, _, oks = _sphere(
+                    Q, rho[need], mask[need], side if side.ndim == 1 else side[need], side_type
+                )
                 x0[need[oks]] = Ps[oks]
         # too few / degenerate
         for n in np.flatnonzero(cnt < 3):
@@ -1127,14 +1231,17 @@ def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.nd
             pstat[n] = "stations collinear: the point lies anywhere on a circle; not identifiable"
         amb = coplanar & (side is None) & (x_init is None)
         for n in np.flatnonzero(amb):
-            pstat[n] = ("stations coplanar: two mirror solutions; pass side= (or initial=) to "
-                        "choose one")
+            pstat[n] = (
+                "stations coplanar: two mirror solutions; pass side= (or initial=) to choose one"
+            )
         resolved_by[coplanar & (side is not None)] = "side"
         resolved_by[coplanar & (side is None) & (x_init is not None)] = "initial"
         run = (cnt >= 3) & ~collinear & ~amb & np.all(np.isfinite(x0), axis=1)
         for n in np.flatnonzero((cnt >= 3) & ~collinear & ~amb & ~run):
-            pstat[n] = ("no start value (the linear start is singular and no sphere "
-                        "intersection was usable); pass initial=")
+            pstat[n] = (
+                "no start value (the linear start is singular and no sphere "
+                "intersection was usable); pass initial="
+            )
         idx = np.flatnonzero(run)
         if idx.size:
             prob = _RangeProblem(anchors[idx], rho[idx], W[idx], method, False)
@@ -1145,8 +1252,11 @@ def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.nd
                 c0, nrm = _plane(anchors[idx[fix]], mask[idx[fix]])
                 s = side if side.ndim == 1 else side[idx[fix]]
                 s = np.broadcast_to(s, (fix.size, 3))
-                ref = np.einsum("ni,ni->n", s - c0, nrm) if side_type == "point" else \
-                    np.einsum("ni,ni->n", s, nrm)
+                ref = (
+                    np.einsum("ni,ni->n", s - c0, nrm)
+                    if side_type == "point"
+                    else np.einsum("ni,ni->n", s, nrm)
+                )
                 h = np.einsum("ni,ni->n", xs[fix] - c0, nrm)
                 flip = np.sign(h) != np.sign(ref)
                 xs[fix[flip]] -= 2 * h[flip, None] * nrm[flip]
@@ -1158,20 +1268,27 @@ def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.nd
             pts[idx[good]] = xs[good]
             conv[idx[good]] = True
             for j in np.flatnonzero(~good):
-                pstat[idx[j]] = (str(why[j]) if not cv[j] else
-                                 f"singular at the solution (scaled condition {cs[j]:.3g})")
+                pstat[idx[j]] = (
+                    str(why[j])
+                    if not cv[j]
+                    else f"singular at the solution (scaled condition {cs[j]:.3g})"
+                )
             ig = idx[good]
             pstat[ig] = "converged"
-            pstat[ig[resolved_by[ig] == "side"]] = \
+            pstat[ig[resolved_by[ig] == "side"]] = (
                 "converged (stations coplanar: mirror root chosen by side)"
-            pstat[ig[resolved_by[ig] == "initial"]] = \
+            )
+            pstat[ig[resolved_by[ig] == "initial"]] = (
                 "converged (stations coplanar: kept the mirror root nearest the initial point)"
+            )
     rms = _geometric_rms(pts, anchors, rho, mask)
     if max_residual_rms is not None:
         for n in np.flatnonzero(conv & ~(rms <= max_residual_rms)):
             conv[n] = False
-            pstat[n] = (f"residual RMS {rms[n]:.3g} mm > max_residual_rms = "
-                        f"{max_residual_rms:g} mm (local minimum or inconsistent readings)")
+            pstat[n] = (
+                f"residual RMS {rms[n]:.3g} mm > max_residual_rms = "
+                f"{max_residual_rms:g} mm (local minimum or inconsistent readings)"
+            )
     pts[~conv] = np.nan
     rms[~conv] = np.nan
     n_ok = int(conv.sum())
@@ -1181,10 +1298,21 @@ def multilaterate(stations: np.ndarray, dead_lengths: np.ndarray, lengths: np.nd
         top = sorted(zip(counts, msgs), reverse=True)[:3]
         summary += "; failures: " + "; ".join(f"{c} x {m}" for c, m in top)
     if method == "sphere" and np.any(cnt > 3):
-        summary += "; sphere uses the first three stations read by each point (others ignored" \
-                   + (")" if side is not None else " except to choose the root)")
+        summary += "; sphere uses the first three stations read by each point (others ignored" + (
+            ")" if side is not None else " except to choose the root)"
+        )
     return Multilateration(
-        points=pts, residual_rms=rms, condition=cond, condition_lower_bound=cond_lb,
-        condition_scaled=cond_s, condition_taylor=cond_t, converged=conv, iterations=iters,
-        n_stations=cnt, point_status=pstat.astype(str), status=summary, method=method,
-        stations_used=used)
+        points=pts,
+        residual_rms=rms,
+        condition=cond,
+        condition_lower_bound=cond_lb,
+        condition_scaled=cond_s,
+        condition_taylor=cond_t,
+        converged=conv,
+        iterations=iters,
+        n_stations=cnt,
+        point_status=pstat.astype(str),
+        status=summary,
+        method=method,
+        stations_used=used,
+    )

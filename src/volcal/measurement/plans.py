@@ -23,6 +23,7 @@ Every function takes the model as a :class:`~volcal.model.spec.MachineSpec`, a
 :class:`~volcal.model.machine.Machine` (its ``spec`` is used), a bundled model name or a model
 file path.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -36,10 +37,19 @@ from volcal.base.exceptions import InputError
 from volcal.model.spec import AxisSpec, MachineSpec, resolve_model
 
 __all__ = [
-    "default_plan", "summary_grid", "grid_plan", "line_plan", "diagonal_plan",
-    "plan_from_csv", "check_plan",
-    "default_stations", "ROTARY_GRID_FULL_TURN", "ROTARY_GRID_PARTIAL",
-    "STATION_MIN_CLEARANCE_MM", "SUMMARY_ROTARY_FULL_TURN", "SUMMARY_ROTARY_PARTIAL",
+    "default_plan",
+    "summary_grid",
+    "grid_plan",
+    "line_plan",
+    "diagonal_plan",
+    "plan_from_csv",
+    "check_plan",
+    "default_stations",
+    "ROTARY_GRID_FULL_TURN",
+    "ROTARY_GRID_PARTIAL",
+    "STATION_MIN_CLEARANCE_MM",
+    "SUMMARY_ROTARY_FULL_TURN",
+    "SUMMARY_ROTARY_PARTIAL",
 ]
 
 #: Default number of angles of a full-turn rotary axis (travel >= 360 deg) in a grid plan:
@@ -74,8 +84,9 @@ def _full_turn(a: AxisSpec) -> bool:
     return a.is_rotary and (a.travel[1] - a.travel[0]) >= 360.0 - 1e-9
 
 
-def _axis_positions(a: AxisSpec, n: int, margin: float = 0.0, *,
-                    through_reference: bool = False) -> np.ndarray:
+def _axis_positions(
+    a: AxisSpec, n: int, margin: float = 0.0, *, through_reference: bool = False
+) -> np.ndarray:
     """``n`` positions (file units) along the travel of one axis.
 
     Linear axes and partial-travel rotary axes: evenly spaced from ``min + margin`` to
@@ -104,8 +115,10 @@ def _counts(spec: MachineSpec, n: int | dict[str, int]) -> dict[str, int]:
     if isinstance(n, dict):
         unknown = sorted(set(n) - set(spec.axis_names))
         if unknown:
-            raise InputError(f"grid counts given for unknown axes {unknown}; the model "
-                             f"'{spec.name}' has axes {spec.axis_names}")
+            raise InputError(
+                f"grid counts given for unknown axes {unknown}; the model "
+                f"'{spec.name}' has axes {spec.axis_names}"
+            )
         default = None
     else:
         default = n
@@ -125,8 +138,9 @@ def _counts(spec: MachineSpec, n: int | dict[str, int]) -> dict[str, int]:
 
 
 def _frame(spec: MachineSpec, rows: np.ndarray) -> pd.DataFrame:
-    df = pd.DataFrame(np.asarray(rows, dtype=float).reshape(-1, len(spec.axes)),
-                      columns=spec.axis_names)
+    df = pd.DataFrame(
+        np.asarray(rows, dtype=float).reshape(-1, len(spec.axes)), columns=spec.axis_names
+    )
     # exact duplicates (e.g. the reference pose on several lines) are measured once
     return df.drop_duplicates(ignore_index=True)
 
@@ -150,8 +164,10 @@ def grid_plan(spec: Any, n: int | dict[str, int] = 5, margin: float = 0.0) -> pd
     margin = float(margin)
     for a in spec.axes:
         if not a.is_rotary and not 0.0 <= 2 * margin < (a.travel[1] - a.travel[0]):
-            raise InputError(f"margin {margin:g} mm leaves no travel on axis {a.name} "
-                             f"(travel {a.travel[0]:g} .. {a.travel[1]:g} mm)")
+            raise InputError(
+                f"margin {margin:g} mm leaves no travel on axis {a.name} "
+                f"(travel {a.travel[0]:g} .. {a.travel[1]:g} mm)"
+            )
     counts = _counts(spec, n)
     grids = [_axis_positions(a, counts[a.name], margin) for a in spec.axes]
     return _frame(spec, np.array(list(itertools.product(*grids))))
@@ -178,8 +194,11 @@ def summary_grid(spec: Any, n: int = 5) -> pd.DataFrame:
         elif _full_turn(a):
             grids.append(_axis_positions(a, SUMMARY_ROTARY_FULL_TURN, through_reference=True))
         else:
-            grids.append(np.unique(np.round(np.append(
-                _axis_positions(a, SUMMARY_ROTARY_PARTIAL), a.reference), 9)))
+            grids.append(
+                np.unique(
+                    np.round(np.append(_axis_positions(a, SUMMARY_ROTARY_PARTIAL), a.reference), 9)
+                )
+            )
     return _frame(spec, np.array(list(itertools.product(*grids))))
 
 
@@ -253,13 +272,15 @@ def default_plan(spec: Any, degree: int = 3) -> pd.DataFrame:
         return grid_plan(spec, n_lin)
     lin = [j for j, a in enumerate(spec.axes) if not a.is_rotary]
     ref = _reference(spec)
-    parts = [grid_plan(spec, {a.name: (1 if a.is_rotary else n_lin) for a in spec.axes})
-             .to_numpy(float)]
+    parts = [
+        grid_plan(spec, {a.name: (1 if a.is_rotary else n_lin) for a in spec.axes}).to_numpy(float)
+    ]
     anchors = _linear_anchors(spec)
     for j in rot:
         a = spec.axes[j]
-        sweep = _axis_positions(a, 2 * int(degree) + 6 if _full_turn(a) else int(degree) + 4,
-                                through_reference=True)
+        sweep = _axis_positions(
+            a, 2 * int(degree) + 6 if _full_turn(a) else int(degree) + 4, through_reference=True
+        )
         others = [k for k in rot if k != j]
         other_pos = [_other_rotary_positions(spec.axes[k]) for k in others]
         rows = []
@@ -351,8 +372,7 @@ def check_plan(plan: pd.DataFrame, spec: Any, *, source: str = "<plan>") -> pd.D
 
     spec = _as_spec(spec)
     if not isinstance(plan, pd.DataFrame):
-        raise InputError(f"expected a DataFrame of poses, got {type(plan).__name__}",
-                         source=source)
+        raise InputError(f"expected a DataFrame of poses, got {type(plan).__name__}", source=source)
     raw = _data.read_raw(plan, source, "plan")
     return _validate_raw(raw, spec)
 
@@ -361,20 +381,28 @@ def _validate_raw(raw: Any, spec: MachineSpec) -> pd.DataFrame:
     from volcal.measurement import tables as _data
 
     problems = _data.Problems(raw.name)
-    schema = [_data.Column(a.name, (f"{a.name}_{_unit(a)}",), True, "float", _unit(a))
-              for a in spec.axes]
-    pos = _data.resolve_columns(raw, schema, problems, axis_names=spec.axis_names,
-                                 model_name=spec.name)
+    schema = [
+        _data.Column(a.name, (f"{a.name}_{_unit(a)}",), True, "float", _unit(a)) for a in spec.axes
+    ]
+    pos = _data.resolve_columns(
+        raw, schema, problems, axis_names=spec.axis_names, model_name=spec.name
+    )
     out = {}
     for a in spec.axes:
         label = raw.header[pos[a.name]]
-        v = _data.parse_float(raw.body[pos[a.name]], raw.rows, label, _unit(a), False,
-                               problems)
+        v = _data.parse_float(raw.body[pos[a.name]], raw.rows, label, _unit(a), False, problems)
         lo, hi = a.travel
         tol = _data.TRAVEL_TOLERANCE * (hi - lo)
-        _data.report_rows(problems, raw.rows, (v < lo - tol) | (v > hi + tol), label,
-                      lambda k, v=v, a=a, lo=lo, hi=hi: f"{a.name} = {v[k]:g} {_unit(a)} is "
-                      f"outside the travel [{lo:g}, {hi:g}] {_unit(a)} of axis {a.name}")
+        _data.report_rows(
+            problems,
+            raw.rows,
+            (v < lo - tol) | (v > hi + tol),
+            label,
+            lambda k, v=v, a=a, lo=lo, hi=hi: (
+                f"{a.name} = {v[k]:g} {_unit(a)} is "
+                f"outside the travel [{lo:g}, {hi:g}] {_unit(a)} of axis {a.name}"
+            ),
+        )
         out[a.name] = v
     problems.raise_if_any()
     return pd.DataFrame(out, columns=spec.axis_names)
@@ -397,8 +425,7 @@ def plan_from_csv(path: str | Path, spec: Any) -> pd.DataFrame:
 # stations
 
 
-def nominal_points(spec: Any, plan: pd.DataFrame, tools: np.ndarray | None = None
-                   ) -> np.ndarray:
+def nominal_points(spec: Any, plan: pd.DataFrame, tools: np.ndarray | None = None) -> np.ndarray:
     """Nominal tool points (mm, workpiece frame) of every (tool, pose) of a plan,
     shape (K * N, 3), tool-major (all poses with the first tool, then the second ...)."""
     from volcal.measurement.tables import nominal_tool_points as _nominal_tool_points
@@ -409,13 +436,19 @@ def nominal_points(spec: Any, plan: pd.DataFrame, tools: np.ndarray | None = Non
         if a.is_rotary:
             q[:, j] = np.deg2rad(q[:, j])
     tools = np.zeros((1, 3)) if tools is None else np.atleast_2d(np.asarray(tools, float))
-    return np.concatenate([_nominal_tool_points(spec, q, np.broadcast_to(t, q.shape[:1] + (3,)))
-                           for t in tools])
+    return np.concatenate(
+        [_nominal_tool_points(spec, q, np.broadcast_to(t, q.shape[:1] + (3,))) for t in tools]
+    )
 
 
-def default_stations(spec: Any, n: int = 6, seed: int = 0, *,
-                     tools: np.ndarray | None = None,
-                     plan: pd.DataFrame | None = None) -> pd.DataFrame:
+def default_stations(
+    spec: Any,
+    n: int = 6,
+    seed: int = 0,
+    *,
+    tools: np.ndarray | None = None,
+    plan: pd.DataFrame | None = None,
+) -> pd.DataFrame:
     """A plausible layout of ``n`` tracker stations around the workspace.
 
     The nominal tool points of ``plan`` (default :func:`default_plan`: the default grid
@@ -438,8 +471,9 @@ def default_stations(spec: Any, n: int = 6, seed: int = 0, *,
     """
     spec = _as_spec(spec)
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 4:
-        raise InputError(f"expected at least 4 stations (3 or fewer are always coplanar), "
-                         f"got {n!r}")
+        raise InputError(
+            f"expected at least 4 stations (3 or fewer are always coplanar), got {n!r}"
+        )
     rng = np.random.default_rng(seed)
     pts = nominal_points(spec, default_plan(spec) if plan is None else plan, tools)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
@@ -451,9 +485,13 @@ def default_stations(spec: Any, n: int = 6, seed: int = 0, *,
     for _ in range(100):
         phi = np.pi / n + spacing * np.arange(n) + rng.uniform(-0.15, 0.15, n) * spacing
         level = np.where(np.arange(n) % 2 == 0, 0.25, 0.75) + rng.uniform(-0.05, 0.05, n)
-        xyz = np.column_stack([c[0] + a_ax * np.cos(phi), c[1] + b_ax * np.sin(phi),
-                               lo[2] + level * dz if dz > 0 else
-                               c[2] + (level - 0.5) * 2 * grow])
+        xyz = np.column_stack(
+            [
+                c[0] + a_ax * np.cos(phi),
+                c[1] + b_ax * np.sin(phi),
+                lo[2] + level * dz if dz > 0 else c[2] + (level - 0.5) * 2 * grow,
+            ]
+        )
         sv = np.linalg.svd(xyz - xyz.mean(axis=0), compute_uv=False)
         dmin = np.sqrt(((pts[:, None, :] - xyz[None, :, :]) ** 2).sum(-1)).min()
         if sv[2] > 1e-3 * sv[0] and dmin >= STATION_MIN_CLEARANCE_MM:
@@ -461,9 +499,14 @@ def default_stations(spec: Any, n: int = 6, seed: int = 0, *,
     else:  # pragma: no cover - the construction above always succeeds
         raise RuntimeError("could not place non-coplanar stations clear of the workspace")
     dead = rng.uniform(0.05, 0.5, n)
-    return pd.DataFrame({
-        "station": np.array([f"S{k + 1}" for k in range(n)], dtype=object),
-        "x_mm": xyz[:, 0], "y_mm": xyz[:, 1], "z_mm": xyz[:, 2],
-        "dead_length_mm": dead, "dead_length_given": np.ones(n, dtype=bool),
-        "fixed": np.zeros(n, dtype=bool),
-    })
+    return pd.DataFrame(
+        {
+            "station": np.array([f"S{k + 1}" for k in range(n)], dtype=object),
+            "x_mm": xyz[:, 0],
+            "y_mm": xyz[:, 1],
+            "z_mm": xyz[:, 2],
+            "dead_length_mm": dead,
+            "dead_length_given": np.ones(n, dtype=bool),
+            "fixed": np.zeros(n, dtype=bool),
+        }
+    )

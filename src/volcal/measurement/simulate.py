@@ -38,6 +38,7 @@ tool-major (all poses with the first tool, then with the second ...).
 Units: lengths mm, angles rad inside the code; files carry rotary axes in degrees and
 the true parameters in um / urad (their ``unit`` column says which).
 """
+
 from __future__ import annotations
 
 import json
@@ -64,10 +65,22 @@ from volcal.model.machine import Machine
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "Simulation", "Example", "draw_true_parameters", "simulate", "save_simulation",
-    "load_true_parameters", "parameters_table", "example", "examples", "parse_tools",
-    "NOISE_SOURCES", "READING_INTERVAL_S", "TOOL_CHANGE_S", "STATION_SETUP_S",
-    "MAGNITUDES", "SIMULATION_FILES",
+    "Simulation",
+    "Example",
+    "draw_true_parameters",
+    "simulate",
+    "save_simulation",
+    "load_true_parameters",
+    "parameters_table",
+    "example",
+    "examples",
+    "parse_tools",
+    "NOISE_SOURCES",
+    "READING_INTERVAL_S",
+    "TOOL_CHANGE_S",
+    "STATION_SETUP_S",
+    "MAGNITUDES",
+    "SIMULATION_FILES",
 ]
 
 #: Noise sources that ``simulate(noise=...)`` can switch on independently.
@@ -81,22 +94,27 @@ STATION_SETUP_S = 900.0
 #: Readings closer than this to their station (mm) draw a warning.
 MIN_STATION_DISTANCE_MM = 50.0
 #: Files written by :func:`save_simulation`.
-SIMULATION_FILES = ("measurements.csv", "stations.csv", "true_parameters.csv",
-                    "true_volumetric.csv", "simulation.json")
+SIMULATION_FILES = (
+    "measurements.csv",
+    "stations.csv",
+    "true_parameters.csv",
+    "true_volumetric.csv",
+    "simulation.json",
+)
 
 #: Headline sizes (low, high) of drawn error motions, internal units (mm, rad); see
 #: :func:`draw_true_parameters`.
 MAGNITUDES: dict[str, tuple[float, float]] = {
-    "linear_positioning": (10e-3, 30e-3),         # EXX: +-10..30 um over travel
-    "linear_straightness": (2e-3, 6e-3),          # EYX, EZX
-    "linear_angular": (10e-6, 30e-6),             # EAX, EBX, ECX
-    "rotary_translation": (2e-3, 8e-3),           # EXC, EYC, EZC
-    "rotary_angular": (10e-6, 30e-6),             # EAC, EBC, ECC
-    "squareness": (20e-6, 50e-6),                 # EC0Y, EB0Z, EA0Z
+    "linear_positioning": (10e-3, 30e-3),  # EXX: +-10..30 um over travel
+    "linear_straightness": (2e-3, 6e-3),  # EYX, EZX
+    "linear_angular": (10e-6, 30e-6),  # EAX, EBX, ECX
+    "rotary_translation": (2e-3, 8e-3),  # EXC, EYC, EZC
+    "rotary_angular": (10e-6, 30e-6),  # EAC, EBC, ECC
+    "squareness": (20e-6, 50e-6),  # EC0Y, EB0Z, EA0Z
     "rotary_location_translation": (10e-3, 50e-3),  # EX0C, EY0C
-    "rotary_location_rotation": (20e-6, 50e-6),   # EA0C, EB0C
-    "tool_position": (5e-3, 20e-3),               # EX0T, EY0T, EZ0T
-    "tool_orientation": (10e-6, 40e-6),           # EA0T, EB0T, EC0T
+    "rotary_location_rotation": (20e-6, 50e-6),  # EA0C, EB0C
+    "tool_position": (5e-3, 20e-3),  # EX0T, EY0T, EZ0T
+    "tool_orientation": (10e-6, 40e-6),  # EA0T, EB0T, EC0T
 }
 #: Ratio of the scale of successive Legendre coefficients of a drawn error motion.
 COEFFICIENT_DECAY = 0.4
@@ -121,8 +139,10 @@ def _error_model(machine: Machine, error_model: ErrorModel | None) -> ErrorModel
     if error_model is None:
         return ErrorModel(machine.spec)
     if error_model.spec.fingerprint() != machine.spec.fingerprint():
-        raise InputError(f"the error model is for model '{error_model.spec.name}', the "
-                         f"machine is '{machine.spec.name}'")
+        raise InputError(
+            f"the error model is for model '{error_model.spec.name}', the "
+            f"machine is '{machine.spec.name}'"
+        )
     return error_model
 
 
@@ -146,9 +166,13 @@ def _plan_internal(machine: Machine, plan: pd.DataFrame) -> np.ndarray:
     return machine.axis_to_internal(plan[machine.axis_names].to_numpy(dtype=float))
 
 
-def max_volumetric_error_um(machine: Machine, error_model: ErrorModel, theta: np.ndarray,
-                            plan: pd.DataFrame | None = None,
-                            tool: np.ndarray | None = None) -> float:
+def max_volumetric_error_um(
+    machine: Machine,
+    error_model: ErrorModel,
+    theta: np.ndarray,
+    plan: pd.DataFrame | None = None,
+    tool: np.ndarray | None = None,
+) -> float:
     """Largest ``||actual - nominal||`` (um, exact model) over the poses of ``plan``
     (default :func:`volcal.measurement.plans.summary_grid` of the model: 5 positions per linear axis
     and the rotary axes over their whole travel on a coarse grid) with tool offset
@@ -174,8 +198,11 @@ def _category(error_model: ErrorModel, k: int) -> str:
     if s.kind == "location":
         if not axis.is_rotary:
             return "squareness"
-        return ("rotary_location_translation" if s.quantity == "translation"
-                else "rotary_location_rotation")
+        return (
+            "rotary_location_translation"
+            if s.quantity == "translation"
+            else "rotary_location_rotation"
+        )
     if axis.is_rotary:
         return "rotary_translation" if s.quantity == "translation" else "rotary_angular"
     if s.quantity == "rotation":
@@ -183,10 +210,14 @@ def _category(error_model: ErrorModel, k: int) -> str:
     return "linear_positioning" if s.component == axis.dir_index else "linear_straightness"
 
 
-def draw_true_parameters(machine: Machine, error_model: ErrorModel | None,
-                         rng: np.random.Generator | int,
-                         max_volumetric_um: float | None = 60.0, *,
-                         grid: pd.DataFrame | None = None) -> np.ndarray:
+def draw_true_parameters(
+    machine: Machine,
+    error_model: ErrorModel | None,
+    rng: np.random.Generator | int,
+    max_volumetric_um: float | None = 60.0,
+    *,
+    grid: pd.DataFrame | None = None,
+) -> np.ndarray:
     """A realistic random set of true error parameters (internal units: mm, rad).
 
     Each error quantity gets a headline size drawn uniformly from its range in
@@ -229,20 +260,26 @@ def draw_true_parameters(machine: Machine, error_model: ErrorModel | None,
                 # left at zero: without rotary axes on the tool branch the tool's zero
                 # position is a translation of the whole field, which nothing sees
                 size = 0.0
-            funcs[s.name] = (lambda x, v=size: np.full(np.shape(x), v))
+            funcs[s.name] = lambda x, v=size: np.full(np.shape(x), v)
             continue
         if form.kind == "fourier":
             # periodic: harmonic k with amplitude |size| decaying by COEFFICIENT_DECAY,
             # the first harmonic's cosine carrying the drawn size
-            amp = np.array([abs(size) * COEFFICIENT_DECAY ** max(j - 1, 0) * g.normal()
-                            for j in range(2 * form.degree + 1)])
+            amp = np.array(
+                [
+                    abs(size) * COEFFICIENT_DECAY ** max(j - 1, 0) * g.normal()
+                    for j in range(2 * form.degree + 1)
+                ]
+            )
             if form.degree:
                 amp[1] = size
 
             def f(x, amp=amp, n=form.degree):
                 x = np.asarray(x, float)
-                return amp[0] + sum(amp[2 * j - 1] * np.cos(j * x) + amp[2 * j] * np.sin(j * x)
-                                    for j in range(1, n + 1))
+                return amp[0] + sum(
+                    amp[2 * j - 1] * np.cos(j * x) + amp[2 * j] * np.sin(j * x)
+                    for j in range(1, n + 1)
+                )
 
             funcs[s.name] = f
             continue
@@ -252,8 +289,11 @@ def draw_true_parameters(machine: Machine, error_model: ErrorModel | None,
         lead = min(deg, 2 if _category(em, k) == "linear_straightness" else 1)
         coef = np.zeros(deg + 1)
         for j in range(deg + 1):
-            coef[j] = (size if j == lead else
-                       abs(size) * COEFFICIENT_DECAY ** max(j - lead, 0) * g.normal())
+            coef[j] = (
+                size
+                if j == lead
+                else abs(size) * COEFFICIENT_DECAY ** max(j - lead, 0) * g.normal()
+            )
         lo, hi, _ = em._axis_range(s)
 
         def poly(x, coef=coef, lo=lo, hi=hi, deg=deg):
@@ -271,8 +311,10 @@ def draw_true_parameters(machine: Machine, error_model: ErrorModel | None,
     for _ in range(20):
         current = max_volumetric_error_um(machine, em, theta, grid)
         if current == 0.0:
-            raise InputError(f"model '{machine.spec.name}' has no error that moves the tool "
-                             "point: cannot scale to a volumetric error")
+            raise InputError(
+                f"model '{machine.spec.name}' has no error that moves the tool "
+                "point: cannot scale to a volumetric error"
+            )
         if abs(current / target - 1.0) < 1e-10:
             break
         theta = theta * (target / current)
@@ -294,7 +336,7 @@ def _project_datum(em: ErrorModel, theta: np.ndarray) -> np.ndarray:
         return theta
     # per parameter: its Legendre degree or harmonic number (0 for the other kinds)
     scale = DATUM_ORDER_FACTOR ** -np.asarray(em.param_order, float)
-    W = scale ** 2
+    W = scale**2
     A = (C * W) @ C.T
     theta = theta - W * (C.T @ np.linalg.lstsq(A, C @ theta, rcond=None)[0])
     return theta - np.linalg.pinv(C) @ (C @ theta)
@@ -305,11 +347,13 @@ def parameters_table(error_model: ErrorModel, theta: np.ndarray) -> pd.DataFrame
     in urad (the file form of true_parameters.csv)."""
     theta = np.asarray(theta, float)
     units = error_model.param_units
-    return pd.DataFrame({
-        "name": list(error_model.param_names),
-        "value": [v * _TO_FILE[u][0] for v, u in zip(theta, units)],
-        "unit": [_TO_FILE[u][1] for u in units],
-    })
+    return pd.DataFrame(
+        {
+            "name": list(error_model.param_names),
+            "value": [v * _TO_FILE[u][0] for v, u in zip(theta, units)],
+            "unit": [_TO_FILE[u][1] for u in units],
+        }
+    )
 
 
 def load_true_parameters(path: str | Path, error_model: ErrorModel) -> np.ndarray:
@@ -325,12 +369,16 @@ def load_true_parameters(path: str | Path, error_model: ErrorModel) -> np.ndarra
 
     raw = _data.read_raw(Path(path), None, "parameter table")
     problems = _data.Problems(raw.name)
-    schema = [_data.Column("name", (), True, "id"), _data.Column("value", (), True, "float"),
-              _data.Column("unit", (), True, "id")]
+    schema = [
+        _data.Column("name", (), True, "id"),
+        _data.Column("value", (), True, "float"),
+        _data.Column("unit", (), True, "id"),
+    ]
     pos = _data.resolve_columns(raw, schema, problems)
     names = _data.parse_ids(raw.body[pos["name"]], raw.rows, "name", problems)
-    values = _data.parse_float(raw.body[pos["value"]], raw.rows, "value", "in the row's unit",
-                                False, problems)
+    values = _data.parse_float(
+        raw.body[pos["value"]], raw.rows, "value", "in the row's unit", False, problems
+    )
     units = _data.parse_ids(raw.body[pos["unit"]], raw.rows, "unit", problems)
     problems.raise_if_any()
     index = {n: i for i, n in enumerate(error_model.param_names)}
@@ -341,21 +389,27 @@ def load_true_parameters(path: str | Path, error_model: ErrorModel) -> np.ndarra
         row = int(raw.rows[k])
         if n not in index:
             import difflib
+
             m = difflib.get_close_matches(n, error_model.param_names, n=1)
-            problems.add(row, "name", f"unknown parameter '{n}' for model "
-                         f"'{error_model.spec.name}'" + (f" (did you mean '{m[0]}'?)" if m
-                                                         else ""))
+            problems.add(
+                row,
+                "name",
+                f"unknown parameter '{n}' for model "
+                f"'{error_model.spec.name}'" + (f" (did you mean '{m[0]}'?)" if m else ""),
+            )
             continue
         if n in seen:
-            problems.add(row, "name", f"parameter '{n}' is listed twice (rows {seen[n]} "
-                                      f"and {row})")
+            problems.add(row, "name", f"parameter '{n}' is listed twice (rows {seen[n]} and {row})")
             continue
         seen[n] = row
         table = LENGTH_UNITS if kinds[index[n]] == "mm" else ANGLE_UNITS
         if u not in table:
             what = "translational" if kinds[index[n]] == "mm" else "rotational"
-            problems.add(row, "unit", f"parameter '{n}' is {what}; expected a unit in "
-                                      f"{list(table)}, got '{u}'")
+            problems.add(
+                row,
+                "unit",
+                f"parameter '{n}' is {what}; expected a unit in {list(table)}, got '{u}'",
+            )
             continue
         theta[index[n]] = v * table[u]
     problems.raise_if_any()
@@ -409,8 +463,10 @@ def _noise_sources(noise: bool | str | Iterable[str] | None) -> tuple[str, ...]:
     items = (noise,) if isinstance(noise, str) else tuple(noise)
     bad = [s for s in items if s not in NOISE_SOURCES]
     if bad:
-        raise InputError(f"unknown noise source(s) {bad}; expected a subset of "
-                         f"{list(NOISE_SOURCES)} (or True / False)")
+        raise InputError(
+            f"unknown noise source(s) {bad}; expected a subset of "
+            f"{list(NOISE_SOURCES)} (or True / False)"
+        )
     return tuple(s for s in NOISE_SOURCES if s in items)
 
 
@@ -435,10 +491,19 @@ def _position_jacobian(machine: Machine, q: np.ndarray, t: np.ndarray) -> np.nda
     return J.reshape(3, n, machine.n_axes).transpose(1, 0, 2)
 
 
-def simulate(machine: Machine | str, error_model: ErrorModel | None, theta_true: np.ndarray,
-             stations: pd.DataFrame | str | Path, plan: pd.DataFrame, tools: np.ndarray,
-             budget: Budget | str | Path, seed: int, *,
-             noise: bool | str | Iterable[str] = True, drift: bool = False) -> Simulation:
+def simulate(
+    machine: Machine | str,
+    error_model: ErrorModel | None,
+    theta_true: np.ndarray,
+    stations: pd.DataFrame | str | Path,
+    plan: pd.DataFrame,
+    tools: np.ndarray,
+    budget: Budget | str | Path,
+    seed: int,
+    *,
+    noise: bool | str | Iterable[str] = True,
+    drift: bool = False,
+) -> Simulation:
     """Simulate a sequential multilateration measurement (see the module docstring).
 
     machine: Machine (or model name/file); error_model: its parameterisation (None:
@@ -473,15 +538,16 @@ def simulate(machine: Machine | str, error_model: ErrorModel | None, theta_true:
     spec = machine.spec
     theta = np.asarray(theta_true, dtype=float)
     if theta.shape != (em.n_params,):
-        raise InputError(f"expected {em.n_params} true parameters for model '{spec.name}', "
-                         f"got shape {theta.shape}")
+        raise InputError(
+            f"expected {em.n_params} true parameters for model '{spec.name}', "
+            f"got shape {theta.shape}"
+        )
     if not np.all(np.isfinite(theta)):
         raise InputError("true parameters must be finite")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise InputError(f"expected a non-negative integer seed, got {seed!r}")
     seed = int(seed)
-    st = load_stations(stations, name=None if isinstance(stations, (str, Path))
-                       else "<stations>")
+    st = load_stations(stations, name=None if isinstance(stations, (str, Path)) else "<stations>")
     plan = check_plan(plan, spec)
     tools = _check_tools(tools)
     budget = load_budget(budget)
@@ -511,15 +577,19 @@ def simulate(machine: Machine | str, error_model: ErrorModel | None, theta_true:
             if k:
                 t0 += TOOL_CHANGE_S - READING_INTERVAL_S
             r0 = (s * K + k) * N
-            time[r0:r0 + N] = t0 + READING_INTERVAL_S * np.arange(N)
+            time[r0 : r0 + N] = t0 + READING_INTERVAL_S * np.arange(N)
             t0 += READING_INTERVAL_S * N
 
-    g_axes, g_len, g_drift = (np.random.default_rng(c)
-                              for c in np.random.SeedSequence(seed).spawn(3))
+    g_axes, g_len, g_drift = (
+        np.random.default_rng(c) for c in np.random.SeedSequence(seed).spawn(3)
+    )
 
     # actual tool points: exact model at the actual axis positions
-    dq = (budget.sample_axis_errors(names, M, g_axes) if "axes" in sources
-          else np.zeros((M, len(names))))
+    dq = (
+        budget.sample_axis_errors(names, M, g_axes)
+        if "axes" in sources
+        else np.zeros((M, len(names)))
+    )
     q_act = q_cmd[idx_i] + dq
     e_act = _error_values(em, q_act, theta)
     P, _, _ = machine.evaluate(q_act, tools[idx_k], e_act, exact=True)
@@ -539,14 +609,20 @@ def simulate(machine: Machine | str, error_model: ErrorModel | None, theta_true:
 
     if np.any(length <= 0):
         r = int(np.flatnonzero(length <= 0)[0])
-        raise InputError(f"station '{st['station'].iloc[idx_s[r]]}' is {dist[r]:.3g} mm from "
-                         f"point {point_ids[idx_pt[r]]} (dead length "
-                         f"{dead[idx_s[r]]:g} mm): the reading would not be positive; move the "
-                         "station or drop the pose")
+        raise InputError(
+            f"station '{st['station'].iloc[idx_s[r]]}' is {dist[r]:.3g} mm from "
+            f"point {point_ids[idx_pt[r]]} (dead length "
+            f"{dead[idx_s[r]]:g} mm): the reading would not be positive; move the "
+            "station or drop the pose"
+        )
     if dist.min() < MIN_STATION_DISTANCE_MM:
         r = int(np.argmin(dist))
-        warnings.warn(f"station '{st['station'].iloc[idx_s[r]]}' is only {dist[r]:.1f} mm from "
-                      f"point {point_ids[idx_pt[r]]}", DataWarning, stacklevel=2)
+        warnings.warn(
+            f"station '{st['station'].iloc[idx_s[r]]}' is only {dist[r]:.1f} mm from "
+            f"point {point_ids[idx_pt[r]]}",
+            DataWarning,
+            stacklevel=2,
+        )
 
     # standard uncertainty of each reading (nominal geometry of the commanded pose)
     q_pt = np.tile(q_cmd, (K, 1))
@@ -559,8 +635,9 @@ def simulate(machine: Machine | str, error_model: ErrorModel | None, theta_true:
     u_axes = np.array([budget.axis_sigma(a) for a in names])
     sigma = np.sqrt(budget.length_sigma(L0) ** 2 + ((g * u_axes) ** 2).sum(axis=1))
 
-    meas = pd.DataFrame({"station": st["station"].to_numpy(dtype=object)[idx_s],
-                         "point": point_ids[idx_pt]})
+    meas = pd.DataFrame(
+        {"station": st["station"].to_numpy(dtype=object)[idx_s], "point": point_ids[idx_pt]}
+    )
     for j, a in enumerate(names):
         meas[a] = q_file[idx_i, j]
     for j, c in enumerate(("tool_x", "tool_y", "tool_z")):
@@ -580,18 +657,25 @@ def simulate(machine: Machine | str, error_model: ErrorModel | None, theta_true:
     for j, c in enumerate(("dx_um", "dy_um", "dz_um")):
         vol[c] = dp[:, j] * 1e3
 
-    return Simulation(measurements=meas, theta=theta.copy(),
-                      parameters=parameters_table(em, theta), volumetric=vol,
-                      stations=st, seed=seed, model=spec.name, budget=budget.name,
-                      noise=sources, drift=bool(drift))
+    return Simulation(
+        measurements=meas,
+        theta=theta.copy(),
+        parameters=parameters_table(em, theta),
+        volumetric=vol,
+        stations=st,
+        seed=seed,
+        model=spec.name,
+        budget=budget.name,
+        noise=sources,
+        drift=bool(drift),
+    )
 
 
 # --------------------------------------------------------------------------------------
 # files
 
 
-def save_simulation(sim: Simulation, out_dir: str | Path, *, force: bool | None = None
-                    ) -> Path:
+def save_simulation(sim: Simulation, out_dir: str | Path, *, force: bool | None = None) -> Path:
     """Write a simulation to ``out_dir``: ``measurements.csv`` (the measurement table),
     ``stations.csv`` (true stations: ``station, x_mm, y_mm, z_mm, dead_length_mm``),
     ``true_parameters.csv`` (``name, value, unit`` in um / urad), ``true_volumetric.csv``
@@ -607,16 +691,24 @@ def save_simulation(sim: Simulation, out_dir: str | Path, *, force: bool | None 
     def writer(tmp: Path) -> None:
         sim.measurements.to_csv(tmp / "measurements.csv", index=False)
         sim.stations[["station", "x_mm", "y_mm", "z_mm", "dead_length_mm"]].to_csv(
-            tmp / "stations.csv", index=False)
+            tmp / "stations.csv", index=False
+        )
         sim.parameters.to_csv(tmp / "true_parameters.csv", index=False)
         sim.volumetric.to_csv(tmp / "true_volumetric.csv", index=False)
-        meta = {"volcal_version": __version__, "model": sim.model, "budget": sim.budget,
-                "seed": sim.seed, "noise": list(sim.noise), "drift": sim.drift,
-                "n_readings": int(len(sim.measurements)),
-                "n_stations": int(len(sim.stations)),
-                "max_volumetric_um": sim.max_volumetric_um,
-                "reading_interval_s": READING_INTERVAL_S, "tool_change_s": TOOL_CHANGE_S,
-                "station_setup_s": STATION_SETUP_S}
+        meta = {
+            "volcal_version": __version__,
+            "model": sim.model,
+            "budget": sim.budget,
+            "seed": sim.seed,
+            "noise": list(sim.noise),
+            "drift": sim.drift,
+            "n_readings": int(len(sim.measurements)),
+            "n_stations": int(len(sim.stations)),
+            "max_volumetric_um": sim.max_volumetric_um,
+            "reading_interval_s": READING_INTERVAL_S,
+            "tool_change_s": TOOL_CHANGE_S,
+            "station_setup_s": STATION_SETUP_S,
+        }
         (tmp / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
 
     return write_folder(out_dir, SIMULATION_FILES, "a simulation", writer, force=force)
@@ -630,26 +722,36 @@ def parse_tools(text: str) -> np.ndarray:
     """Tool offsets from text ``"x,y,z;x,y,z;..."`` (mm) -> array (K, 3).  Raises
     :class:`InputError` naming the offending entry."""
     if not isinstance(text, str) or not text.strip():
-        raise InputError("expected tool offsets as \"x,y,z;x,y,z\" in mm, got an empty "
-                         "string", source="--tools")
+        raise InputError(
+            'expected tool offsets as "x,y,z;x,y,z" in mm, got an empty string', source="--tools"
+        )
     out = []
     for k, item in enumerate(text.split(";")):
         if not item.strip():
-            raise InputError(f"tool offset #{k + 1} is empty; expected \"x,y,z\" in mm "
-                             f"(offsets separated by ';'), got {text!r}", source="--tools")
+            raise InputError(
+                f'tool offset #{k + 1} is empty; expected "x,y,z" in mm '
+                f"(offsets separated by ';'), got {text!r}",
+                source="--tools",
+            )
         parts = item.split(",")
         if len(parts) != 3:
-            raise InputError(f"tool offset #{k + 1} {item.strip()!r} has {len(parts)} "
-                             f"value(s); expected three numbers \"x,y,z\" in mm",
-                             source="--tools")
+            raise InputError(
+                f"tool offset #{k + 1} {item.strip()!r} has {len(parts)} "
+                f'value(s); expected three numbers "x,y,z" in mm',
+                source="--tools",
+            )
         try:
             v = [float(p) for p in parts]
         except ValueError:
-            raise InputError(f"tool offset #{k + 1} {item.strip()!r} is not three numbers; "
-                             "expected \"x,y,z\" in mm", source="--tools") from None
+            raise InputError(
+                f"tool offset #{k + 1} {item.strip()!r} is not three numbers; "
+                'expected "x,y,z" in mm',
+                source="--tools",
+            ) from None
         if not all(math.isfinite(x) for x in v):
-            raise InputError(f"tool offset #{k + 1} {item.strip()!r} is not finite",
-                             source="--tools")
+            raise InputError(
+                f"tool offset #{k + 1} {item.strip()!r} is not finite", source="--tools"
+            )
         out.append(v)
     return _check_tools(np.array(out))
 
@@ -684,7 +786,7 @@ _EXAMPLES: dict[str, _ExampleDef] = {
         seed=754,
         clearance_mm=50.0,
         description="KOVOSVIT MCV 754 (paper 000): stations of its Table 5, a drawn error "
-                    "set scaled to 64 um maximum volumetric error, paper 002's budget",
+        "set scaled to 64 um maximum volumetric error, paper 002's budget",
     ),
 }
 
@@ -712,12 +814,22 @@ class Example:
     seed: int = 0
     description: str = ""
 
-    def simulate(self, seed: int | None = None, *, noise: bool | Iterable[str] = True,
-                 drift: bool = False) -> Simulation:
+    def simulate(
+        self, seed: int | None = None, *, noise: bool | Iterable[str] = True, drift: bool = False
+    ) -> Simulation:
         """Simulate the example (``seed`` None: the example's default seed)."""
-        return simulate(self.machine, self.error_model, self.theta_true, self.stations,
-                        self.plan, self.tools, self.budget,
-                        self.seed if seed is None else seed, noise=noise, drift=drift)
+        return simulate(
+            self.machine,
+            self.error_model,
+            self.theta_true,
+            self.stations,
+            self.plan,
+            self.tools,
+            self.budget,
+            self.seed if seed is None else seed,
+            noise=noise,
+            drift=drift,
+        )
 
 
 def examples() -> list[str]:
@@ -729,8 +841,13 @@ def _data_file(name: str) -> Path:
     return Path(str(resources.files("volcal").joinpath("data", name)))
 
 
-def _clear_plan(machine: Machine, plan: pd.DataFrame, tools: np.ndarray,
-                stations: pd.DataFrame, clearance: float) -> pd.DataFrame:
+def _clear_plan(
+    machine: Machine,
+    plan: pd.DataFrame,
+    tools: np.ndarray,
+    stations: pd.DataFrame,
+    clearance: float,
+) -> pd.DataFrame:
     """The poses whose nominal tool points (every tool) keep ``clearance`` mm from every
     station."""
     from volcal.measurement.plans import nominal_points
@@ -765,15 +882,25 @@ def example(name: str = "mcv754") -> Example:
     theta = load_true_parameters(_data_file(d.parameters_file), em)
     stations = load_stations(_data_file(d.stations_file))
     tools = np.array(d.tools, dtype=float)
-    plan = _clear_plan(machine, grid_plan(machine.spec, d.grid), tools, stations,
-                       d.clearance_mm)
-    return Example(name=name, model=d.model, machine=machine, error_model=em,
-                   theta_true=theta, stations=stations, plan=plan, tools=tools,
-                   budget=load_budget(d.budget), seed=d.seed, description=d.description)
+    plan = _clear_plan(machine, grid_plan(machine.spec, d.grid), tools, stations, d.clearance_mm)
+    return Example(
+        name=name,
+        model=d.model,
+        machine=machine,
+        error_model=em,
+        theta_true=theta,
+        stations=stations,
+        plan=plan,
+        tools=tools,
+        budget=load_budget(d.budget),
+        seed=d.seed,
+        description=d.description,
+    )
 
 
-def _write_example_parameters(name: str = "mcv754", *, max_volumetric_um: float = 64.0,
-                              path: str | Path | None = None) -> Path:
+def _write_example_parameters(
+    name: str = "mcv754", *, max_volumetric_um: float = 64.0, path: str | Path | None = None
+) -> Path:
     """Regenerate the shipped true parameters of an example (maintainers only): draw with
     the example's seed, scale to ``max_volumetric_um`` and write ``name, value, unit``."""
     d = _EXAMPLES[name]

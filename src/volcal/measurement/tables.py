@@ -62,6 +62,7 @@ Problems found in one pass are collected into one message; the exception's ``row
 ``column`` are those of the first.  Suspicious but usable data produce a
 :class:`DataWarning` (see :func:`load_measurements`).
 """
+
 from __future__ import annotations
 
 import difflib
@@ -79,9 +80,16 @@ from volcal.base.exceptions import InputError
 from volcal.model.spec import MachineSpec, resolve_model
 
 __all__ = [
-    "DataWarning", "Measurements", "load_measurements", "load_stations",
-    "MAX_LENGTH_MM", "TRAVEL_TOLERANCE", "MIN_READINGS_PER_STATION", "FEW_READINGS_PER_STATION",
-    "COPLANAR_RTOL", "DATAFRAME_NAME",
+    "DataWarning",
+    "Measurements",
+    "load_measurements",
+    "load_stations",
+    "MAX_LENGTH_MM",
+    "TRAVEL_TOLERANCE",
+    "MIN_READINGS_PER_STATION",
+    "FEW_READINGS_PER_STATION",
+    "COPLANAR_RTOL",
+    "DATAFRAME_NAME",
 ]
 
 #: Lengths above this (mm, i.e. 100 m) are rejected as absurd (probably not in mm).
@@ -200,9 +208,11 @@ class _Problems:
         rest = self.items[1:]
         if rest:
             lines = []
-            for p in rest[:_MAX_LISTED - 1]:
-                where = ", ".join(([f"row {p.row}"] if p.row is not None else [])
-                                  + ([f"column '{p.column}'"] if p.column is not None else []))
+            for p in rest[: _MAX_LISTED - 1]:
+                where = ", ".join(
+                    ([f"row {p.row}"] if p.row is not None else [])
+                    + ([f"column '{p.column}'"] if p.column is not None else [])
+                )
                 lines.append(f"  - {where}: {p.message}" if where else f"  - {p.message}")
             if len(rest) > _MAX_LISTED - 1:
                 lines.append(f"  - ... and {len(rest) - (_MAX_LISTED - 1)} more")
@@ -219,7 +229,7 @@ class _Raw:
     name: str
     header: list[str]
     body: pd.DataFrame  # positional integer columns, object values
-    rows: np.ndarray    # spreadsheet row of each body row
+    rows: np.ndarray  # spreadsheet row of each body row
 
 
 def _is_blank(v: Any) -> bool:
@@ -233,8 +243,9 @@ def _is_blank(v: Any) -> bool:
         return False
 
 
-_CONVERT_HINT = ("(convert it, e.g. pandas.read_csv(path, sep=';', decimal=',')"
-                 ".to_csv(new_path, index=False))")
+_CONVERT_HINT = (
+    "(convert it, e.g. pandas.read_csv(path, sep=';', decimal=',').to_csv(new_path, index=False))"
+)
 
 
 def _separator_hint(path: Path) -> str:
@@ -247,9 +258,11 @@ def _separator_hint(path: Path) -> str:
         return ""
     for sep, name in ((";", "semicolons"), ("\t", "tabs"), ("|", "'|'")):
         if first.count(sep) >= 1 and first.count(sep) >= first.count(","):
-            return (f"; the header is separated by {name}, and decimal commas would then split "
-                    "numbers: volcal reads comma-separated files with '.' as the decimal mark "
-                    + _CONVERT_HINT)
+            return (
+                f"; the header is separated by {name}, and decimal commas would then split "
+                "numbers: volcal reads comma-separated files with '.' as the decimal mark "
+                + _CONVERT_HINT
+            )
     return ""
 
 
@@ -257,29 +270,45 @@ def _read_raw(source: str | Path | pd.DataFrame, name: str | None, what: str) ->
     if isinstance(source, pd.DataFrame):
         label = name if name is not None else DATAFRAME_NAME
         header = [str(c).strip() for c in source.columns]
-        body = pd.DataFrame({k: source.iloc[:, k].to_numpy(dtype=object, copy=True)
-                             for k in range(source.shape[1])})
+        body = pd.DataFrame(
+            {k: source.iloc[:, k].to_numpy(dtype=object, copy=True) for k in range(source.shape[1])}
+        )
         rows = np.arange(source.shape[0], dtype=int) + 2
         if source.shape[0] == 0:
             raise InputError(f"the {what} has no data rows", source=label)
         return _Raw(label, header, body, rows)
     if not isinstance(source, (str, Path)):
-        raise InputError(f"expected a CSV path or a pandas DataFrame for the {what}, got "
-                         f"{type(source).__name__}", source=name)
+        raise InputError(
+            f"expected a CSV path or a pandas DataFrame for the {what}, got "
+            f"{type(source).__name__}",
+            source=name,
+        )
     path = Path(source)
     label = name if name is not None else str(path)
     if not path.is_file():
         raise InputError(f"no such {what} file", source=label)
     try:
-        raw = pd.read_csv(path, header=None, dtype=str, keep_default_na=False, na_filter=False,
-                          skip_blank_lines=False, skipinitialspace=True, encoding="utf-8-sig")
+        raw = pd.read_csv(
+            path,
+            header=None,
+            dtype=str,
+            keep_default_na=False,
+            na_filter=False,
+            skip_blank_lines=False,
+            skipinitialspace=True,
+            encoding="utf-8-sig",
+        )
     except pd.errors.EmptyDataError:
-        raise InputError(f"the {what} file is empty; expected a header row", source=label,
-                         row=1) from None
+        raise InputError(
+            f"the {what} file is empty; expected a header row", source=label, row=1
+        ) from None
     except pd.errors.ParserError as exc:
         m = re.search(r"line (\d+)", str(exc))
-        raise InputError(f"cannot parse as CSV: {exc}{_separator_hint(path)}", source=label,
-                         row=int(m.group(1)) if m else None) from None
+        raise InputError(
+            f"cannot parse as CSV: {exc}{_separator_hint(path)}",
+            source=label,
+            row=int(m.group(1)) if m else None,
+        ) from None
     except UnicodeDecodeError as exc:
         raise InputError(f"not UTF-8 text: {exc}", source=label) from None
     except OSError as exc:
@@ -299,9 +328,13 @@ def _read_raw(source: str | Path | pd.DataFrame, name: str | None, what: str) ->
         header_cells = [h for k, h in enumerate(header_cells) if k not in drop]
         body.columns = range(body.shape[1])
     if len(header_cells) == 1 and re.search(r"[;\t|]", header_cells[0]):
-        raise InputError(f"the header {header_cells[0]!r} looks separated by ';', tab or '|'; "
-                         "volcal reads comma-separated files with '.' as the decimal mark "
-                         f"{_CONVERT_HINT}", source=label, row=1)
+        raise InputError(
+            f"the header {header_cells[0]!r} looks separated by ';', tab or '|'; "
+            "volcal reads comma-separated files with '.' as the decimal mark "
+            f"{_CONVERT_HINT}",
+            source=label,
+            row=1,
+        )
     if body.shape[0] == 0:
         raise InputError(f"the {what} has a header but no data rows", source=label, row=2)
     return _Raw(label, header_cells, body, rows)
@@ -332,9 +365,14 @@ def _closest(name: str, candidates: Iterable[str]) -> str | None:
     return low[m[0]] if m else None
 
 
-def _resolve_columns(raw: _Raw, schema: list[_Col], problems: _Problems, *,
-                     axis_names: list[str] | None = None,
-                     model_name: str | None = None) -> dict[str, int]:
+def _resolve_columns(
+    raw: _Raw,
+    schema: list[_Col],
+    problems: _Problems,
+    *,
+    axis_names: list[str] | None = None,
+    model_name: str | None = None,
+) -> dict[str, int]:
     """Map canonical names to positions in ``raw.body``; report naming problems (row 1)."""
     by_name = {n: c for c in schema for n in c.names}
     allowed = [n for c in schema for n in c.names]
@@ -355,8 +393,12 @@ def _resolve_columns(raw: _Raw, schema: list[_Col], problems: _Problems, *,
             continue
         if col.canonical in found:
             other = found[col.canonical][0]
-            problems.add(1, h, f"columns '{other}' and '{h}' are the same quantity "
-                               f"({col.canonical}{', ' + col.unit if col.unit else ''}); keep one")
+            problems.add(
+                1,
+                h,
+                f"columns '{other}' and '{h}' are the same quantity "
+                f"({col.canonical}{', ' + col.unit if col.unit else ''}); keep one",
+            )
             continue
         found[col.canonical] = (h, k)
     unknown_names = [u for u, _ in unknown]
@@ -372,15 +414,18 @@ def _resolve_columns(raw: _Raw, schema: list[_Col], problems: _Problems, *,
         if c.unit:
             msg += f", {c.unit}"
         guess = _closest(c.canonical, unknown_names) or (
-            _closest(c.synonyms[0], unknown_names) if c.synonyms else None)
+            _closest(c.synonyms[0], unknown_names) if c.synonyms else None
+        )
         if guess is not None:
             guessed.add(guess)
             msg += f"; is column '{guess}' meant to be '{c.canonical}'?"
         problems.add(1, c.canonical, msg)
     if missing_axes:
-        msg = (f"the axis columns do not match the model '{model_name}': its axes are "
-               f"{', '.join(axis_names or [])}; missing column(s) for "
-               f"{', '.join(missing_axes)}")
+        msg = (
+            f"the axis columns do not match the model '{model_name}': its axes are "
+            f"{', '.join(axis_names or [])}; missing column(s) for "
+            f"{', '.join(missing_axes)}"
+        )
         extra = [u for u in unknown_names if re.fullmatch(r"[A-Z][A-Z0-9]{0,3}(_mm|_deg)?", u)]
         if extra:
             guessed.update(extra)
@@ -411,8 +456,9 @@ def _describe(v: Any) -> str:
     return repr(v.strip()) if isinstance(v, str) else repr(v)
 
 
-def _report(problems: _Problems, rows: np.ndarray, mask: np.ndarray, column: str,
-            message: Any) -> None:
+def _report(
+    problems: _Problems, rows: np.ndarray, mask: np.ndarray, column: str, message: Any
+) -> None:
     """One problem at the first row in ``mask`` (message(k) for index k), with a count."""
     idx = np.flatnonzero(mask)
     if idx.size == 0:
@@ -424,8 +470,9 @@ def _report(problems: _Problems, rows: np.ndarray, mask: np.ndarray, column: str
     problems.add(int(rows[k]), column, msg)
 
 
-def _parse_float(values: pd.Series, rows: np.ndarray, column: str, unit: str, optional: bool,
-                 problems: _Problems) -> np.ndarray:
+def _parse_float(
+    values: pd.Series, rows: np.ndarray, column: str, unit: str, optional: bool, problems: _Problems
+) -> np.ndarray:
     vals = values.to_numpy(dtype=object)
     kind = pd.api.types.infer_dtype(values, skipna=False)
     if kind in ("floating", "integer", "mixed-integer-float"):
@@ -440,27 +487,49 @@ def _parse_float(values: pd.Series, rows: np.ndarray, column: str, unit: str, op
         bools = np.zeros(len(text), bool)
         num = pd.to_numeric(text, errors="coerce").to_numpy(dtype=float, copy=True)
     else:
-        blank = np.array([_is_blank(v) or (isinstance(v, str)
-                                           and v.strip().lower() in _NA_STRINGS)
-                          for v in vals], dtype=bool)
+        blank = np.array(
+            [
+                _is_blank(v) or (isinstance(v, str) and v.strip().lower() in _NA_STRINGS)
+                for v in vals
+            ],
+            dtype=bool,
+        )
         bools = np.array([isinstance(v, (bool, np.bool_)) for v in vals], dtype=bool)
-        cleaned = pd.Series([v.strip() if isinstance(v, str) else v for v in vals],
-                            dtype=object)
+        cleaned = pd.Series([v.strip() if isinstance(v, str) else v for v in vals], dtype=object)
         num = pd.to_numeric(cleaned, errors="coerce").to_numpy(dtype=float, copy=True)
     num[blank] = np.nan
     bad = (~blank & np.isnan(num)) | bools
     num[bad] = np.nan
-    _report(problems, rows, bad, column,
-            lambda k: f"expected a number ({unit}), got {_describe(vals[k])}"
-            + (" (a decimal comma? volcal reads '.' as the decimal mark)"
-               if isinstance(vals[k], str) and re.fullmatch(r"\s*[-+]?\d+,\d+\s*", vals[k])
-               else ""))
+    _report(
+        problems,
+        rows,
+        bad,
+        column,
+        lambda k: (
+            f"expected a number ({unit}), got {_describe(vals[k])}"
+            + (
+                " (a decimal comma? volcal reads '.' as the decimal mark)"
+                if isinstance(vals[k], str) and re.fullmatch(r"\s*[-+]?\d+,\d+\s*", vals[k])
+                else ""
+            )
+        ),
+    )
     if not optional:
-        _report(problems, rows, blank, column,
-                f"missing value (empty cell or NaN); expected a number ({unit})")
+        _report(
+            problems,
+            rows,
+            blank,
+            column,
+            f"missing value (empty cell or NaN); expected a number ({unit})",
+        )
     inf = np.isinf(num)
-    _report(problems, rows, inf, column,
-            lambda k: f"expected a finite number ({unit}), got {_describe(vals[k])}")
+    _report(
+        problems,
+        rows,
+        inf,
+        column,
+        lambda k: f"expected a finite number ({unit}), got {_describe(vals[k])}",
+    )
     num[inf] = np.nan
     return num
 
@@ -479,16 +548,16 @@ def _id_text(v: Any) -> str | None:
     return str(v).strip()
 
 
-def _parse_ids(values: pd.Series, rows: np.ndarray, column: str,
-               problems: _Problems) -> np.ndarray:
+def _parse_ids(values: pd.Series, rows: np.ndarray, column: str, problems: _Problems) -> np.ndarray:
     out = np.array([_id_text(v) for v in values.to_numpy(dtype=object)], dtype=object)
     missing = np.array([v is None for v in out], dtype=bool)
     _report(problems, rows, missing, column, "missing id (empty cell or NaN); expected a text id")
     return out
 
 
-def _parse_bool(values: pd.Series, rows: np.ndarray, column: str,
-                problems: _Problems) -> np.ndarray:
+def _parse_bool(
+    values: pd.Series, rows: np.ndarray, column: str, problems: _Problems
+) -> np.ndarray:
     vals = values.to_numpy(dtype=object)
     out = np.zeros(len(vals), dtype=bool)
     bad = np.zeros(len(vals), dtype=bool)
@@ -498,14 +567,22 @@ def _parse_bool(values: pd.Series, rows: np.ndarray, column: str,
         if isinstance(v, (bool, np.bool_)):
             out[k] = bool(v)
             continue
-        s = str(int(v) if isinstance(v, (int, float, np.number)) and float(v).is_integer()
-                else v).strip().lower()
+        s = (
+            str(int(v) if isinstance(v, (int, float, np.number)) and float(v).is_integer() else v)
+            .strip()
+            .lower()
+        )
         if s in _TRUE:
             out[k] = True
         elif s not in _FALSE:
             bad[k] = True
-    _report(problems, rows, bad, column,
-            lambda k: f"expected true or false (or yes/no, 1/0), got {_describe(vals[k])}")
+    _report(
+        problems,
+        rows,
+        bad,
+        column,
+        lambda k: f"expected true or false (or yes/no, 1/0), got {_describe(vals[k])}",
+    )
     return out
 
 
@@ -522,8 +599,15 @@ _STATION_SCHEMA = [
     _Col("dead_length_given", (), False, "bool"),
     _Col("fixed", (), False, "bool"),
 ]
-STATION_COLUMNS = ("station", "x_mm", "y_mm", "z_mm", "dead_length_mm", "dead_length_given",
-                   "fixed")
+STATION_COLUMNS = (
+    "station",
+    "x_mm",
+    "y_mm",
+    "z_mm",
+    "dead_length_mm",
+    "dead_length_given",
+    "fixed",
+)
 
 
 def load_stations(source: str | Path | pd.DataFrame, *, name: str | None = None) -> pd.DataFrame:
@@ -555,15 +639,21 @@ def load_stations(source: str | Path | pd.DataFrame, *, name: str | None = None)
         given = given & flag
     out["dead_length_mm"] = np.where(given, dl, 0.0)
     out["dead_length_given"] = given
-    out["fixed"] = (_parse_bool(body[pos["fixed"]], rows, "fixed", problems) if "fixed" in pos
-                    else np.zeros(len(rows), dtype=bool))
+    out["fixed"] = (
+        _parse_bool(body[pos["fixed"]], rows, "fixed", problems)
+        if "fixed" in pos
+        else np.zeros(len(rows), dtype=bool)
+    )
     first: dict[str, int] = {}
     for k, s in enumerate(ids):
         if s is None:
             continue
         if s in first:
-            problems.add(int(rows[k]), "station",
-                         f"station '{s}' is described twice (rows {first[s]} and {rows[k]})")
+            problems.add(
+                int(rows[k]),
+                "station",
+                f"station '{s}' is described twice (rows {first[s]} and {rows[k]})",
+            )
         else:
             first[s] = int(rows[k])
     problems.raise_if_any()
@@ -582,9 +672,11 @@ def _measurement_schema(spec: MachineSpec) -> list[_Col]:
         unit = "deg" if a.is_rotary else "mm"
         cols.append(_Col(a.name, (f"{a.name}_{unit}",), True, "float", unit))
     cols += [_Col(f"tool_{c}", (f"tool_{c}_mm",), False, "float", "mm") for c in "xyz"]
-    cols += [_Col("length", ("length_mm",), True, "float", "mm"),
-             _Col("time", ("time_s",), False, "optfloat", "s"),
-             _Col("sigma", ("sigma_mm",), False, "optfloat", "mm")]
+    cols += [
+        _Col("length", ("length_mm",), True, "float", "mm"),
+        _Col("time", ("time_s",), False, "optfloat", "s"),
+        _Col("sigma", ("sigma_mm",), False, "optfloat", "mm"),
+    ]
     return cols
 
 
@@ -638,10 +730,15 @@ def _min_readings(station: str, stations: pd.DataFrame | None) -> int:
     return MIN_READINGS_PER_STATION
 
 
-def load_measurements(source: str | Path | pd.DataFrame, spec: MachineSpec, *,
-                      name: str | None = None, stations: pd.DataFrame | None = None,
-                      require_station_positions: bool = False,
-                      relative_lengths: bool = False) -> Measurements:
+def load_measurements(
+    source: str | Path | pd.DataFrame,
+    spec: MachineSpec,
+    *,
+    name: str | None = None,
+    stations: pd.DataFrame | None = None,
+    require_station_positions: bool = False,
+    relative_lengths: bool = False,
+) -> Measurements:
     """Load and validate a measurement table (CSV path or DataFrame; never modified).
 
     source: CSV path or DataFrame (columns: see the module docstring).
@@ -690,43 +787,82 @@ def load_measurements(source: str | Path | pd.DataFrame, spec: MachineSpec, *,
         if c in pos:
             tool[:, j] = _parse_float(body[pos[c]], rows, label[c], "mm", False, problems)
     length = _parse_float(body[pos["length"]], rows, label["length"], "mm", False, problems)
-    time = (_parse_float(body[pos["time"]], rows, label["time"], "s", True, problems)
-            if "time" in pos else np.full(n, np.nan))
-    sigma = (_parse_float(body[pos["sigma"]], rows, label["sigma"], "mm", True, problems)
-             if "sigma" in pos else np.full(n, np.nan))
+    time = (
+        _parse_float(body[pos["time"]], rows, label["time"], "s", True, problems)
+        if "time" in pos
+        else np.full(n, np.nan)
+    )
+    sigma = (
+        _parse_float(body[pos["sigma"]], rows, label["sigma"], "mm", True, problems)
+        if "sigma" in pos
+        else np.full(n, np.nan)
+    )
 
     # ranges
     L = label["length"]
     if relative_lengths:
-        _report(problems, rows, np.abs(length) > MAX_LENGTH_MM, L,
-                lambda k: f"|length| {length[k]:g} mm exceeds the plausibility bound of "
-                          f"{MAX_LENGTH_MM:g} mm (100 m); lengths are in mm")
+        _report(
+            problems,
+            rows,
+            np.abs(length) > MAX_LENGTH_MM,
+            L,
+            lambda k: (
+                f"|length| {length[k]:g} mm exceeds the plausibility bound of "
+                f"{MAX_LENGTH_MM:g} mm (100 m); lengths are in mm"
+            ),
+        )
     else:
-        _report(problems, rows, length <= 0, L,
-                lambda k: f"expected a positive length in mm, got {length[k]:g} (pass "
-                          "relative_lengths=True for readings relative to a dead length)")
-        _report(problems, rows, length > MAX_LENGTH_MM, L,
-                lambda k: f"length {length[k]:g} mm exceeds the plausibility bound of "
-                          f"{MAX_LENGTH_MM:g} mm (100 m); lengths are in mm")
+        _report(
+            problems,
+            rows,
+            length <= 0,
+            L,
+            lambda k: (
+                f"expected a positive length in mm, got {length[k]:g} (pass "
+                "relative_lengths=True for readings relative to a dead length)"
+            ),
+        )
+        _report(
+            problems,
+            rows,
+            length > MAX_LENGTH_MM,
+            L,
+            lambda k: (
+                f"length {length[k]:g} mm exceeds the plausibility bound of "
+                f"{MAX_LENGTH_MM:g} mm (100 m); lengths are in mm"
+            ),
+        )
     for j, a in enumerate(spec.axes):
         lo, hi = a.travel
         tol = TRAVEL_TOLERANCE * (hi - lo)
         unit = "deg" if a.is_rotary else "mm"
         qa = q_file[:, j]
-        _report(problems, rows, (qa < lo - tol) | (qa > hi + tol), label[a.name],
-                lambda k, qa=qa, lo=lo, hi=hi, tol=tol, a=a, unit=unit:
+        _report(
+            problems,
+            rows,
+            (qa < lo - tol) | (qa > hi + tol),
+            label[a.name],
+            lambda k, qa=qa, lo=lo, hi=hi, tol=tol, a=a, unit=unit: (
                 f"{a.name} = {qa[k]:g} {unit} is outside the travel [{lo:g}, {hi:g}] {unit} of "
-                f"axis {a.name} (tolerance {tol:g} {unit})")
+                f"axis {a.name} (tolerance {tol:g} {unit})"
+            ),
+        )
     _warn_radians(raw.name, spec, q_file, label)
     if "sigma" in pos:
-        _report(problems, rows, sigma <= 0, label["sigma"],
-                lambda k: f"expected a positive standard uncertainty in mm, got {sigma[k]:g}")
+        _report(
+            problems,
+            rows,
+            sigma <= 0,
+            label["sigma"],
+            lambda k: f"expected a positive standard uncertainty in mm, got {sigma[k]:g}",
+        )
     problems.raise_if_any()
 
     stations_df = None
     if stations is not None:
-        stations_df = load_stations(stations, name=None if isinstance(stations, (str, Path))
-                                    else "<stations DataFrame>")
+        stations_df = load_stations(
+            stations, name=None if isinstance(stations, (str, Path)) else "<stations DataFrame>"
+        )
 
     # duplicates
     table = pd.DataFrame({"station": station, "point": point})
@@ -741,48 +877,65 @@ def load_measurements(source: str | Path | pd.DataFrame, spec: MachineSpec, *,
     dup = table.duplicated(subset=key, keep=False).to_numpy()
     if dup.any():
         groups = table.loc[dup].groupby(key, sort=False).groups
-        listed = sorted((sorted(int(rows[i]) for i in idx) for idx in groups.values()),
-                        key=lambda r: r[1])
+        listed = sorted(
+            (sorted(int(rows[i]) for i in idx) for idx in groups.values()), key=lambda r: r[1]
+        )
         for r in listed:
             k = int(np.flatnonzero(rows == r[0])[0])
             listed_rows = ", ".join(str(x) for x in r[:-1]) + f" and {r[-1]}"
-            problems.add(r[1], label["point"],
-                         f"duplicate reading: rows {listed_rows} have the same station "
-                         f"'{station[k]}', point '{point[k]}', axis positions and tool offset "
-                         "(give repeated readings of one pose distinct point ids)")
+            problems.add(
+                r[1],
+                label["point"],
+                f"duplicate reading: rows {listed_rows} have the same station "
+                f"'{station[k]}', point '{point[k]}', axis positions and tool offset "
+                "(give repeated readings of one pose distinct point ids)",
+            )
 
     # stations
     station_ids = list(dict.fromkeys(station.tolist()))
     lookup = {s: i for i, s in enumerate(station_ids)}
     station_index = np.fromiter((lookup[s] for s in station), dtype=int, count=n)
     counts = np.bincount(station_index, minlength=len(station_ids))
-    first_row = {s: int(rows[np.flatnonzero(station_index == i)[0]])
-                 for i, s in enumerate(station_ids)}
+    first_row = {
+        s: int(rows[np.flatnonzero(station_index == i)[0]]) for i, s in enumerate(station_ids)
+    }
     for i, s in enumerate(station_ids):
         need = _min_readings(s, stations_df)
         if counts[i] < need:
             where = ", ".join(str(int(r)) for r in rows[station_index == i])
-            problems.add(first_row[s], label["station"],
-                         f"station '{s}' has {counts[i]} reading(s) (row(s) {where}); at least "
-                         f"{need} are needed to locate it (3 position coordinates and a dead "
-                         "length)" if need == MIN_READINGS_PER_STATION else
-                         f"station '{s}' has {counts[i]} reading(s); at least {need} needed")
+            problems.add(
+                first_row[s],
+                label["station"],
+                f"station '{s}' has {counts[i]} reading(s) (row(s) {where}); at least "
+                f"{need} are needed to locate it (3 position coordinates and a dead "
+                "length)"
+                if need == MIN_READINGS_PER_STATION
+                else f"station '{s}' has {counts[i]} reading(s); at least {need} needed",
+            )
     if stations_df is not None:
-        _check_station_ids(raw.name, station_ids, first_row, stations_df, label["station"],
-                           problems)
+        _check_station_ids(
+            raw.name, station_ids, first_row, stations_df, label["station"], problems
+        )
     if require_station_positions:
         if stations_df is None:
-            problems.add(None, label["station"], "station positions are required "
-                         "(require_station_positions=True) but no stations table was given")
+            problems.add(
+                None,
+                label["station"],
+                "station positions are required "
+                "(require_station_positions=True) but no stations table was given",
+            )
         else:
             described = set(stations_df["station"])
             absent = [s for s in station_ids if s not in described]
             for s in absent:
-                problems.add(first_row[s], label["station"],
-                             f"station '{s}' (first used in row {first_row[s]}) is not described "
-                             f"in the stations table, and station positions are required; the "
-                             f"stations table describes: "
-                             f"{', '.join(map(str, stations_df['station']))}")
+                problems.add(
+                    first_row[s],
+                    label["station"],
+                    f"station '{s}' (first used in row {first_row[s]}) is not described "
+                    f"in the stations table, and station positions are required; the "
+                    f"stations table describes: "
+                    f"{', '.join(map(str, stations_df['station']))}",
+                )
     problems.raise_if_any()
 
     point_ids = list(dict.fromkeys(point.tolist()))
@@ -793,21 +946,44 @@ def load_measurements(source: str | Path | pd.DataFrame, spec: MachineSpec, *,
         if a.is_rotary:
             q_internal[:, j] = np.deg2rad(q_internal[:, j])
 
-    _warn_geometry(raw.name, spec, station_ids, station_index, first_row, counts, point,
-                   point_index, q_internal, tool, rows, stations_df)
+    _warn_geometry(
+        raw.name,
+        spec,
+        station_ids,
+        station_index,
+        first_row,
+        counts,
+        point,
+        point_index,
+        q_internal,
+        tool,
+        rows,
+        stations_df,
+    )
 
     given = tuple(c.canonical for c in schema if c.canonical in pos)
     for arr in (station_index, point_index, q_internal, tool, length, sigma, time, rows):
         arr.setflags(write=False)
-    return Measurements(table=table, source=raw.name, axis_names=tuple(axis_names),
-                        station_ids=station_ids, station_index=station_index,
-                        point_ids=point_ids, point_index=point_index, q_internal=q_internal,
-                        tool=tool, length=length, sigma=sigma, time=time, rows=rows.copy(),
-                        given_columns=given, stations=stations_df)
+    return Measurements(
+        table=table,
+        source=raw.name,
+        axis_names=tuple(axis_names),
+        station_ids=station_ids,
+        station_index=station_index,
+        point_ids=point_ids,
+        point_index=point_index,
+        q_internal=q_internal,
+        tool=tool,
+        length=length,
+        sigma=sigma,
+        time=time,
+        rows=rows.copy(),
+        given_columns=given,
+        stations=stations_df,
+    )
 
 
-def _warn_radians(name: str, spec: MachineSpec, q_file: np.ndarray,
-                  label: dict[str, str]) -> None:
+def _warn_radians(name: str, spec: MachineSpec, q_file: np.ndarray, label: dict[str, str]) -> None:
     """Rotary axis positions are in degrees: a column whose values all lie within +-2 pi,
     spread over more than one unit and are not whole numbers, on an axis whose travel spans
     180 deg or more, is most likely in radians."""
@@ -817,12 +993,21 @@ def _warn_radians(name: str, spec: MachineSpec, q_file: np.ndarray,
         v = q_file[:, j]
         v = v[np.isfinite(v)]
         lo, hi = a.travel
-        if (len(v) and hi - lo >= 180.0 and np.all(np.abs(v) <= 2 * np.pi + 1e-9)
-                and np.ptp(v) > 1.0 and not np.all(v == np.round(v))):
-            warnings.warn(f"{name}: column '{label[a.name]}' (rotary axis {a.name}) looks like "
-                          f"radians: every value lies within +-2 pi ({v.min():.4g} to "
-                          f"{v.max():.4g}) while the travel spans {lo:g} to {hi:g} deg; rotary "
-                          "axis positions are read in degrees", DataWarning, stacklevel=3)
+        if (
+            len(v)
+            and hi - lo >= 180.0
+            and np.all(np.abs(v) <= 2 * np.pi + 1e-9)
+            and np.ptp(v) > 1.0
+            and not np.all(v == np.round(v))
+        ):
+            warnings.warn(
+                f"{name}: column '{label[a.name]}' (rotary axis {a.name}) looks like "
+                f"radians: every value lies within +-2 pi ({v.min():.4g} to "
+                f"{v.max():.4g}) while the travel spans {lo:g} to {hi:g} deg; rotary "
+                "axis positions are read in degrees",
+                DataWarning,
+                stacklevel=3,
+            )
 
 
 def _id_list(ids: Iterable[str], n: int = 8) -> str:
@@ -830,8 +1015,14 @@ def _id_list(ids: Iterable[str], n: int = 8) -> str:
     return ", ".join(ids[:n]) + (f", ... ({len(ids)} in all)" if len(ids) > n else "")
 
 
-def _check_station_ids(name: str, station_ids: list[str], first_row: dict[str, int],
-                       stations_df: pd.DataFrame, column: str, problems: _Problems) -> None:
+def _check_station_ids(
+    name: str,
+    station_ids: list[str],
+    first_row: dict[str, int],
+    stations_df: pd.DataFrame,
+    column: str,
+    problems: _Problems,
+) -> None:
     """The stations table must describe the stations of the data: no common id at all is
     an error (the table is for other data, or its ids are spelt differently); stations in
     the table without readings, above all ones marked ``fixed``, and stations of the data
@@ -840,37 +1031,61 @@ def _check_station_ids(name: str, station_ids: list[str], first_row: dict[str, i
     used = set(station_ids)
     common = used.intersection(described)
     if not common:
-        problems.add(first_row[station_ids[0]], column,
-                     f"no station of the data is described in the stations table: the data "
-                     f"use {_id_list(station_ids)}, the stations table describes "
-                     f"{_id_list(described)}; station ids must match exactly (as text)")
+        problems.add(
+            first_row[station_ids[0]],
+            column,
+            f"no station of the data is described in the stations table: the data "
+            f"use {_id_list(station_ids)}, the stations table describes "
+            f"{_id_list(described)}; station ids must match exactly (as text)",
+        )
         return
     unknown = [s for s in described if s not in used]
     if unknown:
         fixed = set(stations_df.loc[stations_df["fixed"].astype(bool), "station"].astype(str))
         held = [s for s in unknown if s in fixed]
-        warnings.warn(f"{name}: the stations table describes station(s) with no reading in "
-                      f"the data: {_id_list(unknown)}"
-                      + (f" (marked fixed: {_id_list(held)})" if held else "")
-                      + "; they are ignored", DataWarning, stacklevel=4)
+        warnings.warn(
+            f"{name}: the stations table describes station(s) with no reading in "
+            f"the data: {_id_list(unknown)}"
+            + (f" (marked fixed: {_id_list(held)})" if held else "")
+            + "; they are ignored",
+            DataWarning,
+            stacklevel=4,
+        )
     missing = [s for s in station_ids if s not in common]
     if missing:
-        warnings.warn(f"{name}: station(s) {_id_list(missing)} (first in row "
-                      f"{first_row[missing[0]]}) are not described in the stations table; "
-                      "their positions and dead lengths are estimated from the data",
-                      DataWarning, stacklevel=4)
+        warnings.warn(
+            f"{name}: station(s) {_id_list(missing)} (first in row "
+            f"{first_row[missing[0]]}) are not described in the stations table; "
+            "their positions and dead lengths are estimated from the data",
+            DataWarning,
+            stacklevel=4,
+        )
 
 
-def _warn_geometry(name: str, spec: MachineSpec, station_ids: list[str],
-                   station_index: np.ndarray, first_row: dict[str, int], counts: np.ndarray,
-                   point: np.ndarray, point_index: np.ndarray, q: np.ndarray, tool: np.ndarray,
-                   rows: np.ndarray, stations_df: pd.DataFrame | None) -> None:
+def _warn_geometry(
+    name: str,
+    spec: MachineSpec,
+    station_ids: list[str],
+    station_index: np.ndarray,
+    first_row: dict[str, int],
+    counts: np.ndarray,
+    point: np.ndarray,
+    point_index: np.ndarray,
+    q: np.ndarray,
+    tool: np.ndarray,
+    rows: np.ndarray,
+    stations_df: pd.DataFrame | None,
+) -> None:
     pts = _nominal_tool_points(spec, q, tool)
     for i, s in enumerate(station_ids):
         if counts[i] < FEW_READINGS_PER_STATION:
-            warnings.warn(f"{name}: station '{s}' has only {counts[i]} readings (fewer than "
-                          f"{FEW_READINGS_PER_STATION}); its position and dead length rest on "
-                          "little redundancy", DataWarning, stacklevel=3)
+            warnings.warn(
+                f"{name}: station '{s}' has only {counts[i]} readings (fewer than "
+                f"{FEW_READINGS_PER_STATION}); its position and dead length rest on "
+                "little redundancy",
+                DataWarning,
+                stacklevel=3,
+            )
         p = pts[station_index == i]
         c = p - p.mean(axis=0)
         sv = np.linalg.svd(c, compute_uv=False) if len(p) else np.zeros(1)
@@ -878,19 +1093,25 @@ def _warn_geometry(name: str, spec: MachineSpec, station_ids: list[str],
         if sv[0] == 0 or sv[2] <= COPLANAR_RTOL * sv[0]:
             rank = int(np.sum(sv > COPLANAR_RTOL * sv[0])) if sv[0] > 0 else 0
             shape = {0: "a single position", 1: "one line", 2: "one plane"}[min(rank, 2)]
-            warnings.warn(f"{name}: the nominal tool points measured from station '{s}' "
-                          f"(first row {first_row[s]}) lie in {shape} (rank {rank} < 3); the "
-                          "station position is then determined only up to its mirror image in "
-                          "that plane and poorly perpendicular to it",
-                          DataWarning, stacklevel=3)
+            warnings.warn(
+                f"{name}: the nominal tool points measured from station '{s}' "
+                f"(first row {first_row[s]}) lie in {shape} (rank {rank} < 3); the "
+                "station position is then determined only up to its mirror image in "
+                "that plane and poorly perpendicular to it",
+                DataWarning,
+                stacklevel=3,
+            )
     if len(tool) and np.all(tool == tool[0]):
         last = spec.axes[-1].name
-        warnings.warn(f"{name}: the tool offset is the same in every row "
-                      f"({', '.join(f'{v:g}' for v in tool[0])}) mm; with a single tool offset "
-                      f"the angular error motions of the last axis of the chain ({last}: "
-                      f"EA{last}, EB{last}, EC{last}) cannot be separated from its translational "
-                      "error motions with these data",
-                      DataWarning, stacklevel=3)
+        warnings.warn(
+            f"{name}: the tool offset is the same in every row "
+            f"({', '.join(f'{v:g}' for v in tool[0])}) mm; with a single tool offset "
+            f"the angular error motions of the last axis of the chain ({last}: "
+            f"EA{last}, EB{last}, EC{last}) cannot be separated from its translational "
+            "error motions with these data",
+            DataWarning,
+            stacklevel=3,
+        )
     # one point id should be one commanded pose
     pose = np.concatenate([q, tool], axis=1)
     first = np.full(point_index.max() + 1, -1)
@@ -901,10 +1122,14 @@ def _warn_geometry(name: str, spec: MachineSpec, station_ids: list[str],
     differ = np.flatnonzero(np.any(pose != ref, axis=1))
     if differ.size:
         k = int(differ[0])
-        warnings.warn(f"{name}: point '{point[k]}' has different axis positions or tool "
-                      f"offsets in rows {rows[first[point_index[k]]]} and {rows[k]} "
-                      f"({differ.size} row(s) differ from the first use of their point id); a "
-                      "point id names one commanded pose", DataWarning, stacklevel=3)
+        warnings.warn(
+            f"{name}: point '{point[k]}' has different axis positions or tool "
+            f"offsets in rows {rows[first[point_index[k]]]} and {rows[k]} "
+            f"({differ.size} row(s) differ from the first use of their point id); a "
+            "point id names one commanded pose",
+            DataWarning,
+            stacklevel=3,
+        )
 
 
 # --------------------------------------------------------------------------------------
@@ -930,5 +1155,13 @@ parse_ids = _parse_ids
 report_rows = _report
 nominal_tool_points = _nominal_tool_points
 
-__all__ += ["Column", "Problems", "read_raw", "resolve_columns", "parse_float", "parse_ids",
-            "report_rows", "nominal_tool_points"]
+__all__ += [
+    "Column",
+    "Problems",
+    "read_raw",
+    "resolve_columns",
+    "parse_float",
+    "parse_ids",
+    "report_rows",
+    "nominal_tool_points",
+]

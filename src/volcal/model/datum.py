@@ -31,6 +31,7 @@ condition instead of two); ``datum="none"`` has no candidates (null directions a
 by pivoting, see :mod:`volcal.analysis.identifiability`).  Axes come in chain order within
 each class.  Values of the conditions are in the parameters' units (mm, rad).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -69,8 +70,15 @@ class Condition:
     unit: str
 
 
-_CLASSES = ("positioning", "straightness", "angular", "rotary", "tool position",
-            "tool orientation", "location")
+_CLASSES = (
+    "positioning",
+    "straightness",
+    "angular",
+    "rotary",
+    "tool position",
+    "tool orientation",
+    "location",
+)
 
 
 def candidate_conditions(error_model, datum: str) -> list[Condition]:
@@ -89,8 +97,11 @@ def candidate_conditions(error_model, datum: str) -> list[Condition]:
         if s.kind in ("location", "tool"):
             row = np.zeros(em.n_params)
             row[idx] = 1.0
-            klass = "location" if s.kind == "location" else (
-                "tool position" if s.quantity == "translation" else "tool orientation")
+            klass = (
+                "location"
+                if s.kind == "location"
+                else ("tool position" if s.quantity == "translation" else "tool orientation")
+            )
             out[klass].append(Condition(f"{s.name} = 0", s.name, klass, row, s.unit))
             continue
         a = em.spec.axis(s.axis)
@@ -114,8 +125,9 @@ def candidate_conditions(error_model, datum: str) -> list[Condition]:
     return [c for klass in _CLASSES for c in out[klass]]
 
 
-def null_space(J: np.ndarray, fixed: np.ndarray | None = None
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def null_space(
+    J: np.ndarray, fixed: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Null space of J restricted to the free variables, on column-scaled variables.
 
     Returns (free indices, d, N): a null direction in the free variables is ``d * N[:, j]``
@@ -123,17 +135,18 @@ def null_space(J: np.ndarray, fixed: np.ndarray | None = None
     m, n = np.shape(J)
     free, d, A = scale_columns(J, fixed)
     # one QR of the tall matrix, then the SVD of its small R factor
-    R = sla.qr(A, mode="r", check_finite=False)[0][:len(free)] if m > len(free) else A
+    R = sla.qr(A, mode="r", check_finite=False)[0][: len(free)] if m > len(free) else A
     _, s, Vt = np.linalg.svd(R, full_matrices=True)
     s_full = np.zeros(len(free))
-    s_full[:len(s)] = s
+    s_full[: len(s)] = s
     tol = max(m, n) * np.finfo(float).eps * (s_full[0] if len(s_full) else 0.0)
     rank = int(np.sum(s_full > tol))
     return free, d, Vt[rank:].T
 
 
-def select_conditions(J: np.ndarray, C: np.ndarray, fixed: np.ndarray | None = None, *,
-                      tol: float = NULL_TOL) -> np.ndarray:
+def select_conditions(
+    J: np.ndarray, C: np.ndarray, fixed: np.ndarray | None = None, *, tol: float = NULL_TOL
+) -> np.ndarray:
     """Which candidate rows to impose: mask over the rows of C.
 
     J: (m, n) Jacobian of the whitened residuals wrt the (solver-scaled) variables; C: (c, n)
@@ -165,8 +178,9 @@ def select_conditions(J: np.ndarray, C: np.ndarray, fixed: np.ndarray | None = N
     return keep
 
 
-def condition_table(conditions: list[Condition], imposed: np.ndarray, theta: np.ndarray
-                    ) -> pd.DataFrame:
+def condition_table(
+    conditions: list[Condition], imposed: np.ndarray, theta: np.ndarray
+) -> pd.DataFrame:
     """condition, class, imposed, value (um or urad), unit: every candidate with the value
     it takes at theta (mm / rad).  An imposed condition holds exactly (value 0 to rounding);
     the others take whatever the data say."""
@@ -174,10 +188,12 @@ def condition_table(conditions: list[Condition], imposed: np.ndarray, theta: np.
 
     theta = np.asarray(theta, float)
     vals = [float(c.row @ theta) * report_factor(c.unit) for c in conditions]
-    return pd.DataFrame({
-        "condition": [c.label for c in conditions],
-        "class": [c.klass for c in conditions],
-        "imposed": np.asarray(imposed, bool)[:len(conditions)],
-        "value": vals,
-        "unit": [report_unit(c.unit) for c in conditions],
-    })
+    return pd.DataFrame(
+        {
+            "condition": [c.label for c in conditions],
+            "class": [c.klass for c in conditions],
+            "imposed": np.asarray(imposed, bool)[: len(conditions)],
+            "value": vals,
+            "unit": [report_unit(c.unit) for c in conditions],
+        }
+    )

@@ -38,6 +38,7 @@ Parameters are named ``<error>_<k>`` for the k-th Legendre coefficient, ``<error
 axis position pos (file units) and ``<error>`` for a constant; units are those of the error
 (mm or rad).
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
@@ -50,8 +51,16 @@ import numpy as np
 from volcal.base.exceptions import InputError
 from volcal.model.spec import BASIS_KINDS, ErrorForm, ErrorSymbol, MachineSpec, error_symbols
 
-__all__ = ["ErrorForm", "ErrorModel", "Datum", "legendre", "fourier", "bspline",
-           "parse_basis", "BASIS_KINDS"]
+__all__ = [
+    "ErrorForm",
+    "ErrorModel",
+    "Datum",
+    "legendre",
+    "fourier",
+    "bspline",
+    "parse_basis",
+    "BASIS_KINDS",
+]
 
 Datum = Literal["iso230", "reference", "none"]
 
@@ -139,8 +148,11 @@ def parse_basis(text: str, *, source: str = "--basis") -> tuple[str, ErrorForm]:
     kind, _, arg = rest.partition(":")
     name, kind, arg = name.strip(), kind.strip(), arg.strip()
     if not eq or not name or kind not in BASIS_KINDS:
-        raise InputError(f"expected NAME=KIND[:N] with KIND one of {list(BASIS_KINDS)} "
-                         f"(e.g. C=fourier:3, X=bspline:6), got {text!r}", source=source)
+        raise InputError(
+            f"expected NAME=KIND[:N] with KIND one of {list(BASIS_KINDS)} "
+            f"(e.g. C=fourier:3, X=bspline:6), got {text!r}",
+            source=source,
+        )
     try:
         if kind == "table":
             form = ErrorForm("table", knots=tuple(float(v) for v in arg.split(",")))
@@ -153,11 +165,15 @@ def parse_basis(text: str, *, source: str = "--basis") -> tuple[str, ErrorForm]:
         else:
             form = ErrorForm(kind, degree=int(arg))  # type: ignore[arg-type]  # checked above
     except ValueError:
-        raise InputError(f"bad number in {text!r}: {kind} takes "
-                         + {"table": "comma-separated knot positions",
-                            "bspline": "an integer number of segments",
-                            "constant": "no number"}.get(kind, "an integer degree"),
-                         source=source) from None
+        raise InputError(
+            f"bad number in {text!r}: {kind} takes "
+            + {
+                "table": "comma-separated knot positions",
+                "bspline": "an integer number of segments",
+                "constant": "no number",
+            }.get(kind, "an integer degree"),
+            source=source,
+        ) from None
     bad = form.problem()
     if bad:
         raise InputError(f"{text!r}: {bad}", source=source)
@@ -184,8 +200,14 @@ class ErrorModel:
     same degree on a rotary axis whose travel spans a full turn (module docstring).
     """
 
-    def __init__(self, spec: MachineSpec, forms: Mapping[str, ErrorForm] | None = None, *,
-                 default: ErrorForm | None = None, datum: Datum = "iso230"):
+    def __init__(
+        self,
+        spec: MachineSpec,
+        forms: Mapping[str, ErrorForm] | None = None,
+        *,
+        default: ErrorForm | None = None,
+        datum: Datum = "iso230",
+    ):
         forms = dict(forms or {})
         default = ErrorForm("poly", 3) if default is None else default
         self.spec = spec
@@ -205,8 +227,11 @@ class ErrorModel:
             if f is None:
                 f = dict(a.error_basis).get(s.name, a.basis)
             if f is None:
-                f = (ErrorForm("fourier", default.degree)
-                     if default.kind == "poly" and a.full_turn else default)
+                f = (
+                    ErrorForm("fourier", default.degree)
+                    if default.kind == "poly" and a.full_turn
+                    else default
+                )
             if not isinstance(f, ErrorForm):
                 raise InputError(f"{s.name}: expected an ErrorForm, got {f!r}")
             bad = f.problem(a.is_rotary)
@@ -307,8 +332,9 @@ class ErrorModel:
                     acc = acc + c * th[col]
                     col += 1
                 out.append(acc)
-            self._values_fn = ca.Function("error_values", [q, th], [ca.vertcat(*out)],
-                                          ["q", "theta"], ["e"], {"cse": True})
+            self._values_fn = ca.Function(
+                "error_values", [q, th], [ca.vertcat(*out)], ["q", "theta"], ["e"], {"cse": True}
+            )
         return self._values_fn
 
     def describe(self) -> dict[str, list[str]]:
@@ -335,12 +361,15 @@ class ErrorModel:
             members = groups.setdefault(f.describe(), [])
             if who not in members:
                 members.append(who)
-        return "; ".join(f"{label} ({', '.join(m)})" for label, m in groups.items()) \
+        return (
+            "; ".join(f"{label} ({', '.join(m)})" for label, m in groups.items())
             or "constants only"
+        )
 
     # ---- datum constraints -------------------------------------------------------------
-    def constraints(self, datum: Datum | None = None, *, constants: bool = False
-                    ) -> tuple[np.ndarray, list[str]]:
+    def constraints(
+        self, datum: Datum | None = None, *, constants: bool = False
+    ) -> tuple[np.ndarray, list[str]]:
         """The ISO 230 datum conditions on the component error motions as (C, labels) with
         C theta = 0, linearly dependent rows dropped; with ``constants`` also the candidate
         conditions on location and tool errors.  These are candidates: an identification
@@ -350,8 +379,9 @@ class ErrorModel:
 
         conds = candidate_conditions(self, self.datum if datum is None else datum)
         if not constants:
-            conds = [c for c in conds if c.klass not in ("tool position", "tool orientation",
-                                                         "location")]
+            conds = [
+                c for c in conds if c.klass not in ("tool position", "tool orientation", "location")
+            ]
         if not conds:
             return np.zeros((0, self.n_params)), []
         C = np.array([c.row for c in conds])
@@ -363,16 +393,19 @@ class ErrorModel:
         """A parameter vector from {name: value} (missing names are zero)."""
         unknown = sorted(set(values) - set(self.param_names))
         if unknown:
-            raise InputError(f"unknown parameter name(s) {unknown[:5]}; expected names like "
-                             f"{self.param_names[:4]}")
+            raise InputError(
+                f"unknown parameter name(s) {unknown[:5]}; expected names like "
+                f"{self.param_names[:4]}"
+            )
         pos = {n: i for i, n in enumerate(self.param_names)}
         th = np.zeros(self.n_params)
         for n, v in values.items():
             th[pos[n]] = v
         return th
 
-    def fit_functions(self, funcs: Mapping[str, Callable[[np.ndarray], Any]],
-                      n_samples: int = 64) -> np.ndarray:
+    def fit_functions(
+        self, funcs: Mapping[str, Callable[[np.ndarray], Any]], n_samples: int = 64
+    ) -> np.ndarray:
         """Least-squares parameters reproducing given error functions f(x) (x internal units
         along the axis' travel); errors not in ``funcs`` are zero."""
         th = np.zeros(self.n_params)
@@ -380,8 +413,9 @@ class ErrorModel:
             if s.name not in funcs:
                 continue
             # constants (location, tool errors) belong to no axis position
-            lo, hi, _ = (0.0, 1.0, False) if self.forms[k].kind == "constant" \
-                else self._axis_range(s)
+            lo, hi, _ = (
+                (0.0, 1.0, False) if self.forms[k].kind == "constant" else self._axis_range(s)
+            )
             x = np.linspace(lo, hi, n_samples)
             A = np.column_stack([np.broadcast_to(c, x.shape) for c in self._basis_columns(k, x)])
             y = np.asarray(funcs[s.name](x), float)

@@ -4,6 +4,7 @@ Shared subexpressions are visited once (memo keyed on the SymPy node), and the C
 functions built from the result are created with ``cse`` so that the SX graph stays small.
 This is orders of magnitude faster than ``lambdify`` on expressions of this size.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -12,8 +13,15 @@ import casadi as ca
 import sympy as sp
 
 _UNARY = {
-    sp.sin: ca.sin, sp.cos: ca.cos, sp.tan: ca.tan, sp.exp: ca.exp, sp.log: ca.log,
-    sp.asin: ca.asin, sp.acos: ca.acos, sp.atan: ca.atan, sp.Abs: ca.fabs,
+    sp.sin: ca.sin,
+    sp.cos: ca.cos,
+    sp.tan: ca.tan,
+    sp.exp: ca.exp,
+    sp.log: ca.log,
+    sp.asin: ca.asin,
+    sp.acos: ca.acos,
+    sp.atan: ca.atan,
+    sp.Abs: ca.fabs,
 }
 
 

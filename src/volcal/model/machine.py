@@ -12,6 +12,7 @@ Function signatures (all inputs column vectors; lengths mm, angles rad):
     the same with exact rotations (no truncation); used by the simulator.
 ``nominal(q, t) -> p0[3]``
 """
+
 from __future__ import annotations
 
 import logging
@@ -65,11 +66,17 @@ def _build_functions(spec: MachineSpec) -> dict[str, ca.Function]:
     names_in = ["q", "t", "e"]
     names_out = ["p", "dp", "J"]
     return {
-        "tool_point": ca.Function("tool_point", [q, t, e], [p0 + d1, d1, ca.jacobian(d1, e)],
-                                  names_in, names_out, opts),
-        "tool_point_exact": ca.Function("tool_point_exact", [q, t, e],
-                                        [px, px - p0, ca.jacobian(px, e)],
-                                        names_in, names_out, opts),
+        "tool_point": ca.Function(
+            "tool_point", [q, t, e], [p0 + d1, d1, ca.jacobian(d1, e)], names_in, names_out, opts
+        ),
+        "tool_point_exact": ca.Function(
+            "tool_point_exact",
+            [q, t, e],
+            [px, px - p0, ca.jacobian(px, e)],
+            names_in,
+            names_out,
+            opts,
+        ),
         "nominal": ca.Function("nominal", [q, t], [p0], ["q", "t"], ["p"], opts),
     }
 
@@ -91,8 +98,10 @@ class Machine:
         t0 = time.perf_counter()
         # the name only makes the entry readable; the content hash is the key
         safe = "".join(c if c.isalnum() or c in "_-" else "_" for c in spec.name)[:40]
-        key = (f"{safe}-{spec.fingerprint()}-v{__version__}-s{CHAIN_SCHEMA}"
-               f"-ca{ca.CasadiMeta.version()}")
+        key = (
+            f"{safe}-{spec.fingerprint()}-v{__version__}-s{CHAIN_SCHEMA}"
+            f"-ca{ca.CasadiMeta.version()}"
+        )
         path = cache_dir() / f"{key}.casadi"
         funcs = None
         if use_cache and path.exists():
@@ -107,8 +116,9 @@ class Machine:
                 try:
                     _save(path, funcs)
                 except OSError as exc:  # a read-only or full cache costs speed, not the run
-                    log.warning("could not write the model cache entry %s: %s", path,
-                                exc.strerror or exc)
+                    log.warning(
+                        "could not write the model cache entry %s: %s", path, exc.strerror or exc
+                    )
         return cls(spec, funcs, error_symbols(spec), time.perf_counter() - t0, from_cache)
 
     # ---- convenience -------------------------------------------------------------------
@@ -149,8 +159,11 @@ class Machine:
         f = self.functions["tool_point_exact" if exact else "tool_point"].map(n)
         p, dp, J = (v.full() for v in f(q.T, t.T, e.T))
         # map stacks the (3, n_err) blocks side by side: column a * n_err + b
-        J = np.asarray(J).reshape(3, n, self.n_errors).transpose(1, 0, 2) \
-            if self.n_errors else np.zeros((n, 3, 0))
+        J = (
+            np.asarray(J).reshape(3, n, self.n_errors).transpose(1, 0, 2)
+            if self.n_errors
+            else np.zeros((n, 3, 0))
+        )
         return np.asarray(p).T, np.asarray(dp).T, J
 
 

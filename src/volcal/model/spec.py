@@ -41,6 +41,7 @@ turn gets the Fourier series, every other axis the Legendre series.
 Reading a model file never executes code: TOML is parsed with :mod:`tomllib` and every
 value is type-checked; numbers must be TOML numbers, never strings or expressions.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -61,14 +62,25 @@ ROT_LETTERS = "ABC"
 _NAME_RE = re.compile(r"^[A-Z][A-Z0-9]{0,3}$")
 # model names end up in file names (the build cache): no path separators, no spaces
 _MODEL_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
-_DIRECTIONS = {"+x": (0, 1), "-x": (0, -1), "+y": (1, 1), "-y": (1, -1),
-               "+z": (2, 1), "-z": (2, -1)}
+_DIRECTIONS = {
+    "+x": (0, 1),
+    "-x": (0, -1),
+    "+y": (1, 1),
+    "-y": (1, -1),
+    "+z": (2, 1),
+    "-z": (2, -1),
+}
 
 #: kinds of error bases (:class:`ErrorForm`)
 BASIS_KINDS = ("poly", "fourier", "bspline", "table", "constant")
 #: the field each basis kind uses besides ``kind``
-_BASIS_FIELDS = {"poly": ("degree",), "fourier": ("degree",), "bspline": ("segments",),
-                 "table": ("knots",), "constant": ()}
+_BASIS_FIELDS = {
+    "poly": ("degree",),
+    "fourier": ("degree",),
+    "bspline": ("segments",),
+    "table": ("knots",),
+    "constant": (),
+}
 _FORM_DEFAULTS = {"degree": 3, "knots": (), "segments": 4}
 
 
@@ -94,8 +106,9 @@ class ErrorForm:
 
     def __post_init__(self) -> None:
         if self.kind not in BASIS_KINDS:
-            raise InputError(f"unknown basis kind {self.kind!r}; expected one of "
-                             f"{list(BASIS_KINDS)}")
+            raise InputError(
+                f"unknown basis kind {self.kind!r}; expected one of {list(BASIS_KINDS)}"
+            )
         used = _BASIS_FIELDS[self.kind]
         for f, v in _FORM_DEFAULTS.items():
             if f not in used:
@@ -110,22 +123,29 @@ class ErrorForm:
     @property
     def n_params(self) -> int:
         """Number of basis functions (parameters) of this form."""
-        return {"poly": self.degree + 1, "fourier": 2 * self.degree + 1,
-                "bspline": self.segments + 3, "table": len(self.knots),
-                "constant": 1}[self.kind]
+        return {
+            "poly": self.degree + 1,
+            "fourier": 2 * self.degree + 1,
+            "bspline": self.segments + 3,
+            "table": len(self.knots),
+            "constant": 1,
+        }[self.kind]
 
     def problem(self, rotary: bool | None = None) -> str | None:
         """What is wrong with this form (on a rotary axis when ``rotary``), or None."""
         if self.kind in ("poly", "fourier") and (
-                isinstance(self.degree, bool) or not isinstance(self.degree, int)
-                or self.degree < 0):
+            isinstance(self.degree, bool) or not isinstance(self.degree, int) or self.degree < 0
+        ):
             return f"{self.kind} degree must be an integer >= 0, got {self.degree!r}"
-        if self.kind == "bspline" and (isinstance(self.segments, bool)
-                                       or not isinstance(self.segments, int)
-                                       or self.segments < 1):
+        if self.kind == "bspline" and (
+            isinstance(self.segments, bool)
+            or not isinstance(self.segments, int)
+            or self.segments < 1
+        ):
             return f"bspline segments must be an integer >= 1, got {self.segments!r}"
-        if self.kind == "table" and (len(self.knots) < 2 or any(
-                not b > a for a, b in zip(self.knots, self.knots[1:]))):
+        if self.kind == "table" and (
+            len(self.knots) < 2 or any(not b > a for a, b in zip(self.knots, self.knots[1:]))
+        ):
             return f"table knots must be at least two increasing positions, got {self.knots}"
         if self.kind == "fourier" and rotary is False:
             return "a fourier basis applies to rotary axes only (x is the angle)"
@@ -141,11 +161,13 @@ class ErrorForm:
 
     def describe(self) -> str:
         """A short readable label (``Fourier series, harmonics 1..3``)."""
-        return {"poly": f"Legendre polynomial, degree {self.degree}",
-                "fourier": f"Fourier series, harmonics 1..{self.degree}",
-                "bspline": f"cubic B-spline, {self.segments} segments",
-                "table": f"piecewise-linear table, {len(self.knots)} knots",
-                "constant": "constant"}[self.kind]
+        return {
+            "poly": f"Legendre polynomial, degree {self.degree}",
+            "fourier": f"Fourier series, harmonics 1..{self.degree}",
+            "bspline": f"cubic B-spline, {self.segments} segments",
+            "table": f"piecewise-linear table, {len(self.knots)} knots",
+            "constant": "constant",
+        }[self.kind]
 
 
 @dataclass(frozen=True)
@@ -276,17 +298,26 @@ def _location_candidates(axis: AxisSpec, linear_dirs: set[int]) -> list[ErrorSym
             if j == i or k == i:
                 continue
             if k < i and k in linear_dirs:
-                out.append(ErrorSymbol(f"E{ROT_LETTERS[j]}0{axis.name}", axis.name,
-                                       "location", "rotation", j))
+                out.append(
+                    ErrorSymbol(
+                        f"E{ROT_LETTERS[j]}0{axis.name}", axis.name, "location", "rotation", j
+                    )
+                )
     else:
         for j in range(3):
             if j != i:
-                out.append(ErrorSymbol(f"E{AXIS_LETTERS[j]}0{axis.name}", axis.name,
-                                       "location", "translation", j))
+                out.append(
+                    ErrorSymbol(
+                        f"E{AXIS_LETTERS[j]}0{axis.name}", axis.name, "location", "translation", j
+                    )
+                )
         for j in range(3):
             if j != i:
-                out.append(ErrorSymbol(f"E{ROT_LETTERS[j]}0{axis.name}", axis.name,
-                                       "location", "rotation", j))
+                out.append(
+                    ErrorSymbol(
+                        f"E{ROT_LETTERS[j]}0{axis.name}", axis.name, "location", "rotation", j
+                    )
+                )
     return out
 
 
@@ -296,9 +327,12 @@ def error_symbols(spec: MachineSpec) -> list[ErrorSymbol]:
     linear_dirs = {a.dir_index for a in spec.axes if a.kind == "linear"}
     out: list[ErrorSymbol] = []
     for a in spec.axes:
-        comps = [ErrorSymbol(f"E{c}{a.name}", a.name, "component",
-                             "translation" if k < 3 else "rotation", k % 3)
-                 for k, c in enumerate(AXIS_LETTERS + ROT_LETTERS)]
+        comps = [
+            ErrorSymbol(
+                f"E{c}{a.name}", a.name, "component", "translation" if k < 3 else "rotation", k % 3
+            )
+            for k, c in enumerate(AXIS_LETTERS + ROT_LETTERS)
+        ]
         if a.errors != "all":
             comps = [s for s in comps if s.name in a.errors]
         locs = _location_candidates(a, linear_dirs)
@@ -321,10 +355,13 @@ TOOL_AXIS = "T"
 def tool_symbols() -> list[ErrorSymbol]:
     """The tool's zero position (``EX0T EY0T EZ0T``, mm) and zero orientation
     (``EA0T EB0T EC0T``, rad), in the tool frame."""
-    return ([ErrorSymbol(f"E{c}0{TOOL_AXIS}", TOOL_AXIS, "tool", "translation", j)
-             for j, c in enumerate(AXIS_LETTERS)]
-            + [ErrorSymbol(f"E{c}0{TOOL_AXIS}", TOOL_AXIS, "tool", "rotation", j)
-               for j, c in enumerate(ROT_LETTERS)])
+    return [
+        ErrorSymbol(f"E{c}0{TOOL_AXIS}", TOOL_AXIS, "tool", "translation", j)
+        for j, c in enumerate(AXIS_LETTERS)
+    ] + [
+        ErrorSymbol(f"E{c}0{TOOL_AXIS}", TOOL_AXIS, "tool", "rotation", j)
+        for j, c in enumerate(ROT_LETTERS)
+    ]
 
 
 # --------------------------------------------------------------------------------------
@@ -333,8 +370,9 @@ def tool_symbols() -> list[ErrorSymbol]:
 
 def _check_number(value: Any, where: str, key: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(f"expected a number, got {type(value).__name__} {value!r}",
-                         source=where, column=key)
+        raise InputError(
+            f"expected a number, got {type(value).__name__} {value!r}", source=where, column=key
+        )
     if not math.isfinite(value):
         raise InputError(f"expected a finite number, got {value!r}", source=where, column=key)
     return float(value)
@@ -344,34 +382,59 @@ def _check_names(value: Any, where: str, key: str, allowed: list[str]) -> str | 
     if isinstance(value, str) and value in ("all", "none"):
         return value
     if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
-        raise InputError(f"expected \"all\", \"none\" or a list of error names from {allowed}, "
-                         f"got {value!r}", source=where, column=key)
+        raise InputError(
+            f'expected "all", "none" or a list of error names from {allowed}, got {value!r}',
+            source=where,
+            column=key,
+        )
     bad = [v for v in value if v not in allowed]
     if bad:
-        raise InputError(f"unknown error name(s) {bad}; this axis generates {allowed}",
-                         source=where, column=key)
+        raise InputError(
+            f"unknown error name(s) {bad}; this axis generates {allowed}", source=where, column=key
+        )
     return tuple(value)
 
 
-_AXIS_KEYS = {"name", "kind", "direction", "branch", "travel", "reference", "center", "errors",
-              "location", "exclude", "basis", "error_basis"}
+_AXIS_KEYS = {
+    "name",
+    "kind",
+    "direction",
+    "branch",
+    "travel",
+    "reference",
+    "center",
+    "errors",
+    "location",
+    "exclude",
+    "basis",
+    "error_basis",
+}
 
 
 def form_from_dict(d: Any, where: str, key: str, rotary: bool | None = None) -> ErrorForm:
     """Validate one basis table (``{kind = "fourier", degree = 3}``) into an
     :class:`ErrorForm`; ``key`` names it in errors (``basis``, ``error_basis.EZC``)."""
     if not isinstance(d, dict):
-        raise InputError(f"expected a table such as {{ kind = \"poly\", degree = 3 }}, got "
-                         f"{d!r}", source=where, column=key)
+        raise InputError(
+            f'expected a table such as {{ kind = "poly", degree = 3 }}, got {d!r}',
+            source=where,
+            column=key,
+        )
     kind = d.get("kind")
     if kind not in BASIS_KINDS:
-        raise InputError(f"expected a basis kind from {list(BASIS_KINDS)}, got {kind!r}",
-                         source=where, column=f"{key}.kind")
+        raise InputError(
+            f"expected a basis kind from {list(BASIS_KINDS)}, got {kind!r}",
+            source=where,
+            column=f"{key}.kind",
+        )
     allowed = ("kind",) + _BASIS_FIELDS[kind]
     unknown = sorted(set(d) - set(allowed))
     if unknown:
-        raise InputError(f"unknown key(s) {unknown} for a {kind} basis; allowed: "
-                         f"{list(allowed)}", source=where, column=key)
+        raise InputError(
+            f"unknown key(s) {unknown} for a {kind} basis; allowed: {list(allowed)}",
+            source=where,
+            column=key,
+        )
     args: dict[str, Any] = {}
     for f in _BASIS_FIELDS[kind]:
         if f not in d:
@@ -379,12 +442,18 @@ def form_from_dict(d: Any, where: str, key: str, rotary: bool | None = None) -> 
         v = d[f]
         if f == "knots":
             if not isinstance(v, list):
-                raise InputError(f"expected a list of axis positions, got {v!r}",
-                                 source=where, column=f"{key}.knots")
+                raise InputError(
+                    f"expected a list of axis positions, got {v!r}",
+                    source=where,
+                    column=f"{key}.knots",
+                )
             args[f] = tuple(_check_number(x, where, f"{key}.knots") for x in v)
         elif isinstance(v, bool) or not isinstance(v, int):
-            raise InputError(f"expected an integer, got {type(v).__name__} {v!r}",
-                             source=where, column=f"{key}.{f}")
+            raise InputError(
+                f"expected an integer, got {type(v).__name__} {v!r}",
+                source=where,
+                column=f"{key}.{f}",
+            )
         else:
             args[f] = v
     form = ErrorForm(kind, **args)
@@ -398,26 +467,38 @@ def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
     """Validate one ``[[axis]]`` table (``where`` names it in errors)."""
     unknown = set(d) - _AXIS_KEYS
     if unknown:
-        raise InputError(f"unknown key(s) {sorted(unknown)}; allowed: {sorted(_AXIS_KEYS)}",
-                         source=where)
+        raise InputError(
+            f"unknown key(s) {sorted(unknown)}; allowed: {sorted(_AXIS_KEYS)}", source=where
+        )
     for key in ("name", "kind", "direction", "branch", "travel"):
         if key not in d:
             raise InputError("missing required key", source=where, column=key)
     name = d["name"]
     if not isinstance(name, str) or not _NAME_RE.match(name):
-        raise InputError(f"expected an axis name of 1-4 upper-case letters/digits starting with a "
-                         f"letter, got {name!r}", source=where, column="name")
+        raise InputError(
+            f"expected an axis name of 1-4 upper-case letters/digits starting with a "
+            f"letter, got {name!r}",
+            source=where,
+            column="name",
+        )
     where = f"{where} (axis {name})"
     kind = d["kind"]
     if kind not in ("linear", "rotary"):
-        raise InputError(f"unknown axis kind {kind!r}; expected \"linear\" or \"rotary\"",
-                         source=where, column="kind")
+        raise InputError(
+            f'unknown axis kind {kind!r}; expected "linear" or "rotary"',
+            source=where,
+            column="kind",
+        )
     if not isinstance(d["direction"], str) or d["direction"] not in _DIRECTIONS:
-        raise InputError(f"expected one of {list(_DIRECTIONS)}, got {d['direction']!r}",
-                         source=where, column="direction")
+        raise InputError(
+            f"expected one of {list(_DIRECTIONS)}, got {d['direction']!r}",
+            source=where,
+            column="direction",
+        )
     if d["branch"] not in ("workpiece", "tool"):
-        raise InputError(f"expected \"workpiece\" or \"tool\", got {d['branch']!r}",
-                         source=where, column="branch")
+        raise InputError(
+            f'expected "workpiece" or "tool", got {d["branch"]!r}', source=where, column="branch"
+        )
     travel = d["travel"]
     if not isinstance(travel, list) or len(travel) != 2:
         raise InputError(f"expected [min, max], got {travel!r}", source=where, column="travel")
@@ -428,8 +509,9 @@ def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
     default_ref = lo if lo > 0 else hi if hi < 0 else 0.0
     ref = _check_number(d.get("reference", default_ref), where, "reference")
     if not lo <= ref <= hi:
-        raise InputError(f"reference {ref} outside travel [{lo}, {hi}]", source=where,
-                         column="reference")
+        raise InputError(
+            f"reference {ref} outside travel [{lo}, {hi}]", source=where, column="reference"
+        )
     if kind == "linear" and "center" in d:
         raise InputError("'center' applies to rotary axes only", source=where, column="center")
     center = d.get("center", [0.0, 0.0, 0.0])
@@ -445,8 +527,11 @@ def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
     location = _check_names(d.get("location", "all"), where, "location", loc_names)
     exclude = d.get("exclude", [])
     if not isinstance(exclude, list):
-        raise InputError(f"expected a list of error names from {comp_names + loc_names}, "
-                         f"got {exclude!r}", source=where, column="exclude")
+        raise InputError(
+            f"expected a list of error names from {comp_names + loc_names}, got {exclude!r}",
+            source=where,
+            column="exclude",
+        )
     exclude_names = _check_names(exclude, where, "exclude", comp_names + loc_names)
     # a list was checked above: never "all" / "none" here
     exclude = exclude_names if isinstance(exclude_names, tuple) else ()
@@ -454,24 +539,43 @@ def axis_from_dict(d: dict[str, Any], where: str) -> AxisSpec:
     basis = form_from_dict(d["basis"], where, "basis", rotary) if "basis" in d else None
     eb = d.get("error_basis", {})
     if not isinstance(eb, dict):
-        raise InputError(f"expected a table of error names to basis tables, got {eb!r}",
-                         source=where, column="error_basis")
+        raise InputError(
+            f"expected a table of error names to basis tables, got {eb!r}",
+            source=where,
+            column="error_basis",
+        )
     bad = [n for n in eb if n not in comp_names]
     if bad:
-        raise InputError(f"unknown component error name(s) {bad}; this axis generates "
-                         f"{comp_names}", source=where, column="error_basis")
-    error_basis = tuple((n, form_from_dict(v, where, f"error_basis.{n}", rotary))
-                        for n, v in eb.items())
-    return AxisSpec(name, kind, d["direction"], d["branch"], (lo, hi), ref, center, errors,
-                    location, exclude, basis, error_basis)
+        raise InputError(
+            f"unknown component error name(s) {bad}; this axis generates {comp_names}",
+            source=where,
+            column="error_basis",
+        )
+    error_basis = tuple(
+        (n, form_from_dict(v, where, f"error_basis.{n}", rotary)) for n, v in eb.items()
+    )
+    return AxisSpec(
+        name,
+        kind,
+        d["direction"],
+        d["branch"],
+        (lo, hi),
+        ref,
+        center,
+        errors,
+        location,
+        exclude,
+        basis,
+        error_basis,
+    )
 
 
 # limits checked when a model is loaded: a model beyond them is refused with a clear
 # InputError instead of exhausting the stack, the memory or the user's patience
-MAX_MODEL_BYTES = 1_000_000     # size of a model file
-MAX_NESTING = 8                 # tables / arrays inside each other (a model needs 4)
-MAX_AXES = 12                   # axes in the chain
-MAX_ERROR_SYMBOLS = 250         # error parameters of the chain (12 rotary axes: 133)
+MAX_MODEL_BYTES = 1_000_000  # size of a model file
+MAX_NESTING = 8  # tables / arrays inside each other (a model needs 4)
+MAX_AXES = 12  # axes in the chain
+MAX_ERROR_SYMBOLS = 250  # error parameters of the chain (12 rotary axes: 133)
 
 
 def _nesting(doc: Any) -> int:
@@ -494,22 +598,30 @@ def _nesting(doc: Any) -> int:
 def machine_from_dict(d: dict[str, Any], where: str = "<model>") -> MachineSpec:
     """Validate a parsed model document and build its :class:`MachineSpec`."""
     if not isinstance(d, dict):
-        raise InputError(f"expected a table (the model document), got {type(d).__name__}",
-                         source=where)
+        raise InputError(
+            f"expected a table (the model document), got {type(d).__name__}", source=where
+        )
     if _nesting(d) > MAX_NESTING:
-        raise InputError(f"tables or arrays are nested more than {MAX_NESTING} deep; a model "
-                         "needs [[axis]] tables with plain values", source=where)
+        raise InputError(
+            f"tables or arrays are nested more than {MAX_NESTING} deep; a model "
+            "needs [[axis]] tables with plain values",
+            source=where,
+        )
     allowed = {"name", "description", "axis", "tool_errors"}
     unknown = set(d) - allowed
     if unknown:
-        raise InputError(f"unknown top-level key(s) {sorted(unknown)}; allowed: {sorted(allowed)}",
-                         source=where)
+        raise InputError(
+            f"unknown top-level key(s) {sorted(unknown)}; allowed: {sorted(allowed)}", source=where
+        )
     if "name" not in d:
         raise InputError("missing required key (the model name)", source=where, column="name")
     if not isinstance(d["name"], str) or not _MODEL_NAME_RE.match(d["name"]):
-        raise InputError("expected a model name of 1-64 letters, digits, '_', '-' or '.' "
-                         f"starting with a letter or digit, got {d['name']!r}",
-                         source=where, column="name")
+        raise InputError(
+            "expected a model name of 1-64 letters, digits, '_', '-' or '.' "
+            f"starting with a letter or digit, got {d['name']!r}",
+            source=where,
+            column="name",
+        )
     desc = d.get("description", "")
     if not isinstance(desc, str):
         raise InputError("expected a string", source=where, column="description")
@@ -517,8 +629,11 @@ def machine_from_dict(d: dict[str, Any], where: str = "<model>") -> MachineSpec:
     if not isinstance(axes_raw, list) or not axes_raw:
         raise InputError("expected one or more [[axis]] tables", source=where, column="axis")
     if len(axes_raw) > MAX_AXES:
-        raise InputError(f"{len(axes_raw)} axes; volcal models hold at most {MAX_AXES}",
-                         source=where, column="axis")
+        raise InputError(
+            f"{len(axes_raw)} axes; volcal models hold at most {MAX_AXES}",
+            source=where,
+            column="axis",
+        )
     axes = []
     for k, a in enumerate(axes_raw):
         if not isinstance(a, dict):
@@ -529,24 +644,39 @@ def machine_from_dict(d: dict[str, Any], where: str = "<model>") -> MachineSpec:
     if dup:
         raise InputError(f"duplicate axis name(s) {dup}", source=where, column="axis.name")
     branches = [a.branch for a in axes]
-    if "workpiece" in branches[branches.index("tool"):] if "tool" in branches else False:
-        raise InputError("axes must be listed in chain order: all workpiece-branch axes "
-                         "(workpiece -> frame) before all tool-branch axes (frame -> tool)",
-                         source=where, column="axis.branch")
+    if "workpiece" in branches[branches.index("tool") :] if "tool" in branches else False:
+        raise InputError(
+            "axes must be listed in chain order: all workpiece-branch axes "
+            "(workpiece -> frame) before all tool-branch axes (frame -> tool)",
+            source=where,
+            column="axis.branch",
+        )
     lin_dirs = [a.dir_index for a in axes if a.kind == "linear"]
     if len(set(lin_dirs)) != len(lin_dirs):
-        raise InputError("two linear axes share a direction; volcal needs distinct directions "
-                         "for the ISO error names", source=where, column="axis.direction")
-    tool = _check_names(d.get("tool_errors", "all"), where, "tool_errors",
-                        [s.name for s in tool_symbols()])
+        raise InputError(
+            "two linear axes share a direction; volcal needs distinct directions "
+            "for the ISO error names",
+            source=where,
+            column="axis.direction",
+        )
+    tool = _check_names(
+        d.get("tool_errors", "all"), where, "tool_errors", [s.name for s in tool_symbols()]
+    )
     if "T" in names:
-        raise InputError("axis name 'T' is reserved for the tool's zero position and "
-                         "orientation errors (EX0T ... EC0T)", source=where, column="axis.name")
+        raise InputError(
+            "axis name 'T' is reserved for the tool's zero position and "
+            "orientation errors (EX0T ... EC0T)",
+            source=where,
+            column="axis.name",
+        )
     spec = MachineSpec(d["name"], tuple(axes), desc, tool)
     n_err = len(error_symbols(spec))
     if n_err > MAX_ERROR_SYMBOLS:
-        raise InputError(f"{n_err} error parameters; volcal models hold at most "
-                         f"{MAX_ERROR_SYMBOLS}", source=where, column="axis")
+        raise InputError(
+            f"{n_err} error parameters; volcal models hold at most {MAX_ERROR_SYMBOLS}",
+            source=where,
+            column="axis",
+        )
     return spec
 
 
@@ -560,10 +690,14 @@ def spec_to_dict(spec: MachineSpec) -> dict[str, Any]:
 
     axes = []
     for a in spec.axes:
-        d: dict[str, Any] = {"name": a.name, "kind": a.kind, "direction": a.direction,
-                             "branch": a.branch,
-                             "travel": [float(a.travel[0]), float(a.travel[1])],
-                             "reference": float(a.reference)}
+        d: dict[str, Any] = {
+            "name": a.name,
+            "kind": a.kind,
+            "direction": a.direction,
+            "branch": a.branch,
+            "travel": [float(a.travel[0]), float(a.travel[1])],
+            "reference": float(a.reference),
+        }
         if a.is_rotary:
             d["center"] = [float(c) for c in a.center]
         d["errors"] = names(a.errors)
@@ -575,8 +709,12 @@ def spec_to_dict(spec: MachineSpec) -> dict[str, Any]:
         if a.error_basis:
             d["error_basis"] = {n: f.to_dict() for n, f in a.error_basis}
         axes.append(d)
-    return {"name": spec.name, "description": spec.description,
-            "tool_errors": names(spec.tool_errors), "axis": axes}
+    return {
+        "name": spec.name,
+        "description": spec.description,
+        "tool_errors": names(spec.tool_errors),
+        "axis": axes,
+    }
 
 
 def load_model_file(path: str | Path) -> MachineSpec:
@@ -587,30 +725,39 @@ def load_model_file(path: str | Path) -> MachineSpec:
     except OSError as exc:
         raise InputError(f"cannot read model file: {exc.strerror}", source=str(path)) from None
     if size > MAX_MODEL_BYTES:
-        raise InputError(f"the file has {size} bytes; a model file holds at most "
-                         f"{MAX_MODEL_BYTES} (is it a model?)", source=str(path))
+        raise InputError(
+            f"the file has {size} bytes; a model file holds at most "
+            f"{MAX_MODEL_BYTES} (is it a model?)",
+            source=str(path),
+        )
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise InputError(f"cannot read model file: {exc.strerror}", source=str(path)) from exc
     except UnicodeDecodeError as exc:
-        raise InputError(f"not a UTF-8 text file (TOML expected): {exc.reason} at byte "
-                         f"{exc.start}", source=str(path)) from exc
+        raise InputError(
+            f"not a UTF-8 text file (TOML expected): {exc.reason} at byte {exc.start}",
+            source=str(path),
+        ) from exc
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not valid TOML: {exc}", source=str(path)) from None
     except RecursionError:
-        raise InputError(f"tables or arrays are nested too deeply (at most {MAX_NESTING})",
-                         source=str(path)) from None
+        raise InputError(
+            f"tables or arrays are nested too deeply (at most {MAX_NESTING})", source=str(path)
+        ) from None
     return machine_from_dict(doc, str(path))
 
 
 def bundled_models() -> dict[str, Path]:
     """Names and paths of the models shipped with volcal."""
     root = resources.files("volcal.models")
-    return {Path(p.name).stem: Path(str(p)) for p in sorted(root.iterdir(), key=lambda p: p.name)
-            if p.name.endswith(".toml")}
+    return {
+        Path(p.name).stem: Path(str(p))
+        for p in sorted(root.iterdir(), key=lambda p: p.name)
+        if p.name.endswith(".toml")
+    }
 
 
 def resolve_model(model: str | Path | MachineSpec) -> MachineSpec:
@@ -623,5 +770,7 @@ def resolve_model(model: str | Path | MachineSpec) -> MachineSpec:
     p = Path(model)
     if p.exists():
         return load_model_file(p)
-    raise InputError(f"no bundled model named {str(model)!r} and no such file; bundled models: "
-                     f"{sorted(models)}", source=str(model))
+    raise InputError(
+        f"no bundled model named {str(model)!r} and no such file; bundled models: {sorted(models)}",
+        source=str(model),
+    )

@@ -26,6 +26,7 @@ spectrum, correlation heat map, uncertainty map).
 Units: parameter values and uncertainties in um / urad, stations in mm with
 uncertainties in um, volumetric errors and uncertainties in um.
 """
+
 from __future__ import annotations
 
 import json
@@ -44,17 +45,35 @@ from volcal.model.errors import Datum
 
 log = logging.getLogger(__name__)
 
-__all__ = ["AnalysisReport", "NullDirection", "analyze_plan", "analyze_result",
-           "analyze_data", "analyze_jacobian_report", "ANALYSIS_FILES"]
+__all__ = [
+    "AnalysisReport",
+    "NullDirection",
+    "analyze_plan",
+    "analyze_result",
+    "analyze_data",
+    "analyze_jacobian_report",
+    "ANALYSIS_FILES",
+]
 
 #: default tool offsets (mm) tried to explain a direction by missing offset variation
 PROBE_TOOLS = ((100.0, 0.0, 0.0), (0.0, 100.0, 0.0), (0.0, 0.0, -100.0))
 
-ANALYSIS_FILES = ("summary.txt", "report.md", "analysis.json", "singular_values.csv",
-                  "null_space.csv", "weak_directions.csv", "parameters.csv",
-                  "covariance.csv", "correlation.csv", "strongest_pairs.csv",
-                  "volumetric_uncertainty.csv", "singular_values.png", "correlation.png",
-                  "uncertainty_map.png")
+ANALYSIS_FILES = (
+    "summary.txt",
+    "report.md",
+    "analysis.json",
+    "singular_values.csv",
+    "null_space.csv",
+    "weak_directions.csv",
+    "parameters.csv",
+    "covariance.csv",
+    "correlation.csv",
+    "strongest_pairs.csv",
+    "volumetric_uncertainty.csv",
+    "singular_values.png",
+    "correlation.png",
+    "uncertainty_map.png",
+)
 
 
 @dataclass
@@ -86,18 +105,18 @@ class AnalysisReport:
     model: str
     names: list[str]
     units: list[str]
-    kinds: list[str]                  # per variable: error / station / frame
-    x: np.ndarray                     # the point of the analysis (physical)
+    kinds: list[str]  # per variable: error / station / frame
+    x: np.ndarray  # the point of the analysis (physical)
     identifiability: Identifiability
     null: list[NullDirection]
-    weak: list[tuple[float, str]]     # weakest identifiable directions (s, description)
-    cov: np.ndarray                   # (n, n) physical; NaN for held variables
-    identifiable: np.ndarray          # (n,) bool
-    cov_scale: float                  # factor applied to the covariance (1 or chi2/dof)
+    weak: list[tuple[float, str]]  # weakest identifiable directions (s, description)
+    cov: np.ndarray  # (n, n) physical; NaN for held variables
+    identifiable: np.ndarray  # (n,) bool
+    cov_scale: float  # factor applied to the covariance (1 or chi2/dof)
     n_readings: int
     volumetric: pd.DataFrame
     notes: list[str] = field(default_factory=list)
-    datum_tied: np.ndarray | None = None   # (n_theta, n_theta) pairs tied by the datum
+    datum_tied: np.ndarray | None = None  # (n_theta, n_theta) pairs tied by the datum
 
     # ---- figures -----------------------------------------------------------------------
     @property
@@ -146,14 +165,22 @@ class AnalysisReport:
             else:
                 unit.append("um" if un == "mm" else "urad")
                 val.append(self.x[i] * f[i])
-        return pd.DataFrame({"name": self.names, "kind": self.kinds, "unit": unit,
-                             "value": val, "u": u, "identifiable": self.identifiable})
+        return pd.DataFrame(
+            {
+                "name": self.names,
+                "kind": self.kinds,
+                "unit": unit,
+                "value": val,
+                "u": u,
+                "identifiable": self.identifiable,
+            }
+        )
 
     def correlation(self, include_stations: bool = False) -> pd.DataFrame:
         """Correlation matrix of the identifiable error parameters (and stations)."""
-        sel = self.identifiable & np.array([k == "error" or (include_stations and
-                                                             k == "station")
-                                            for k in self.kinds])
+        sel = self.identifiable & np.array(
+            [k == "error" or (include_stations and k == "station") for k in self.kinds]
+        )
         idx = np.flatnonzero(sel)
         C = self.cov[np.ix_(idx, idx)]
         s = np.sqrt(np.clip(np.diag(C), 0, None))
@@ -171,7 +198,7 @@ class AnalysisReport:
         iu = np.triu_indices_from(a, 1)
         vals = a[iu].copy()
         if self.datum_tied is not None:
-            pos = {nm: i for i, nm in enumerate(self.names[:self.n_theta])}
+            pos = {nm: i for i, nm in enumerate(self.names[: self.n_theta])}
             names_ = list(R.index)
             for j, (i1, i2) in enumerate(zip(*iu)):
                 p1, p2 = pos.get(names_[i1]), pos.get(names_[i2])
@@ -180,9 +207,13 @@ class AnalysisReport:
         keep = np.flatnonzero(np.isfinite(vals))
         order = keep[np.argsort(-np.abs(vals[keep]))][:k]
         names = list(R.index)
-        return pd.DataFrame({"a": [names[iu[0][j]] for j in order],
-                             "b": [names[iu[1][j]] for j in order],
-                             "rho": vals[order]})
+        return pd.DataFrame(
+            {
+                "a": [names[iu[0][j]] for j in order],
+                "b": [names[iu[1][j]] for j in order],
+                "rho": vals[order],
+            }
+        )
 
     def covariance_frame(self) -> pd.DataFrame:
         """The covariance in report units (um, urad; products thereof)."""
@@ -192,32 +223,40 @@ class AnalysisReport:
     def max_volumetric_uncertainty(self) -> dict[str, float]:
         v = self.volumetric
         i = int(np.argmax(v["u_total_um"].to_numpy()))
-        return {"u_total_max_um": float(v["u_total_um"].iloc[i]),
-                "u_component_max_um": float(v[["u_dx_um", "u_dy_um", "u_dz_um"]].max().max()),
-                "pose_index": i}
+        return {
+            "u_total_max_um": float(v["u_total_um"].iloc[i]),
+            "u_component_max_um": float(v[["u_dx_um", "u_dy_um", "u_dz_um"]].max().max()),
+            "pose_index": i,
+        }
 
     # ---- text ------------------------------------------------------------------------------
     def summary(self, *, top: int = 8) -> str:
         idn = self.identifiability
-        lines = [f"volcal analyze ({self.source}): model '{self.model}', "
-                 f"{self.n_readings} readings, {len(self.names)} variables "
-                 f"({self.n_theta} error parameters)",
-                 f"  numerical rank        {idn.rank} of {idn.rank + idn.n_null} free "
-                 f"directions under the datum constraints (tolerance {idn.tol:.3g} on "
-                 f"column-scaled singular values)",
-                 f"  condition number      {idn.condition:.4g} (scaled), "
-                 f"{idn.condition_unscaled:.4g} (unscaled)"]
-        s = idn.singular_values[:idn.rank]
+        lines = [
+            f"volcal analyze ({self.source}): model '{self.model}', "
+            f"{self.n_readings} readings, {len(self.names)} variables "
+            f"({self.n_theta} error parameters)",
+            f"  numerical rank        {idn.rank} of {idn.rank + idn.n_null} free "
+            f"directions under the datum constraints (tolerance {idn.tol:.3g} on "
+            f"column-scaled singular values)",
+            f"  condition number      {idn.condition:.4g} (scaled), "
+            f"{idn.condition_unscaled:.4g} (unscaled)",
+        ]
+        s = idn.singular_values[: idn.rank]
         if len(s):
             lines.append(f"  singular values       {s[0]:.4g} ... {s[-1]:.4g} (scaled)")
         gauge = [d for d in self.null if d.kind == "gauge"]
         if gauge:
-            lines.append(f"  gauge                 {sum(d.dimension for d in gauge)} "
-                         f"direction(s): {gauge[0].explanation}")
+            lines.append(
+                f"  gauge                 {sum(d.dimension for d in gauge)} "
+                f"direction(s): {gauge[0].explanation}"
+            )
         unid = self.unidentifiable_errors
         if unid:
-            lines.append(f"  unidentifiable        {sum(d.dimension for d in unid)} "
-                         "direction(s) involving error parameters:")
+            lines.append(
+                f"  unidentifiable        {sum(d.dimension for d in unid)} "
+                "direction(s) involving error parameters:"
+            )
             for d in unid:
                 lines.append(f"    {d.line()}")
         else:
@@ -227,40 +266,61 @@ class AnalysisReport:
             for sv, txt in self.weak[:top]:
                 lines.append(f"    {sv:.3g}: {txt}")
         if self.cov_scale != 1.0:
-            lines.append(f"  covariance            scaled by the residual variance factor "
-                         f"{self.cov_scale:.4g}")
+            lines.append(
+                f"  covariance            scaled by the residual variance factor "
+                f"{self.cov_scale:.4g}"
+            )
         par = self.parameters()
         err = par[(par["kind"] == "error") & par["identifiable"]]
         if len(err):
             big = err.sort_values("u", ascending=False).head(5)
-            lines.append("  largest uncertainties " + ", ".join(
-                f"{r.name} {r.u:.3g} {r.unit}" for r in big.itertuples()))
+            lines.append(
+                "  largest uncertainties "
+                + ", ".join(f"{r.name} {r.u:.3g} {r.unit}" for r in big.itertuples())
+            )
         pairs = self.strongest_pairs(5)
         if len(pairs):
-            lines.append("  strongest correlations (datum ties left out) " + ", ".join(
-                f"{r.a}/{r.b} {r.rho:+.3f}" for r in pairs.itertuples()))
+            lines.append(
+                "  strongest correlations (datum ties left out) "
+                + ", ".join(f"{r.a}/{r.b} {r.rho:+.3f}" for r in pairs.itertuples())
+            )
         mv = self.max_volumetric_uncertainty()
-        lines.append(f"  volumetric error      standard uncertainty up to "
-                     f"{mv['u_total_max_um']:.3g} um (vector), {mv['u_component_max_um']:.3g} "
-                     f"um (component) over {len(self.volumetric)} poses")
+        lines.append(
+            f"  volumetric error      standard uncertainty up to "
+            f"{mv['u_total_max_um']:.3g} um (vector), {mv['u_component_max_um']:.3g} "
+            f"um (component) over {len(self.volumetric)} poses"
+        )
         for n in self.notes:
             lines.append(f"  note: {n}")
         return "\n".join(lines)
 
     def to_dict(self) -> dict[str, Any]:
         idn = self.identifiability
-        return {"source": self.source, "model": self.model, "n_readings": self.n_readings,
-                "rank": idn.rank, "n_free_directions": idn.rank + idn.n_null,
-                "tolerance": idn.tol, "condition_scaled": idn.condition,
-                "condition_unscaled": idn.condition_unscaled,
-                "singular_values": idn.singular_values.tolist(),
-                "null_space": [{"kind": d.kind, "text": d.text, "explanation": d.explanation,
-                                "dimension": d.dimension, "names": d.names}
-                               for d in self.null],
-                "weak": [{"singular_value": s, "direction": t} for s, t in self.weak],
-                "covariance_scale": self.cov_scale,
-                "max_volumetric_uncertainty": self.max_volumetric_uncertainty(),
-                "notes": self.notes}
+        return {
+            "source": self.source,
+            "model": self.model,
+            "n_readings": self.n_readings,
+            "rank": idn.rank,
+            "n_free_directions": idn.rank + idn.n_null,
+            "tolerance": idn.tol,
+            "condition_scaled": idn.condition,
+            "condition_unscaled": idn.condition_unscaled,
+            "singular_values": idn.singular_values.tolist(),
+            "null_space": [
+                {
+                    "kind": d.kind,
+                    "text": d.text,
+                    "explanation": d.explanation,
+                    "dimension": d.dimension,
+                    "names": d.names,
+                }
+                for d in self.null
+            ],
+            "weak": [{"singular_value": s, "direction": t} for s, t in self.weak],
+            "covariance_scale": self.cov_scale,
+            "max_volumetric_uncertainty": self.max_volumetric_uncertainty(),
+            "notes": self.notes,
+        }
 
     # ---- files -----------------------------------------------------------------------------
     def save(self, out_dir: str | Path, *, plots: bool = True) -> Path:
@@ -268,25 +328,38 @@ class AnalysisReport:
         a temporary folder renamed into place; an existing folder is replaced only if it
         holds nothing but these files)."""
         from volcal.base.folders import write_folder
-        return write_folder(out_dir, ANALYSIS_FILES, "an analysis",
-                            lambda d: self._write(d, plots))
+
+        return write_folder(out_dir, ANALYSIS_FILES, "an analysis", lambda d: self._write(d, plots))
 
     def _write(self, d: Path, plots: bool) -> None:
         idn = self.identifiability
         (d / "summary.txt").write_text(self.summary() + "\n")
         (d / "analysis.json").write_text(json.dumps(self.to_dict(), indent=2) + "\n")
         s = idn.singular_values
-        pd.DataFrame({"index": np.arange(1, len(s) + 1), "singular_value": s,
-                      "relative": s / s[0] if len(s) and s[0] > 0 else s,
-                      "above_tolerance": s > idn.tol}).to_csv(d / "singular_values.csv",
-                                                              index=False)
-        pd.DataFrame([{"kind": n.kind, "direction": n.text, "dimension": n.dimension,
-                       "explanation": n.explanation, "parameters": " ".join(n.names)}
-                      for n in self.null],
-                     columns=["kind", "direction", "dimension", "explanation", "parameters"]
-                     ).to_csv(d / "null_space.csv", index=False)
+        pd.DataFrame(
+            {
+                "index": np.arange(1, len(s) + 1),
+                "singular_value": s,
+                "relative": s / s[0] if len(s) and s[0] > 0 else s,
+                "above_tolerance": s > idn.tol,
+            }
+        ).to_csv(d / "singular_values.csv", index=False)
+        pd.DataFrame(
+            [
+                {
+                    "kind": n.kind,
+                    "direction": n.text,
+                    "dimension": n.dimension,
+                    "explanation": n.explanation,
+                    "parameters": " ".join(n.names),
+                }
+                for n in self.null
+            ],
+            columns=["kind", "direction", "dimension", "explanation", "parameters"],
+        ).to_csv(d / "null_space.csv", index=False)
         pd.DataFrame(self.weak, columns=["singular_value", "direction"]).to_csv(
-            d / "weak_directions.csv", index=False)
+            d / "weak_directions.csv", index=False
+        )
         self.parameters().to_csv(d / "parameters.csv", index=False)
         self.covariance_frame().to_csv(d / "covariance.csv")
         self.correlation().to_csv(d / "correlation.csv")
@@ -299,11 +372,21 @@ class AnalysisReport:
             plot_uncertainty_map(self.volumetric, d / "uncertainty_map.png")
 
     def _markdown(self, plots: bool) -> str:
-        lines = [f"# Identifiability and uncertainty analysis ({self.source})", "",
-                 "```", self.summary(top=12), "```", ""]
+        lines = [
+            f"# Identifiability and uncertainty analysis ({self.source})",
+            "",
+            "```",
+            self.summary(top=12),
+            "```",
+            "",
+        ]
         if self.null:
-            lines += ["## Unidentifiable directions", "",
-                      "| kind | direction | dim | explanation |", "|---|---|---|---|"]
+            lines += [
+                "## Unidentifiable directions",
+                "",
+                "| kind | direction | dim | explanation |",
+                "|---|---|---|---|",
+            ]
             for n in self.null:
                 lines.append(f"| {n.kind} | {n.text} | {n.dimension} | {n.explanation} |")
             lines.append("")
@@ -313,14 +396,24 @@ class AnalysisReport:
             lines += [f"| {r.a} | {r.b} | {r.rho:+.3f} |" for r in pairs.itertuples()]
             lines.append("")
         if plots:
-            lines += ["## Plots", "", "![singular values](singular_values.png)", "",
-                      "![correlation](correlation.png)", "",
-                      "![volumetric uncertainty](uncertainty_map.png)", ""]
-        lines += ["Files: parameters.csv (values and standard uncertainties), covariance.csv, "
-                  "correlation.csv, strongest_pairs.csv, singular_values.csv, null_space.csv, "
-                  "weak_directions.csv, volumetric_uncertainty.csv (standard uncertainties "
-                  "u_dx_um, u_dy_um, u_dz_um, u_total_um = sqrt of their squares' sum, and "
-                  "u_norm_um of |d| where the error is well above its uncertainty).", ""]
+            lines += [
+                "## Plots",
+                "",
+                "![singular values](singular_values.png)",
+                "",
+                "![correlation](correlation.png)",
+                "",
+                "![volumetric uncertainty](uncertainty_map.png)",
+                "",
+            ]
+        lines += [
+            "Files: parameters.csv (values and standard uncertainties), covariance.csv, "
+            "correlation.csv, strongest_pairs.csv, singular_values.csv, null_space.csv, "
+            "weak_directions.csv, volumetric_uncertainty.csv (standard uncertainties "
+            "u_dx_um, u_dy_um, u_dz_um, u_total_um = sqrt of their squares' sum, and "
+            "u_norm_um of |d| where the error is well above its uncertainty).",
+            "",
+        ]
         return "\n".join(lines)
 
 
@@ -345,8 +438,13 @@ def plot_singular_values(rep: AnalysisReport, path: Path) -> None:
     ok = s > rep.tol
     ax.semilogy(idx[ok], s[ok], "o", markersize=3, label="identifiable")
     if (~ok).any():
-        ax.semilogy(idx[~ok], np.maximum(s[~ok], rep.tol * 1e-3), "x", color="tab:red",
-                    label="below tolerance (unidentifiable)")
+        ax.semilogy(
+            idx[~ok],
+            np.maximum(s[~ok], rep.tol * 1e-3),
+            "x",
+            color="tab:red",
+            label="below tolerance (unidentifiable)",
+        )
     ax.axhline(rep.tol, color="tab:red", linewidth=0.8, linestyle="--", label="rank tolerance")
     ax.set_xlabel("index")
     ax.set_ylabel("singular value (column-scaled Jacobian)")
@@ -376,13 +474,17 @@ def plot_uncertainty_map(vol: pd.DataFrame, path: Path) -> None:
     ax = fig.add_subplot(projection="3d")
     P = vol[["x_mm", "y_mm", "z_mm"]].to_numpy()
     sc = ax.scatter(*P.T, c=vol["u_total_um"].to_numpy(), cmap="viridis", s=25)
-    fig.colorbar(sc, ax=ax, shrink=0.6, label="standard uncertainty of the volumetric "
-                                               "error vector (um)")
+    fig.colorbar(
+        sc, ax=ax, shrink=0.6, label="standard uncertainty of the volumetric error vector (um)"
+    )
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_zlabel("z (mm)")
-    ax.set_title("Linearised standard uncertainty of the volumetric error "
-                 f"(max {vol['u_total_um'].max():.3g} um)", fontsize=10)
+    ax.set_title(
+        "Linearised standard uncertainty of the volumetric error "
+        f"(max {vol['u_total_um'].max():.3g} um)",
+        fontsize=10,
+    )
     fig.savefig(path, dpi=110)
 
 
@@ -391,8 +493,10 @@ def plot_uncertainty_map(vol: pd.DataFrame, path: Path) -> None:
 
 
 def _kinds(ider) -> list[str]:
-    return ["error" if a else ("station" if b else "frame")
-            for a, b in zip(ider.is_theta, ider.is_station)]
+    return [
+        "error" if a else ("station" if b else "frame")
+        for a, b in zip(ider.is_theta, ider.is_station)
+    ]
 
 
 def _orth(A: np.ndarray, tol: float = 1e-9) -> np.ndarray:
@@ -402,58 +506,83 @@ def _orth(A: np.ndarray, tol: float = 1e-9) -> np.ndarray:
     return U[:, s > tol * max(1.0, s[0] if len(s) else 0.0)]
 
 
-def _theta_null(J: np.ndarray, Cs: np.ndarray, nt: int, fixed: np.ndarray
-                ) -> tuple[np.ndarray, float]:
+def _theta_null(
+    J: np.ndarray, Cs: np.ndarray, nt: int, fixed: np.ndarray
+) -> tuple[np.ndarray, float]:
     """Orthonormal basis (nt, k) of the theta parts of the null space of J on the free
     variables under C x = 0 (column-scaled as analyse_jacobian), and the rank tolerance
     relative to the largest singular value."""
     sv = scaled_constrained_svd(J, Cs, fixed)
     free, tol = sv.free, sv.tol
-    Ny = sv.Z @ sv.Vt[sv.rank:].T * sv.d[:, None]  # problem-scaled free variables
+    Ny = sv.Z @ sv.Vt[sv.rank :].T * sv.d[:, None]  # problem-scaled free variables
     full = np.zeros((J.shape[1], Ny.shape[1]))
     full[free] = Ny
     return _orth(full[:nt]), tol
 
 
-def _probe_jacobian(ider, x: np.ndarray, q: np.ndarray, tool: np.ndarray,
-                    station_index: np.ndarray, w: np.ndarray) -> np.ndarray:
+def _probe_jacobian(
+    ider, x: np.ndarray, q: np.ndarray, tool: np.ndarray, station_index: np.ndarray, w: np.ndarray
+) -> np.ndarray:
     """Jacobian (scaled variables) of readings at poses q with tools, using the structured
     first-order model (for testing hypotheses about the plan)."""
     from volcal.analysis.uncertainty.engine import StructuredLSQ, _point_model
 
     pr = ider.problem
     P0, G = _point_model(pr.machine, pr.error_model, q, tool)
-    eng = StructuredLSQ(P0=P0, G=G, w=w, m=np.zeros(len(w)),
-                        station_index=np.asarray(station_index, int),
-                        n_stations=pr.layout.n_stations, x_hat=np.asarray(x, float),
-                        fixed=np.zeros(pr.n_x, bool), scale=pr.scale, Z=np.zeros((0, 0)),
-                        R=np.zeros((0, 0)))
+    eng = StructuredLSQ(
+        P0=P0,
+        G=G,
+        w=w,
+        m=np.zeros(len(w)),
+        station_index=np.asarray(station_index, int),
+        n_stations=pr.layout.n_stations,
+        x_hat=np.asarray(x, float),
+        fixed=np.zeros(pr.n_x, bool),
+        scale=pr.scale,
+        Z=np.zeros((0, 0)),
+        R=np.zeros((0, 0)),
+    )
     return eng.jacobian(np.asarray(x, float))
 
 
-def _null_directions(ider, J: np.ndarray, x: np.ndarray, ident: Identifiability,
-                     user_fixed: np.ndarray, q: np.ndarray, tool: np.ndarray,
-                     station_index: np.ndarray, w: np.ndarray) -> list[NullDirection]:
+def _null_directions(
+    ider,
+    J: np.ndarray,
+    x: np.ndarray,
+    ident: Identifiability,
+    user_fixed: np.ndarray,
+    q: np.ndarray,
+    tool: np.ndarray,
+    station_index: np.ndarray,
+    w: np.ndarray,
+) -> list[NullDirection]:
     """Split the null space into gauge, whole error motions and combinations, and test
     explanations (see the module docstring)."""
     pr = ider.problem
     em = pr.error_model
     nt = pr.n_theta
     names = pr.names
-    basis = ident.null_basis                            # (n, k), problem-scaled
+    basis = ident.null_basis  # (n, k), problem-scaled
     out: list[NullDirection] = []
     if basis.shape[1] == 0:
         return out
     Cs = ider._scaled_constraints()
-    T, _ = _theta_null(J, Cs, nt, user_fixed)           # theta part of the null space
+    T, _ = _theta_null(J, Cs, nt, user_fixed)  # theta part of the null space
     k_gauge = basis.shape[1] - T.shape[1]
     if k_gauge > 0:
-        involved = [names[i] for i in np.flatnonzero(np.abs(basis[nt:]).max(axis=1) > 1e-9)
-                    .__add__(nt)]
-        out.append(NullDirection(
-            "gauge", f"rigid motion of the station set ({k_gauge} directions)",
-            "gauge freedom: stations and machine frame move together; held by fixing the "
-            "frame variables, not a property of the machine errors", k_gauge, involved))
+        involved = [
+            names[i] for i in np.flatnonzero(np.abs(basis[nt:]).max(axis=1) > 1e-9).__add__(nt)
+        ]
+        out.append(
+            NullDirection(
+                "gauge",
+                f"rigid motion of the station set ({k_gauge} directions)",
+                "gauge freedom: stations and machine frame move together; held by fixing the "
+                "frame variables, not a property of the machine errors",
+                k_gauge,
+                involved,
+            )
+        )
     if T.shape[1] == 0:
         return out
 
@@ -466,8 +595,9 @@ def _null_directions(ider, J: np.ndarray, x: np.ndarray, ident: Identifiability,
         qs.append(q)
         ss.append(station_index)
         ws.append(w)
-    Jp = _probe_jacobian(ider, x, np.concatenate(qs), np.concatenate(ts),
-                         np.concatenate(ss), np.concatenate(ws))
+    Jp = _probe_jacobian(
+        ider, x, np.concatenate(qs), np.concatenate(ts), np.concatenate(ss), np.concatenate(ws)
+    )
     Tp, _ = _theta_null(Jp, Cs, nt, user_fixed)
 
     def in_space(v: np.ndarray, B: np.ndarray) -> bool:
@@ -484,18 +614,27 @@ def _null_directions(ider, J: np.ndarray, x: np.ndarray, ident: Identifiability,
             f = em.forms[k]
             a = em.errors[k].axis
             if f.kind == "poly" and n_pos[a] <= f.degree:
-                few.append(f"only {n_pos[a]} distinct positions of axis {a} for the "
-                           f"degree-{f.degree} error motions of {a}")
+                few.append(
+                    f"only {n_pos[a]} distinct positions of axis {a} for the "
+                    f"degree-{f.degree} error motions of {a}"
+                )
             elif f.kind in ("fourier", "bspline") and n_pos[a] < f.n_params:
-                few.append(f"only {n_pos[a]} distinct positions of axis {a} for the "
-                           f"{f.n_params}-function {f.kind} error motions of {a}")
+                few.append(
+                    f"only {n_pos[a]} distinct positions of axis {a} for the "
+                    f"{f.n_params}-function {f.kind} error motions of {a}"
+                )
         if few:
             return "; ".join(dict.fromkeys(few))
         if all(not in_space(vs[:, j], Tp) for j in range(vs.shape[1])):
-            what = ("a single tool offset" if len(uniq_tools) == 1
-                    else f"{len(uniq_tools)} tool offsets")
-            return (f"no tool offset variation ({what}): identifiable once reflector offsets "
-                    "in x, y and z are measured too")
+            what = (
+                "a single tool offset"
+                if len(uniq_tools) == 1
+                else f"{len(uniq_tools)} tool offsets"
+            )
+            return (
+                f"no tool offset variation ({what}): identifiable once reflector offsets "
+                "in x, y and z are measured too"
+            )
         if any(not in_space(vs[:, j], Tp) for j in range(vs.shape[1])):
             return "partly resolved by reflector offsets in x, y and z"
         return "not separated by this plan (more stations or poses needed)"
@@ -506,8 +645,7 @@ def _null_directions(ider, J: np.ndarray, x: np.ndarray, ident: Identifiability,
     for k in range(em.n_errors):
         idx = np.flatnonzero(em.param_error_arr == k)
         rows: Any = np.flatnonzero(np.abs(C[:, idx]).sum(axis=1) > 0) if C.shape[0] else []
-        Ck = C[np.ix_(rows, idx)] * pr.scale[idx][None, :] if len(rows) else \
-            np.zeros((0, len(idx)))
+        Ck = C[np.ix_(rows, idx)] * pr.scale[idx][None, :] if len(rows) else np.zeros((0, len(idx)))
         E = sla.null_space(Ck) if Ck.shape[0] else np.eye(len(idx))
         if E.shape[1] == 0:
             continue
@@ -523,8 +661,11 @@ def _null_directions(ider, J: np.ndarray, x: np.ndarray, ident: Identifiability,
         for k in whole:
             idx = np.flatnonzero(em.param_error_arr == k)
             rows = np.flatnonzero(np.abs(C[:, idx]).sum(axis=1) > 0) if C.shape[0] else []
-            Ck = C[np.ix_(rows, idx)] * pr.scale[idx][None, :] if len(rows) else \
-                np.zeros((0, len(idx)))
+            Ck = (
+                C[np.ix_(rows, idx)] * pr.scale[idx][None, :]
+                if len(rows)
+                else np.zeros((0, len(idx)))
+            )
             E = sla.null_space(Ck) if Ck.shape[0] else np.eye(len(idx))
             Ev = np.zeros((nt, E.shape[1]))
             Ev[idx] = E
@@ -533,8 +674,15 @@ def _null_directions(ider, J: np.ndarray, x: np.ndarray, ident: Identifiability,
         for why, ks in groups.items():
             dim = sum(W[whole.index(k)].shape[1] for k in ks)
             involved = [names[i] for k in ks for i in np.flatnonzero(em.param_error_arr == k)]
-            out.append(NullDirection("error", ", ".join(em.errors[k].name for k in ks) +
-                                     " (whole error motions)", why, dim, involved))
+            out.append(
+                NullDirection(
+                    "error",
+                    ", ".join(em.errors[k].name for k in ks) + " (whole error motions)",
+                    why,
+                    dim,
+                    involved,
+                )
+            )
         Wall = _orth(np.concatenate(W, axis=1))
         rest = _orth(T - Wall @ (Wall.T @ T))
     if rest.shape[1]:
@@ -542,21 +690,25 @@ def _null_directions(ider, J: np.ndarray, x: np.ndarray, ident: Identifiability,
         m = rest.shape[1]
         _, _, piv = sla.qr(rest.T, pivoting=True, mode="economic")
         piv = list(piv[:m])
-        Rr = np.linalg.solve(rest[piv, :].T, rest.T)     # (m, nt), identity on pivots
+        Rr = np.linalg.solve(rest[piv, :].T, rest.T)  # (m, nt), identity on pivots
         for j, pv in enumerate(piv):
             v = Rr[j]
             # in the parameters' own units: scaled variable * scale
             txt = _describe(v, names[:nt], pv)
-            err_ids = sorted({int(em.param_error_arr[i]) for i in
-                              np.flatnonzero(np.abs(v) > 1e-3 * np.abs(v).max())})
+            err_ids = sorted(
+                {
+                    int(em.param_error_arr[i])
+                    for i in np.flatnonzero(np.abs(v) > 1e-3 * np.abs(v).max())
+                }
+            )
             involved = [names[i] for i in np.flatnonzero(np.abs(v) > 1e-3 * np.abs(v).max())]
-            out.append(NullDirection("combination", txt, explain(v[:, None], err_ids), 1,
-                                     involved))
+            out.append(NullDirection("combination", txt, explain(v[:, None], err_ids), 1, involved))
     return out
 
 
-def _weak_directions(J: np.ndarray, Cs: np.ndarray, fixed: np.ndarray, names: list[str],
-                     rank_tol: float, k: int = 8) -> list[tuple[float, str]]:
+def _weak_directions(
+    J: np.ndarray, Cs: np.ndarray, fixed: np.ndarray, names: list[str], rank_tol: float, k: int = 8
+) -> list[tuple[float, str]]:
     """The k weakest identifiable directions: (scaled singular value, description)."""
     sv = scaled_constrained_svd(J, Cs, fixed)
     free, Z, s, Vt = sv.free, sv.Z, sv.s, sv.Vt
@@ -570,13 +722,17 @@ def _weak_directions(J: np.ndarray, Cs: np.ndarray, fixed: np.ndarray, names: li
     return out
 
 
-def _volumetric(machine, em, theta: np.ndarray, cov_theta: np.ndarray,
-                eval_points: pd.DataFrame) -> pd.DataFrame:
+def _volumetric(
+    machine, em, theta: np.ndarray, cov_theta: np.ndarray, eval_points: pd.DataFrame
+) -> pd.DataFrame:
     from volcal.analysis.identify import predict_volumetric
 
     q = machine.axis_to_internal(eval_points[machine.axis_names].to_numpy(float))
-    tool = eval_points[["tool_x", "tool_y", "tool_z"]].to_numpy(float) \
-        if "tool_x" in eval_points else np.zeros((len(q), 3))
+    tool = (
+        eval_points[["tool_x", "tool_y", "tool_z"]].to_numpy(float)
+        if "tool_x" in eval_points
+        else np.zeros((len(q), 3))
+    )
     pred = predict_volumetric(machine, em, theta, cov_theta, q, tool)
     p0, _, Je = machine.evaluate(q, tool, np.zeros(machine.n_errors))
     out = eval_points[machine.axis_names].reset_index(drop=True).copy()
@@ -584,8 +740,7 @@ def _volumetric(machine, em, theta: np.ndarray, cov_theta: np.ndarray,
     out[["x_mm", "y_mm", "z_mm"]] = p0
     for c in ("dx_um", "dy_um", "dz_um", "u_dx_um", "u_dy_um", "u_dz_um"):
         out[c] = pred[c].to_numpy()
-    out["u_total_um"] = np.sqrt(out["u_dx_um"] ** 2 + out["u_dy_um"] ** 2 +
-                                out["u_dz_um"] ** 2)
+    out["u_total_um"] = np.sqrt(out["u_dx_um"] ** 2 + out["u_dy_um"] ** 2 + out["u_dz_um"] ** 2)
     # uncertainty of |d| where |d| is well above its uncertainty (else not linearisable)
     G = np.einsum("nik,nkp->nip", Je, em.basis(q))
     d = pred[["dx_um", "dy_um", "dz_um"]].to_numpy()
@@ -600,11 +755,19 @@ def _volumetric(machine, em, theta: np.ndarray, cov_theta: np.ndarray,
     return out
 
 
-def analyze_jacobian_report(ider, x: np.ndarray, p: np.ndarray, *, source: str,
-                            user_fixed: np.ndarray | None = None,
-                            cov_scale: float = 1.0, eval_points: pd.DataFrame | None = None,
-                            n_weak: int = 8, notes: list[str] | None = None,
-                            datum_active: np.ndarray | None = None) -> AnalysisReport:
+def analyze_jacobian_report(
+    ider,
+    x: np.ndarray,
+    p: np.ndarray,
+    *,
+    source: str,
+    user_fixed: np.ndarray | None = None,
+    cov_scale: float = 1.0,
+    eval_points: pd.DataFrame | None = None,
+    n_weak: int = 8,
+    notes: list[str] | None = None,
+    datum_active: np.ndarray | None = None,
+) -> AnalysisReport:
     """The report for an Identifier at x (physical) with data vector p (weights included).
     The datum: the candidate conditions ``datum_active`` (those an identification imposed),
     or when None those that remove a null direction at x (:mod:`volcal.model.datum`).
@@ -628,8 +791,9 @@ def analyze_jacobian_report(ider, x: np.ndarray, p: np.ndarray, *, source: str,
     cov = ider.covariance(x, p, fixed) * cov_scale
     identifiable = ~(ident.unidentifiable | fixed)
     q, t, _, w = unpack_data(machine.n_axes, p)
-    null = _null_directions(ider, J, x, ident, user_fixed, q, t,
-                            np.asarray(pr.layout.station_index), w)
+    null = _null_directions(
+        ider, J, x, ident, user_fixed, q, t, np.asarray(pr.layout.station_index), w
+    )
     Cs = ider._scaled_constraints()
     weak = _weak_directions(J, Cs, fixed, pr.names, ident.tol, n_weak)
     if eval_points is None:
@@ -641,8 +805,10 @@ def analyze_jacobian_report(ider, x: np.ndarray, p: np.ndarray, *, source: str,
     vol = _volumetric(machine, pr.error_model, x[:nt], cov_t, eval_points)
     notes = list(notes or [])
     if (~identifiable[:nt]).any():
-        notes.append("volumetric uncertainties leave out the unidentifiable directions "
-                     "(held at zero); they are not determined at all")
+        notes.append(
+            "volumetric uncertainties leave out the unidentifiable directions "
+            "(held at zero); they are not determined at all"
+        )
     # pairs the datum constraints tie exactly (correlation +-1 within null(C) alone)
     tied = None
     if pr.C.shape[0]:
@@ -651,15 +817,40 @@ def analyze_jacobian_report(ider, x: np.ndarray, p: np.ndarray, *, source: str,
         dg = np.sqrt(np.clip(np.diag(P), 1e-300, None))
         tied = np.abs(P / np.outer(dg, dg)) > 1 - 1e-9
         np.fill_diagonal(tied, False)
-    return AnalysisReport(source, machine.spec.name, list(pr.names), list(pr.units),
-                          _kinds(ider), np.asarray(x, float), ident, null, weak, cov,
-                          identifiable, float(cov_scale), int(len(w)), vol, notes, tied)
+    return AnalysisReport(
+        source,
+        machine.spec.name,
+        list(pr.names),
+        list(pr.units),
+        _kinds(ider),
+        np.asarray(x, float),
+        ident,
+        null,
+        weak,
+        cov,
+        identifiable,
+        float(cov_scale),
+        int(len(w)),
+        vol,
+        notes,
+        tied,
+    )
 
 
-def analyze_plan(model, plan: pd.DataFrame, stations, tools=None, budget="paper002", *,
-                 error_model=None, degree: int = 3, datum: Datum = "iso230",
-                 theta: np.ndarray | None = None, eval_points: pd.DataFrame | None = None,
-                 n_weak: int = 8) -> AnalysisReport:
+def analyze_plan(
+    model,
+    plan: pd.DataFrame,
+    stations,
+    tools=None,
+    budget="paper002",
+    *,
+    error_model=None,
+    degree: int = 3,
+    datum: Datum = "iso230",
+    theta: np.ndarray | None = None,
+    eval_points: pd.DataFrame | None = None,
+    n_weak: int = 8,
+) -> AnalysisReport:
     """Analyse a measurement plan before measuring: model (name, file, spec or Machine),
     plan (poses, mm / deg), stations (table or file: positions and dead lengths), tools
     (K, 3) mm (default one offset at 0), budget (name, file or Budget).  The readings are
@@ -673,12 +864,12 @@ def analyze_plan(model, plan: pd.DataFrame, stations, tools=None, budget="paper0
     from volcal.problem.residuals import Layout
 
     machine = model if isinstance(model, Machine) else Machine.from_model(model)
-    em = error_model or ErrorModel(machine.spec, default=ErrorForm("poly", degree),
-                                   datum=datum)
+    em = error_model or ErrorModel(machine.spec, default=ErrorForm("poly", degree), datum=datum)
     bud = load_budget(budget)
     tools = np.zeros((1, 3)) if tools is None else np.atleast_2d(np.asarray(tools, float))
     th = np.zeros(em.n_params) if theta is None else np.asarray(theta, float)
     import warnings
+
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         sim = simulate(machine, em, th, stations, plan, tools, bud, 0, noise=False)
@@ -689,18 +880,35 @@ def analyze_plan(model, plan: pd.DataFrame, stations, tools=None, budget="paper0
     st = sim.stations[["x_mm", "y_mm", "z_mm", "dead_length_mm"]].to_numpy(float)
     x = pr.pack_x(th, st)
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, 1.0 / meas.sigma)
-    user_fixed = ider.station_fixed(np.asarray(sim.stations.get("fixed", np.zeros(len(st), bool)),
-                                               bool))
-    notes = [f"plan: {len(plan)} poses x {len(tools)} tool offset(s) x {len(st)} stations; "
-             f"budget {bud.name}; readings noise-free at the "
-             f"{'given' if theta is not None else 'zero'} error parameters"]
-    return analyze_jacobian_report(ider, x, p, source="plan", user_fixed=user_fixed,
-                                   eval_points=eval_points, n_weak=n_weak, notes=notes)
+    user_fixed = ider.station_fixed(
+        np.asarray(sim.stations.get("fixed", np.zeros(len(st), bool)), bool)
+    )
+    notes = [
+        f"plan: {len(plan)} poses x {len(tools)} tool offset(s) x {len(st)} stations; "
+        f"budget {bud.name}; readings noise-free at the "
+        f"{'given' if theta is not None else 'zero'} error parameters"
+    ]
+    return analyze_jacobian_report(
+        ider,
+        x,
+        p,
+        source="plan",
+        user_fixed=user_fixed,
+        eval_points=eval_points,
+        n_weak=n_weak,
+        notes=notes,
+    )
 
 
-def analyze_result(result, measurements, *, budget=None, scale_covariance: bool = False,
-                   eval_points: pd.DataFrame | None = None, n_weak: int = 8
-                   ) -> AnalysisReport:
+def analyze_result(
+    result,
+    measurements,
+    *,
+    budget=None,
+    scale_covariance: bool = False,
+    eval_points: pd.DataFrame | None = None,
+    n_weak: int = 8,
+) -> AnalysisReport:
     """Analyse an identification (an :class:`~volcal.analysis.identify.IdentificationResult` and
     the validated measurements it came from) at its solution, weighted as it was.
     ``scale_covariance`` multiplies the covariance by the residual variance factor
@@ -723,18 +931,36 @@ def analyze_result(result, measurements, *, budget=None, scale_covariance: bool 
     if result.strategy in ("two-phase", "points-only"):
         user_fixed[ider.is_station] = True
     chi2 = float(result.conditions.get("chi2_per_dof", 1.0))
-    notes = [f"identification: strategy {result.strategy}, status {result.status}, "
-             f"chi2/dof {chi2:.4g}"]
-    return analyze_jacobian_report(ider, x, p, source="result", user_fixed=user_fixed,
-                                   cov_scale=chi2 if scale_covariance else 1.0,
-                                   eval_points=eval_points, n_weak=n_weak, notes=notes,
-                                   datum_active=pr.datum_active)
+    notes = [
+        f"identification: strategy {result.strategy}, status {result.status}, chi2/dof {chi2:.4g}"
+    ]
+    return analyze_jacobian_report(
+        ider,
+        x,
+        p,
+        source="result",
+        user_fixed=user_fixed,
+        cov_scale=chi2 if scale_covariance else 1.0,
+        eval_points=eval_points,
+        n_weak=n_weak,
+        notes=notes,
+        datum_active=pr.datum_active,
+    )
 
 
-def analyze_data(model, data, stations=None, *, budget="paper002", strategy: str = "joint",
-                 degree: int = 3, datum: Datum = "iso230", error_model=None,
-                 scale_covariance: bool = False, eval_points: pd.DataFrame | None = None
-                 ) -> tuple[AnalysisReport, Any]:
+def analyze_data(
+    model,
+    data,
+    stations=None,
+    *,
+    budget="paper002",
+    strategy: str = "joint",
+    degree: int = 3,
+    datum: Datum = "iso230",
+    error_model=None,
+    scale_covariance: bool = False,
+    eval_points: pd.DataFrame | None = None,
+) -> tuple[AnalysisReport, Any]:
     """Identify, then :func:`analyze_result`.  Returns (report, identification result)."""
     from volcal.analysis.identify import identify
     from volcal.measurement.budget import load_budget
@@ -745,14 +971,27 @@ def analyze_data(model, data, stations=None, *, budget="paper002", strategy: str
     bud = load_budget(budget)
     st = None
     if stations is not None:
-        st = stations if isinstance(stations, pd.DataFrame) and "dead_length_given" in \
-            stations else load_stations(stations)
-    meas = data if hasattr(data, "q_internal") else load_measurements(data, machine.spec,
-                                                                      stations=st)
-    res = identify(machine, meas, st, strategy=strategy, degree=degree, datum=datum,
-                   error_model=error_model, budget=bud)
-    return analyze_result(res, meas, budget=bud, scale_covariance=scale_covariance,
-                          eval_points=eval_points), res
+        st = (
+            stations
+            if isinstance(stations, pd.DataFrame) and "dead_length_given" in stations
+            else load_stations(stations)
+        )
+    meas = (
+        data if hasattr(data, "q_internal") else load_measurements(data, machine.spec, stations=st)
+    )
+    res = identify(
+        machine,
+        meas,
+        st,
+        strategy=strategy,
+        degree=degree,
+        datum=datum,
+        error_model=error_model,
+        budget=bud,
+    )
+    return analyze_result(
+        res, meas, budget=bud, scale_covariance=scale_covariance, eval_points=eval_points
+    ), res
 
 
 def result_inputs(path) -> dict[str, Any]:
@@ -769,15 +1008,24 @@ def result_inputs(path) -> dict[str, Any]:
     folder = Path(res.path)
     f = folder / "residuals.csv"
     if not f.is_file():
-        raise InputError("the result folder has no residuals.csv (the input rows)",
-                         source=str(folder))
+        raise InputError(
+            "the result folder has no residuals.csv (the input rows)", source=str(folder)
+        )
     data = pd.read_csv(f)
-    data = data.drop(columns=[c for c in ("residual_um", "normalised_residual", "rejected")
-                              if c in data])
+    data = data.drop(
+        columns=[c for c in ("residual_um", "normalised_residual", "rejected") if c in data]
+    )
     opts = res.meta.get("options", {}) or {}
     st = opts.get("stations")
     stations = st if st and Path(st).is_file() else None
-    return {"machine": res.machine, "error_model": res.error_model, "data": data,
-            "stations": stations, "budget": opts.get("budget", "paper002"),
-            "strategy": res.meta.get("strategy", "joint"), "theta": res.theta,
-            "robust": bool(opts.get("robust", False)), "meta": res.meta}
+    return {
+        "machine": res.machine,
+        "error_model": res.error_model,
+        "data": data,
+        "stations": stations,
+        "budget": opts.get("budget", "paper002"),
+        "strategy": res.meta.get("strategy", "joint"),
+        "theta": res.theta,
+        "robust": bool(opts.get("robust", False)),
+        "meta": res.meta,
+    }

@@ -16,6 +16,7 @@
                          distribution of the largest volumetric error
 =======================  ================================================================
 """
+
 from __future__ import annotations
 
 import json
@@ -48,8 +49,12 @@ def default_quantities(error_model) -> list[str]:
             out.append(f"{s.name}({far:g})")
             continue
         # a straightness held at both ends: its middle
-        straight = (error_model.datum == "iso230" and not a.is_rotary and
-                    s.quantity == "translation" and s.component != a.dir_index)
+        straight = (
+            error_model.datum == "iso230"
+            and not a.is_rotary
+            and s.quantity == "translation"
+            and s.component != a.dir_index
+        )
         out.append(f"{s.name}({(lo + hi) / 2:g})" if straight else f"{s.name}({far:g})")
     return out
 
@@ -77,8 +82,9 @@ def _figure(w: float, h: float):
     return fig
 
 
-def plot_contributions(table: pd.DataFrame, total: pd.DataFrame, path: Path,
-                       title: str = "", label: str = "{} only") -> None:
+def plot_contributions(
+    table: pd.DataFrame, total: pd.DataFrame, path: Path, title: str = "", label: str = "{} only"
+) -> None:
     """Expanded uncertainty (k = 2) per quantity: all sources, and each source alone
     (paper 002 Fig. 5 form).  table: quantity, unit, source, u; total: name, unit, U."""
     units = [u for u in ("um", "urad") if (total["unit"] == u).any()]
@@ -110,9 +116,12 @@ def _plot_volumetric_U(vol: pd.DataFrame, points: np.ndarray, path: Path) -> Non
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_zlabel("z (mm)")
-    ax.set_title(f"Monte Carlo expanded uncertainty of the volumetric error |d|\n"
-                 f"(|d| up to {vol['norm_um'].max():.1f} um; U up to "
-                 f"{vol['U_norm_um'].max():.2f} um)", fontsize=10)
+    ax.set_title(
+        f"Monte Carlo expanded uncertainty of the volumetric error |d|\n"
+        f"(|d| up to {vol['norm_um'].max():.1f} um; U up to "
+        f"{vol['U_norm_um'].max():.2f} um)",
+        fontsize=10,
+    )
     fig.savefig(path, dpi=110)
 
 
@@ -129,11 +138,17 @@ def _plot_max_hist(mx: np.ndarray, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def write_mc_outputs(out_dir: str | Path, mc: MCResult, error_model, *,
-                     contributions: pd.DataFrame | None = None,
-                     reference: pd.DataFrame | None = None,
-                     quantities: list[str] | None = None, plots: bool = True,
-                     extra: dict[str, Any] | None = None) -> dict[str, Any]:
+def write_mc_outputs(
+    out_dir: str | Path,
+    mc: MCResult,
+    error_model,
+    *,
+    contributions: pd.DataFrame | None = None,
+    reference: pd.DataFrame | None = None,
+    quantities: list[str] | None = None,
+    plots: bool = True,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """Write the run's tables, plots and summary into ``out_dir`` (created; the
     ``samples/`` folder of the run is kept).  Returns the summary dict."""
     from volcal.analysis.uncertainty.evaluation import compare_with_reference
@@ -151,13 +166,19 @@ def write_mc_outputs(out_dir: str | Path, mc: MCResult, error_model, *,
     agree = mc.agreement()
     s = mc.samples
     summary: dict[str, Any] = {
-        "trials": s.n, "seed": s.seed, "mode": s.mode,
-        "sources": mc.kernel.source_names, "enabled": list(s.enabled) if s.enabled else None,
-        "seconds": s.seconds, "resumed_chunks": s.resumed_chunks,
+        "trials": s.n,
+        "seed": s.seed,
+        "mode": s.mode,
+        "sources": mc.kernel.source_names,
+        "enabled": list(s.enabled) if s.enabled else None,
+        "seconds": s.seconds,
+        "resumed_chunks": s.resumed_chunks,
         "not_converged": int((~s.converged).sum()),
-        "iterations": {str(k): int(v) for k, v in
-                       zip(*np.unique(s.iterations, return_counts=True))},
-        "agreement_with_linearised": agree, "max_volumetric": mv,
+        "iterations": {
+            str(k): int(v) for k, v in zip(*np.unique(s.iterations, return_counts=True))
+        },
+        "agreement_with_linearised": agree,
+        "max_volumetric": mv,
         "notes": mc.kernel.sampler.notes,
     }
     summary.update(extra or {})
@@ -167,11 +188,15 @@ def write_mc_outputs(out_dir: str | Path, mc: MCResult, error_model, *,
         both = both.drop_duplicates("name")
         comp = compare_with_reference(both, reference)
         _atomic_csv(comp, out / "comparison.csv", index=False)
-        summary["comparison"] = {"n": int(len(comp)), "agree": int(comp["agrees"].sum()),
-                                 "max_E_n": float(np.nanmax(comp["E_n"]))}
+        summary["comparison"] = {
+            "n": int(len(comp)),
+            "agree": int(comp["agrees"].sum()),
+            "max_E_n": float(np.nanmax(comp["E_n"])),
+        }
     if contributions is not None:
-        wide = contributions.pivot_table(index=["quantity", "unit"], columns="source",
-                                         values="u", sort=False).reset_index()
+        wide = contributions.pivot_table(
+            index=["quantity", "unit"], columns="source", values="u", sort=False
+        ).reset_index()
         _atomic_csv(wide, out / "contributions.csv", index=False)
     if plots:
         pts = mc.kernel.volmap.points
@@ -183,47 +208,70 @@ def write_mc_outputs(out_dir: str | Path, mc: MCResult, error_model, *,
             tot = tot[tot["unit"].isin(["um", "urad"])]
             # error parameters only (stations are instrument set-up, not machine errors)
             tot = tot[~tot["name"].str.contains(r"\.")]
-            plot_contributions(contributions, tot, out / "contributions.png",
-                               "Expanded uncertainty of the error parameters by input source")
+            plot_contributions(
+                contributions,
+                tot,
+                out / "contributions.png",
+                "Expanded uncertainty of the error parameters by input source",
+            )
     _atomic_text(json.dumps(summary, indent=2, default=float) + "\n", out / "summary.json")
-    _atomic_text(_markdown(summary, qt, comp, contributions is not None, plots),
-                 out / "report.md")
+    _atomic_text(_markdown(summary, qt, comp, contributions is not None, plots), out / "report.md")
     return summary
 
 
 def _markdown(summary, qt: pd.DataFrame, comp, has_contrib: bool, plots: bool) -> str:
     mv = summary["max_volumetric"]
     ag = summary["agreement_with_linearised"]
-    lines = ["# Monte Carlo uncertainty (GUM Supplement 1)", "",
-             f"{summary['trials']} trials ({summary['mode']}), seed {summary['seed']}, "
-             f"{summary['seconds']:.1f} s; input sources: {', '.join(summary['sources'])}; "
-             f"not converged: {summary['not_converged']}.", "",
-             f"Largest volumetric error over the evaluation poses: {mv['max_norm_um']:.2f} um, "
-             f"expanded uncertainty of |d| there U = {mv['U_norm_at_max_um']:.2f} um (k = 2); "
-             f"largest U(|d|) over the poses {mv['U_norm_largest_um']:.2f} um; 95 % interval "
-             f"of the largest error [{mv['max_ci95_low_um']:.2f}, "
-             f"{mv['max_ci95_high_um']:.2f}] um.", "",
-             f"Linearised vs Monte Carlo standard uncertainties: parameters max relative "
-             f"difference {100 * ag['parameters_max_rel_diff']:.1f} % (median ratio "
-             f"{ag['parameters_median_ratio']:.3f}); volumetric components "
-             f"{100 * ag['volumetric_max_rel_diff']:.1f} % (median ratio "
-             f"{ag['volumetric_median_ratio']:.3f}).", "",
-             "## Error motions (value at the identification, U with k = 2)", "",
-             "| quantity | value | U (k = 2) | 95 % interval | unit |", "|---|---|---|---|---|"]
+    lines = [
+        "# Monte Carlo uncertainty (GUM Supplement 1)",
+        "",
+        f"{summary['trials']} trials ({summary['mode']}), seed {summary['seed']}, "
+        f"{summary['seconds']:.1f} s; input sources: {', '.join(summary['sources'])}; "
+        f"not converged: {summary['not_converged']}.",
+        "",
+        f"Largest volumetric error over the evaluation poses: {mv['max_norm_um']:.2f} um, "
+        f"expanded uncertainty of |d| there U = {mv['U_norm_at_max_um']:.2f} um (k = 2); "
+        f"largest U(|d|) over the poses {mv['U_norm_largest_um']:.2f} um; 95 % interval "
+        f"of the largest error [{mv['max_ci95_low_um']:.2f}, "
+        f"{mv['max_ci95_high_um']:.2f}] um.",
+        "",
+        f"Linearised vs Monte Carlo standard uncertainties: parameters max relative "
+        f"difference {100 * ag['parameters_max_rel_diff']:.1f} % (median ratio "
+        f"{ag['parameters_median_ratio']:.3f}); volumetric components "
+        f"{100 * ag['volumetric_max_rel_diff']:.1f} % (median ratio "
+        f"{ag['volumetric_median_ratio']:.3f}).",
+        "",
+        "## Error motions (value at the identification, U with k = 2)",
+        "",
+        "| quantity | value | U (k = 2) | 95 % interval | unit |",
+        "|---|---|---|---|---|",
+    ]
     for r in qt.itertuples():
-        lines.append(f"| {r.name} | {r.value:.3f} | {r.U:.3f} | [{r.ci95_low:.3f}, "
-                     f"{r.ci95_high:.3f}] | {r.unit} |")
+        lines.append(
+            f"| {r.name} | {r.value:.3f} | {r.U:.3f} | [{r.ci95_low:.3f}, "
+            f"{r.ci95_high:.3f}] | {r.unit} |"
+        )
     lines.append("")
     if comp is not None:
-        lines += ["## Comparison with the reference (E_n, paper 002 eq. 25)", "",
-                  "| quantity | value | U | reference | U ref | E_n |", "|---|---|---|---|---|---|"]
+        lines += [
+            "## Comparison with the reference (E_n, paper 002 eq. 25)",
+            "",
+            "| quantity | value | U | reference | U ref | E_n |",
+            "|---|---|---|---|---|---|",
+        ]
         for r in comp.itertuples():
-            lines.append(f"| {r.name} | {r.value:.3f} | {r.U:.3f} | {r.reference:.3f} | "
-                         f"{r.U_reference:.3f} | {r.E_n:.2f} |")
+            lines.append(
+                f"| {r.name} | {r.value:.3f} | {r.U:.3f} | {r.reference:.3f} | "
+                f"{r.U_reference:.3f} | {r.E_n:.2f} |"
+            )
         lines.append("")
     if plots:
-        lines += ["![volumetric U](volumetric_U.png)", "", "![largest error](max_volumetric.png)",
-                  ""]
+        lines += [
+            "![volumetric U](volumetric_U.png)",
+            "",
+            "![largest error](max_volumetric.png)",
+            "",
+        ]
         if has_contrib:
             lines += ["![contributions](contributions.png)", ""]
     for n in summary.get("notes", []):

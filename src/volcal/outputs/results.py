@@ -51,6 +51,7 @@ that, and only if it is empty or a previous result folder.
 document, error model from the saved forms and datum) into a :class:`LoadedResult`
 whose :meth:`~LoadedResult.predict` takes a points table in file units (mm / deg).
 """
+
 from __future__ import annotations
 
 import json
@@ -80,9 +81,18 @@ from volcal.model.spec import MachineSpec, machine_from_dict, spec_to_dict
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "save_result", "load_result", "LoadedResult", "check_out_dir", "read_points",
-    "component_error_table", "volumetric_grid_table", "RESULT_FORMAT",
-    "RESULT_FORMAT_VERSION", "DATA_FILES", "PLOT_FILES", "RESULT_FILES",
+    "save_result",
+    "load_result",
+    "LoadedResult",
+    "check_out_dir",
+    "read_points",
+    "component_error_table",
+    "volumetric_grid_table",
+    "RESULT_FORMAT",
+    "RESULT_FORMAT_VERSION",
+    "DATA_FILES",
+    "PLOT_FILES",
+    "RESULT_FILES",
 ]
 
 #: ``format`` marker of result.json
@@ -90,11 +100,22 @@ RESULT_FORMAT = "volcal-identification-result"
 #: version of the result.json layout this module writes and reads
 RESULT_FORMAT_VERSION = 3  # 2: datum conditions and the null space's action on the field
 # 3: solver_state.npz (unknowns, held set, weights, datum in force, problem fingerprint)
-DATA_FILES = ("parameters.csv", "stations.csv", "residuals.csv", "datum.csv",
-              "component_errors.csv",
-              "volumetric_grid.csv", "report.md", "result.json")
-PLOT_FILES = ("component_errors.png", "volumetric_map.png", "residuals.png",
-              "residuals_vs_axes.png")
+DATA_FILES = (
+    "parameters.csv",
+    "stations.csv",
+    "residuals.csv",
+    "datum.csv",
+    "component_errors.csv",
+    "volumetric_grid.csv",
+    "report.md",
+    "result.json",
+)
+PLOT_FILES = (
+    "component_errors.png",
+    "volumetric_map.png",
+    "residuals.png",
+    "residuals_vs_axes.png",
+)
 RESULT_FILES = DATA_FILES + PLOT_FILES
 #: written only by some runs (``order_selection.csv``: ``--degree auto``)
 OPTIONAL_FILES = ("order_selection.csv", "solver_state.npz")
@@ -125,10 +146,13 @@ def _axis_unit(spec: MachineSpec, name: str) -> str:
 # tables
 
 
-def component_error_table(error_model: ErrorModel, theta: np.ndarray,
-                          cov_theta: np.ndarray | None = None,
-                          identifiable: np.ndarray | None = None,
-                          n: int = COMPONENT_POINTS) -> pd.DataFrame:
+def component_error_table(
+    error_model: ErrorModel,
+    theta: np.ndarray,
+    cov_theta: np.ndarray | None = None,
+    identifiable: np.ndarray | None = None,
+    n: int = COMPONENT_POINTS,
+) -> pd.DataFrame:
     """Component error motions on ``n`` positions over each axis' travel.
 
     Columns: ``axis``, ``position_mm`` and/or ``position_deg`` (file units), then per
@@ -178,9 +202,15 @@ def component_error_table(error_model: ErrorModel, theta: np.ndarray,
     return pd.concat(frames, ignore_index=True)[cols]
 
 
-def volumetric_grid_table(machine: Machine, error_model: ErrorModel, theta: np.ndarray,
-                          cov_theta: np.ndarray | None = None,
-                          n: int = GRID_POINTS, *, rotary: bool = True) -> pd.DataFrame:
+def volumetric_grid_table(
+    machine: Machine,
+    error_model: ErrorModel,
+    theta: np.ndarray,
+    cov_theta: np.ndarray | None = None,
+    n: int = GRID_POINTS,
+    *,
+    rotary: bool = True,
+) -> pd.DataFrame:
     """Volumetric error on a grid over the workspace, tool offset 0: ``n`` positions per
     linear axis over its travel (at most :data:`GRID_POINTS_WITH_ROTARY` for a model with
     rotary axes) and, with ``rotary`` (default), the rotary axes over their whole travel
@@ -209,8 +239,9 @@ def volumetric_grid_table(machine: Machine, error_model: ErrorModel, theta: np.n
 # points table (input of predict)
 
 
-def read_points(points: str | Path | pd.DataFrame, spec: MachineSpec, *,
-                name: str | None = None) -> tuple[pd.DataFrame, np.ndarray, np.ndarray]:
+def read_points(
+    points: str | Path | pd.DataFrame, spec: MachineSpec, *, name: str | None = None
+) -> tuple[pd.DataFrame, np.ndarray, np.ndarray]:
     """Validate a points table for prediction (CSV path or DataFrame; never modified).
 
     Columns: one per model axis (``X`` or ``X_mm``, ``B`` or ``B_deg``; mm / deg,
@@ -232,8 +263,9 @@ def read_points(points: str | Path | pd.DataFrame, spec: MachineSpec, *,
         u = _axis_unit(spec, a.name)
         schema.append(_data.Column(a.name, (f"{a.name}_{u}",), True, "float", u))
     schema += [_data.Column(f"tool_{c}", (f"tool_{c}_mm",), False, "float", "mm") for c in "xyz"]
-    pos = _data.resolve_columns(raw, schema, problems, axis_names=spec.axis_names,
-                                 model_name=spec.name)
+    pos = _data.resolve_columns(
+        raw, schema, problems, axis_names=spec.axis_names, model_name=spec.name
+    )
     body, rows = raw.body, raw.rows
     values: dict[str, np.ndarray] = {}
     q = np.empty((len(rows), len(spec.axes)))
@@ -243,21 +275,29 @@ def read_points(points: str | Path | pd.DataFrame, spec: MachineSpec, *,
         v = _data.parse_float(body[pos[a.name]], rows, label, u, False, problems)
         lo, hi = a.travel
         tol = _data.TRAVEL_TOLERANCE * (hi - lo)
-        _data.report_rows(problems, rows, (v < lo - tol) | (v > hi + tol), label,
-                      lambda k, v=v, a=a, lo=lo, hi=hi, u=u:
-                      f"{a.name} = {v[k]:g} {u} is outside the travel [{lo:g}, {hi:g}] {u} "
-                      f"of axis {a.name}; the identified error model does not extrapolate")
+        _data.report_rows(
+            problems,
+            rows,
+            (v < lo - tol) | (v > hi + tol),
+            label,
+            lambda k, v=v, a=a, lo=lo, hi=hi, u=u: (
+                f"{a.name} = {v[k]:g} {u} is outside the travel [{lo:g}, {hi:g}] {u} "
+                f"of axis {a.name}; the identified error model does not extrapolate"
+            ),
+        )
         q[:, j] = v
         values[a.name] = v
     tool = np.zeros((len(rows), 3))
     for j, c in enumerate(("tool_x", "tool_y", "tool_z")):
         if c in pos:
-            tool[:, j] = _data.parse_float(body[pos[c]], rows, raw.header[pos[c]], "mm", False,
-                                            problems)
+            tool[:, j] = _data.parse_float(
+                body[pos[c]], rows, raw.header[pos[c]], "mm", False, problems
+            )
             values[c] = tool[:, j]
     if "point" in pos:
-        values["point"] = _data.parse_ids(body[pos["point"]], rows, raw.header[pos["point"]],
-                                           problems)
+        values["point"] = _data.parse_ids(
+            body[pos["point"]], rows, raw.header[pos["point"]], problems
+        )
     problems.raise_if_any()
     order = sorted(pos, key=lambda c: pos[c])
     table = pd.DataFrame({raw.header[pos[c]]: values[c] for c in order})
@@ -291,16 +331,27 @@ def _json_safe(obj: Any) -> Any:
 
 
 def _forms(em: ErrorModel) -> list[dict[str, Any]]:
-    return [{"error": s.name, "kind": f.kind, "degree": int(f.degree),
-             "knots": [float(k) for k in f.knots], "segments": int(f.segments)}
-            for s, f in zip(em.errors, em.forms)]
+    return [
+        {
+            "error": s.name,
+            "kind": f.kind,
+            "degree": int(f.degree),
+            "knots": [float(k) for k in f.knots],
+            "segments": int(f.segments),
+        }
+        for s, f in zip(em.errors, em.forms)
+    ]
 
 
 def _versions() -> dict[str, str]:
     import casadi
 
-    return {"volcal": __version__, "casadi": casadi.CasadiMeta.version(), "numpy": np.__version__,
-            "python": platform.python_version()}
+    return {
+        "volcal": __version__,
+        "casadi": casadi.CasadiMeta.version(),
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+    }
 
 
 def _grid_axes(spec: MachineSpec, grid: pd.DataFrame) -> list[str]:
@@ -318,9 +369,14 @@ def _grid_coverage(spec: MachineSpec, grid: pd.DataFrame) -> str:
     return text + ", tool offset 0"
 
 
-def _result_document(result: IdentificationResult, *, data_name: str,
-                     options: Mapping[str, Any] | None, grid: pd.DataFrame,
-                     created: str) -> dict[str, Any]:
+def _result_document(
+    result: IdentificationResult,
+    *,
+    data_name: str,
+    options: Mapping[str, Any] | None,
+    grid: pd.DataFrame,
+    created: str,
+) -> dict[str, Any]:
     em = result.error_model
     spec = result.machine.spec
     ident = result.identifiability
@@ -333,8 +389,8 @@ def _result_document(result: IdentificationResult, *, data_name: str,
         "data": data_name,
         "options": dict(options or {}),
         "units": "theta and cov_theta in internal units: mm for translational, rad for "
-                 "angular parameters (param_units); every value is an error (actual - "
-                 "nominal), a correction is its negative",
+        "angular parameters (param_units); every value is an error (actual - "
+        "nominal), a correction is its negative",
         "model": spec_to_dict(spec),
         "model_fingerprint": spec.fingerprint(),
         "error_model": {"datum": em.datum, "forms": _forms(em)},
@@ -346,10 +402,18 @@ def _result_document(result: IdentificationResult, *, data_name: str,
         "strategy": result.strategy,
         "status": result.status,
         "success": result.success,
-        "phases": [{"status": o.status, "success": o.success, "iterations": o.iterations,
-                    "seconds": o.seconds, "objective": o.f,
-                    "gauss_newton_polish_steps": o.polish_steps,
-                    "objective_after_polish": o.polish_f} for o in result.outcomes],
+        "phases": [
+            {
+                "status": o.status,
+                "success": o.success,
+                "iterations": o.iterations,
+                "seconds": o.seconds,
+                "objective": o.f,
+                "gauss_newton_polish_steps": o.polish_steps,
+                "objective_after_polish": o.polish_f,
+            }
+            for o in result.outcomes
+        ],
         "seconds": result.seconds,
         "sigma_source": result.sigma_source,
         "n_readings": int(len(result.residuals)),
@@ -358,18 +422,19 @@ def _result_document(result: IdentificationResult, *, data_name: str,
         "chi2_per_dof": result.conditions.get("chi2_per_dof"),
         "conditions": result.conditions,
         "max_volumetric_um": float(grid["norm_um"].iloc[imax]) if imax is not None else None,
-        "max_volumetric_pose": ({a: float(grid[a].iloc[imax]) for a in spec.axis_names}
-                                if imax is not None else None),
+        "max_volumetric_pose": (
+            {a: float(grid[a].iloc[imax]) for a in spec.axis_names} if imax is not None else None
+        ),
         # the axes the volumetric grid (and so max_volumetric_um) spans, tool offset 0
         "max_volumetric_axes": _grid_axes(spec, grid),
         "adequacy": assess(result).to_dict(),
         "unidentifiable": list(np.asarray(em.param_names)[~np.asarray(result.identifiable)]),
         "null_space": (list(ident.unidentifiable_combinations) if ident is not None else []),
         "gauge": (list(ident.gauge_combinations) if ident is not None else []),
-        "datum": (result.datum.to_dict(orient="records") if result.datum is not None
-                  else None),
-        "null_space_field": (result.null_space.to_dict() if result.null_space is not None
-                             else None),
+        "datum": (result.datum.to_dict(orient="records") if result.datum is not None else None),
+        "null_space_field": (
+            result.null_space.to_dict() if result.null_space is not None else None
+        ),
         "frame": result.frame,
         "stations": result.stations.to_dict(orient="records"),
         "notes": list(result.notes),
@@ -419,26 +484,45 @@ class LoadedResult:
         f = np.array([_unit_factor(u)[0] for u in units])
         std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
         std[~self.identifiable] = np.nan
-        return pd.DataFrame({"name": self.error_model.param_names, "value": self.theta * f,
-                             "unit": [_unit_factor(u)[1] for u in units], "std": std,
-                             "identifiable": self.identifiable})
+        return pd.DataFrame(
+            {
+                "name": self.error_model.param_names,
+                "value": self.theta * f,
+                "unit": [_unit_factor(u)[1] for u in units],
+                "std": std,
+                "identifiable": self.identifiable,
+            }
+        )
 
-    def predict_internal(self, q: np.ndarray, tool: np.ndarray | None = None, *,
-                         with_uncertainty: bool = True) -> pd.DataFrame:
+    def predict_internal(
+        self, q: np.ndarray, tool: np.ndarray | None = None, *, with_uncertainty: bool = True
+    ) -> pd.DataFrame:
         """As :meth:`IdentificationResult.predict`: poses q (N, n_axes) in mm / rad."""
-        return predict_volumetric(self.machine, self.error_model, self.theta,
-                                  self.cov_theta if with_uncertainty else None, q, tool,
-                                  null_space=self.null_space)
+        return predict_volumetric(
+            self.machine,
+            self.error_model,
+            self.theta,
+            self.cov_theta if with_uncertainty else None,
+            q,
+            tool,
+            null_space=self.null_space,
+        )
 
-    def predict(self, points: pd.DataFrame | str | Path, *, name: str | None = None,
-                with_uncertainty: bool = True) -> pd.DataFrame:
+    def predict(
+        self,
+        points: pd.DataFrame | str | Path,
+        *,
+        name: str | None = None,
+        with_uncertainty: bool = True,
+    ) -> pd.DataFrame:
         """Volumetric errors at the poses of a points table (see :func:`read_points`;
         axes in mm / deg, tool offsets optional).  Returns the input columns plus
         ``dx_um, dy_um, dz_um`` (and ``u_dx_um, u_dy_um, u_dz_um``): errors, actual -
         nominal tool point in the machine frame."""
         table, q, tool = read_points(points, self.spec, name=name)
-        pred = self.predict_internal(self.machine.axis_to_internal(q), tool,
-                                     with_uncertainty=with_uncertainty)
+        pred = self.predict_internal(
+            self.machine.axis_to_internal(q), tool, with_uncertainty=with_uncertainty
+        )
         out = table.copy()
         for c in pred.columns:
             out[c] = pred[c].to_numpy()
@@ -451,75 +535,109 @@ def load_result(path: str | Path) -> LoadedResult:
     file = path if path.suffix == ".json" else path / "result.json"
     folder = file.parent
     if not file.is_file():
-        raise InputError("no result.json here; expected a folder written by `volcal identify`",
-                         source=str(folder if path.suffix != ".json" else file))
+        raise InputError(
+            "no result.json here; expected a folder written by `volcal identify`",
+            source=str(folder if path.suffix != ".json" else file),
+        )
     # a folder edited after it was written, or mixed from two runs, is refused
     from volcal.base.folders import verify_manifest
+
     verify_manifest(folder)
     try:
         doc = json.loads(file.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"cannot read result file: {exc}", source=str(file)) from None
     if not isinstance(doc, dict) or doc.get("format") != RESULT_FORMAT:
-        raise InputError(f"not a volcal identification result (expected \"format\": "
-                         f"\"{RESULT_FORMAT}\")", source=str(file))
+        raise InputError(
+            f'not a volcal identification result (expected "format": "{RESULT_FORMAT}")',
+            source=str(file),
+        )
     version = doc.get("format_version")
     if not isinstance(version, int) or version > RESULT_FORMAT_VERSION:
-        raise InputError(f"result format version {version!r} is not supported by volcal "
-                         f"{__version__} (reads up to {RESULT_FORMAT_VERSION})", source=str(file))
+        raise InputError(
+            f"result format version {version!r} is not supported by volcal "
+            f"{__version__} (reads up to {RESULT_FORMAT_VERSION})",
+            source=str(file),
+        )
     try:
         spec = machine_from_dict(doc["model"], where=f"{file} (model)")
-        forms = {f["error"]: ErrorForm(f["kind"], int(f["degree"]),
-                                       tuple(float(k) for k in f["knots"]),
-                                       int(f.get("segments", 4)))
-                 for f in doc["error_model"]["forms"]}
+        forms = {
+            f["error"]: ErrorForm(
+                f["kind"],
+                int(f["degree"]),
+                tuple(float(k) for k in f["knots"]),
+                int(f.get("segments", 4)),
+            )
+            for f in doc["error_model"]["forms"]
+        }
         datum = doc["error_model"]["datum"]
         names = list(doc["param_names"])
         theta = np.array([np.nan if v is None else v for v in doc["theta"]], float)
-        cov = np.array([[np.nan if v is None else v for v in row] for row in doc["cov_theta"]],
-                       float).reshape(len(theta), len(theta))
+        cov = np.array(
+            [[np.nan if v is None else v for v in row] for row in doc["cov_theta"]], float
+        ).reshape(len(theta), len(theta))
         identifiable = np.array(doc["identifiable"], bool)
         nsf = doc.get("null_space_field")
         null_space = FieldNullSpace.from_dict(nsf) if nsf else None
     except InputError:
         raise
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise InputError(f"incomplete or malformed result file ({type(exc).__name__}: {exc})",
-                         source=str(file)) from None
+        raise InputError(
+            f"incomplete or malformed result file ({type(exc).__name__}: {exc})", source=str(file)
+        ) from None
     if doc.get("model_fingerprint") not in (None, spec.fingerprint()):
-        raise InputError("the model document does not match its fingerprint; the file was "
-                         "edited or is corrupt", source=str(file))
+        raise InputError(
+            "the model document does not match its fingerprint; the file was edited or is corrupt",
+            source=str(file),
+        )
     em = ErrorModel(spec, forms, datum=datum)
     if em.param_names != names:
-        raise InputError("the saved parameter names do not match the error model rebuilt from "
-                         "the saved forms", source=str(file))
+        raise InputError(
+            "the saved parameter names do not match the error model rebuilt from the saved forms",
+            source=str(file),
+        )
     if len(identifiable) != len(theta) or not np.all(np.isfinite(theta)):
         raise InputError("theta / identifiable are inconsistent or not finite", source=str(file))
     machine = Machine.from_model(spec)
-    state = _load_state(folder / "solver_state.npz") if (folder / "solver_state.npz").exists() \
-        else None
+    state = (
+        _load_state(folder / "solver_state.npz") if (folder / "solver_state.npz").exists() else None
+    )
     return LoadedResult(folder, machine, em, theta, cov, identifiable, doc, null_space, state)
 
 
 def _save_state(state: SolverState, path: Path) -> None:
     """The solver state as plain arrays (no pickled objects)."""
     with open(path, "wb") as fh:
-        np.savez(fh, x=state.x, fixed=state.fixed, weights=state.weights,
-                 datum_active=state.datum_active, names=np.array(state.names, dtype=str),
-                 solver=np.array(state.solver), instrument=np.array(state.instrument),
-                 fingerprint=np.array(state.fingerprint))
+        np.savez(
+            fh,
+            x=state.x,
+            fixed=state.fixed,
+            weights=state.weights,
+            datum_active=state.datum_active,
+            names=np.array(state.names, dtype=str),
+            solver=np.array(state.solver),
+            instrument=np.array(state.instrument),
+            fingerprint=np.array(state.fingerprint),
+        )
 
 
 def _load_state(path: Path) -> SolverState:
     try:
         with np.load(path, allow_pickle=False) as z:
-            return SolverState(np.array(z["x"], float), np.array(z["fixed"], bool),
-                               np.array(z["weights"], float), np.array(z["datum_active"], bool),
-                               [str(s) for s in z["names"]], str(z["solver"]),
-                               str(z["instrument"]), str(z["fingerprint"]))
+            return SolverState(
+                np.array(z["x"], float),
+                np.array(z["fixed"], bool),
+                np.array(z["weights"], float),
+                np.array(z["datum_active"], bool),
+                [str(s) for s in z["names"]],
+                str(z["solver"]),
+                str(z["instrument"]),
+                str(z["fingerprint"]),
+            )
     except (OSError, KeyError, ValueError) as exc:
-        raise InputError(f"unreadable solver state ({type(exc).__name__}: {exc})",
-                         source=str(path)) from None
+        raise InputError(
+            f"unreadable solver state ({type(exc).__name__}: {exc})", source=str(path)
+        ) from None
 
 
 # --------------------------------------------------------------------------------------
@@ -550,17 +668,21 @@ def _plot_component_errors(table: pd.DataFrame, em: ErrorModel, path: Path) -> N
         unit = _axis_unit(spec, a.name)
         x = sub[f"position_{unit}"].to_numpy()
         for ax, quantity, u_name in ((row[0], "translation", "um"), (row[1], "rotation", "urad")):
-            errs = [s for s in em.errors if s.axis == a.name and s.kind == "component"
-                    and s.quantity == quantity]
+            errs = [
+                s
+                for s in em.errors
+                if s.axis == a.name and s.kind == "component" and s.quantity == quantity
+            ]
             for s in errs:
                 y = sub[f"{s.name}_{u_name}"].to_numpy()
-                line, = ax.plot(x, y, label=s.name)
+                (line,) = ax.plot(x, y, label=s.name)
                 ucol = f"u_{s.name}_{u_name}"
                 if ucol in sub:
                     u = sub[ucol].to_numpy()
                     if np.isfinite(u).all():
-                        ax.fill_between(x, y - 2 * u, y + 2 * u, color=line.get_color(),
-                                        alpha=0.2, linewidth=0)
+                        ax.fill_between(
+                            x, y - 2 * u, y + 2 * u, color=line.get_color(), alpha=0.2, linewidth=0
+                        )
                     else:
                         line.set_label(f"{s.name} (not identifiable)")
                         line.set_linestyle("--")
@@ -584,9 +706,9 @@ def _nice_magnification(x: float) -> float:
         return 1.0
     k = math.floor(math.log10(x))
     for m in (5.0, 2.0, 1.0):
-        if m * 10 ** k <= x:
-            return m * 10 ** k
-    return 10.0 ** k  # pragma: no cover
+        if m * 10**k <= x:
+            return m * 10**k
+    return 10.0**k  # pragma: no cover
 
 
 def _plot_volumetric_map(machine: Machine, grid: pd.DataFrame, path: Path) -> None:
@@ -611,17 +733,24 @@ def _plot_volumetric_map(machine: Machine, grid: pd.DataFrame, path: Path) -> No
     ax.legend(loc="upper left", fontsize=8)
     rot = [a.name for a in machine.spec.axes if a.is_rotary]
     extra = f"; {', '.join(rot)} at reference" if rot else ""
-    ax.set_title(f"Volumetric error map, error vectors magnified x{mag:g}\n"
-                 f"(actual - nominal tool point, tool offset 0{extra}; "
-                 f"max {float(np.max(norm)) if len(norm) else 0.0:.1f} um)", fontsize=10)
+    ax.set_title(
+        f"Volumetric error map, error vectors magnified x{mag:g}\n"
+        f"(actual - nominal tool point, tool offset 0{extra}; "
+        f"max {float(np.max(norm)) if len(norm) else 0.0:.1f} um)",
+        fontsize=10,
+    )
     fig.savefig(path, dpi=110)
 
 
 def _plot_residuals_vs_axes(result: IdentificationResult, path: Path) -> None:
     spec = result.machine.spec
-    plot_residuals_vs_axes(result.residuals, spec.axis_names,
-                           [_axis_unit(spec, a) for a in spec.axis_names], path,
-                           adequacy=assess(result))
+    plot_residuals_vs_axes(
+        result.residuals,
+        spec.axis_names,
+        [_axis_unit(spec, a) for a in spec.axis_names],
+        path,
+        adequacy=assess(result),
+    )
 
 
 def _plot_residuals(residuals: pd.DataFrame, path: Path) -> None:
@@ -630,12 +759,17 @@ def _plot_residuals(residuals: pd.DataFrame, path: Path) -> None:
     fig = _figure(12, 4.5)
     ax1, ax2 = fig.subplots(1, 2, width_ratios=[1, 2])
     kept = r[~rej & np.isfinite(r)]
-    ax1.hist(kept, bins=max(10, min(60, int(np.sqrt(max(len(kept), 1))))), color="tab:blue",
-             alpha=0.8, label="used")
+    ax1.hist(
+        kept,
+        bins=max(10, min(60, int(np.sqrt(max(len(kept), 1))))),
+        color="tab:blue",
+        alpha=0.8,
+        label="used",
+    )
     if rej.any():
         ax1.hist(r[rej], bins=10, color="tab:red", alpha=0.8, label="rejected")
         ax1.legend(fontsize=8)
-    rms = float(np.sqrt(np.mean(kept ** 2))) if len(kept) else float("nan")
+    rms = float(np.sqrt(np.mean(kept**2))) if len(kept) else float("nan")
     ax1.set_title(f"residuals (RMS {rms:.3g} um, {len(kept)} readings)")
     ax1.set_xlabel("residual (um)")
     ax1.set_ylabel("readings")
@@ -673,14 +807,24 @@ def _fmt(v: Any, spec: str = ".4g") -> str:
 def _md_table(df: pd.DataFrame, spec: str = ".4g") -> str:
     head = "| " + " | ".join(map(str, df.columns)) + " |"
     rule = "|" + "|".join("---" for _ in df.columns) + "|"
-    body = ["| " + " | ".join(_fmt(v, spec) for v in row) + " |"
-            for row in df.itertuples(index=False, name=None)]
+    body = [
+        "| " + " | ".join(_fmt(v, spec) for v in row) + " |"
+        for row in df.itertuples(index=False, name=None)
+    ]
     return "\n".join([head, rule, *body])
 
 
-def _report(result: IdentificationResult, *, data_name: str, created: str,
-            options: Mapping[str, Any], grid: pd.DataFrame, n_grid: int, n_comp: int,
-            plots: bool) -> str:
+def _report(
+    result: IdentificationResult,
+    *,
+    data_name: str,
+    created: str,
+    options: Mapping[str, Any],
+    grid: pd.DataFrame,
+    n_grid: int,
+    n_comp: int,
+    plots: bool,
+) -> str:
     em = result.error_model
     spec = result.machine.spec
     res = result.residuals
@@ -692,11 +836,13 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     add("")
     add(f"Written {created} by volcal {vers['volcal']} (CasADi {vers['casadi']}).")
     add("")
-    add("All values are **errors**: error = actual - nominal (ISO 230-1), for error motions "
+    add(
+        "All values are **errors**: error = actual - nominal (ISO 230-1), for error motions "
         "and for the volumetric error (actual minus nominal tool point, machine frame). A "
         "correction (what a controller compensation table holds) is the negative of an "
         "error; nothing in this folder is a correction. Uncertainties are standard "
-        "uncertainties (k = 1); plot bands are +-2 u.")
+        "uncertainties (k = 1); plot bands are +-2 u."
+    )
     add("")
     add("## Summary")
     add("")
@@ -708,32 +854,60 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
         ("chi2 / dof", _fmt(result.conditions.get("chi2_per_dof"))),
     ]
     adequacy = assess(result)
-    rows.append(("model adequacy", "the model fits (chi2/dof inside its 99.9 % interval)"
-                 if adequacy.adequate else
-                 "**INADEQUATE**: chi2/dof outside its 99.9 % interval; likely cause: "
-                 + ", ".join(c.kind for c in adequacy.causes) + " (see Model adequacy)"))
+    rows.append(
+        (
+            "model adequacy",
+            "the model fits (chi2/dof inside its 99.9 % interval)"
+            if adequacy.adequate
+            else "**INADEQUATE**: chi2/dof outside its 99.9 % interval; likely cause: "
+            + ", ".join(c.kind for c in adequacy.causes)
+            + " (see Model adequacy)",
+        )
+    )
     if imax is not None:
-        pose = ", ".join(f"{a} = {grid[a].iloc[imax]:g} {_axis_unit(spec, a)}"
-                         for a in spec.axis_names)
-        rows.append(("largest volumetric error", f"{grid['norm_um'].iloc[imax]:.4g} um at "
-                     f"{pose} ({_grid_coverage(spec, grid)}; see Volumetric error)"))
-    rows += [("unidentifiable parameters", str(len(unid))),
-             ("rejected readings", str(int(rej.sum()))),
-             ("total time", f"{result.seconds:.3g} s")]
+        pose = ", ".join(
+            f"{a} = {grid[a].iloc[imax]:g} {_axis_unit(spec, a)}" for a in spec.axis_names
+        )
+        rows.append(
+            (
+                "largest volumetric error",
+                f"{grid['norm_um'].iloc[imax]:.4g} um at "
+                f"{pose} ({_grid_coverage(spec, grid)}; see Volumetric error)",
+            )
+        )
+    rows += [
+        ("unidentifiable parameters", str(len(unid))),
+        ("rejected readings", str(int(rej.sum()))),
+        ("total time", f"{result.seconds:.3g} s"),
+    ]
     add(_md_table(pd.DataFrame(rows, columns=["quantity", "value"])))
     add("")
     add(_adequacy_section(adequacy, plots))
 
     add("## Model")
     add("")
-    add(f"Machine model `{spec.name}`" + (f": {spec.description}" if spec.description else "")
-        + ".")
+    add(
+        f"Machine model `{spec.name}`" + (f": {spec.description}" if spec.description else "") + "."
+    )
     add("")
-    ax_rows = [(a.name, a.kind, a.direction, a.branch,
-                f"{a.travel[0]:g} .. {a.travel[1]:g} {_axis_unit(spec, a.name)}",
-                f"{a.reference:g}") for a in spec.axes]
-    add(_md_table(pd.DataFrame(ax_rows, columns=["axis", "kind", "direction", "branch",
-                                                 "travel", "reference"])))
+    ax_rows = [
+        (
+            a.name,
+            a.kind,
+            a.direction,
+            a.branch,
+            f"{a.travel[0]:g} .. {a.travel[1]:g} {_axis_unit(spec, a.name)}",
+            f"{a.reference:g}",
+        )
+        for a in spec.axes
+    ]
+    add(
+        _md_table(
+            pd.DataFrame(
+                ax_rows, columns=["axis", "kind", "direction", "branch", "travel", "reference"]
+            )
+        )
+    )
     add("")
     kinds: dict[str, list[str]] = {}
     for s, f in zip(em.errors, em.forms):
@@ -742,8 +916,7 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
         else:
             label = f.describe()
         kinds.setdefault(label, []).append(s.name)
-    add(f"{em.n_errors} error quantities, {em.n_params} parameters, datum convention "
-        f"`{em.datum}`:")
+    add(f"{em.n_errors} error quantities, {em.n_params} parameters, datum convention `{em.datum}`:")
     add("")
     for label, names in kinds.items():
         add(f"- {label}: {', '.join(names)}")
@@ -759,8 +932,10 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     add(f"- reading uncertainties from: {result.sigma_source}")
     tools = res[["tool_x", "tool_y", "tool_z"]].drop_duplicates() if "tool_x" in res else None
     if tools is not None:
-        add("- tool offsets (mm): " + "; ".join(
-            f"({x:g}, {y:g}, {z:g})" for x, y, z in tools.to_numpy()))
+        add(
+            "- tool offsets (mm): "
+            + "; ".join(f"({x:g}, {y:g}, {z:g})" for x, y, z in tools.to_numpy())
+        )
     add("")
 
     add("## Identification")
@@ -770,59 +945,96 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
         add("")
         add("Options: " + ", ".join(f"`{k}={v}`" for k, v in options.items()))
     add("")
-    ph = [(k + 1, o.status, "yes" if o.success else "no", o.iterations, o.polish_steps,
-           f"{o.seconds:.3g}") for k, o in enumerate(result.outcomes)]
-    add(_md_table(pd.DataFrame(ph, columns=["phase", "solver status", "success", "iterations",
-                                            "Gauss-Newton polish steps", "time (s)"])))
+    ph = [
+        (
+            k + 1,
+            o.status,
+            "yes" if o.success else "no",
+            o.iterations,
+            o.polish_steps,
+            f"{o.seconds:.3g}",
+        )
+        for k, o in enumerate(result.outcomes)
+    ]
+    add(
+        _md_table(
+            pd.DataFrame(
+                ph,
+                columns=[
+                    "phase",
+                    "solver status",
+                    "success",
+                    "iterations",
+                    "Gauss-Newton polish steps",
+                    "time (s)",
+                ],
+            )
+        )
+    )
     add("")
-    add("IPOPT stops once the objective stalls (`Solved_To_Acceptable_Level` is then the "
+    add(
+        "IPOPT stops once the objective stalls (`Solved_To_Acceptable_Level` is then the "
         "usual status: at the minimum the gradient of a whitened sum of squares is at "
         "rounding level, not zero); the Gauss-Newton polish steps under the datum then end "
-        "at the minimiser to working precision.")
+        "at the minimiser to working precision."
+    )
     add("")
     m = result.machine
-    add(f"Timings: total {result.seconds:.3g} s (solver phases "
+    add(
+        f"Timings: total {result.seconds:.3g} s (solver phases "
         f"{sum(o.seconds for o in result.outcomes):.3g} s); machine functions "
-        f"{'loaded from the cache' if m.from_cache else 'built'} in {m.build_seconds:.3g} s.")
+        f"{'loaded from the cache' if m.from_cache else 'built'} in {m.build_seconds:.3g} s."
+    )
     add("")
     add("### Condition numbers")
     add("")
     cond = [(k, v) for k, v in result.conditions.items() if k != "chi2_per_dof"]
-    add(_md_table(pd.DataFrame(cond, columns=["system", "condition number"])) if cond
-        else "(none reported)")
+    add(
+        _md_table(pd.DataFrame(cond, columns=["system", "condition number"]))
+        if cond
+        else "(none reported)"
+    )
     add("")
 
     add("## Identifiability")
     add("")
     ident = result.identifiability
     if ident is not None:
-        add(f"Rank {ident.rank}, {ident.n_null} null direction(s) (tolerance "
-            f"{ident.tol:.2e}) of the scaled Jacobian (errors, stations and frame together).")
+        add(
+            f"Rank {ident.rank}, {ident.n_null} null direction(s) (tolerance "
+            f"{ident.tol:.2e}) of the scaled Jacobian (errors, stations and frame together)."
+        )
         add("")
     if unid:
-        add("Unidentifiable parameters: " + ", ".join(f"`{n}`" for n in unid) + ". The data "
+        add(
+            "Unidentifiable parameters: " + ", ".join(f"`{n}`" for n in unid) + ". The data "
             "do not determine them: the variable leading each null-space combination below "
             "was held at zero and the others took the values that fit given that choice, "
             "so their values are one representative among equally good ones and they have "
-            "no uncertainty (empty `std`, `u_` cells; dashed in the plot).")
+            "no uncertainty (empty `std`, `u_` cells; dashed in the plot)."
+        )
     else:
         add("Every error parameter is identifiable from these data.")
     add("")
     if result.datum is not None:
         add(_datum_section(result))
     if ident is not None and ident.unidentifiable_combinations:
-        add("Unidentifiable combinations (they change the volumetric error somewhere in the "
+        add(
+            "Unidentifiable combinations (they change the volumetric error somewhere in the "
             "declared travel at the measured tool offsets, but the data cannot see them; "
             "the leading variable of each was held, and `predict` flags the poses whose "
-            "error depends on them):")
+            "error depends on them):"
+        )
         add("")
         for c in ident.unidentifiable_combinations:
             add(f"- `{c}`")
         add("")
     if ident is not None and ident.gauge_combinations:
-        add("Gauge freedoms held (they move the volumetric error at most rigidly, which no "
+        add(
+            "Gauge freedoms held (they move the volumetric error at most rigidly, which no "
             "multilateration sees: the rigid motion between the station frame and the "
-            "machine frame, and parameters that duplicate each other):")
+            "machine frame, and parameters that duplicate each other):"
+        )
         add("")
         for c in ident.gauge_combinations:
             add(f"- `{c}`")
@@ -837,23 +1049,29 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     add("## Rejected readings")
     add("")
     if rej.any():
-        cols = [c for c in ("row", "station", "point", "length", "residual_um",
-                            "normalised_residual") if c in result.rejected.columns]
-        add(f"{int(rej.sum())} reading(s) rejected by the robust option (|normalised "
-            "residual| above the threshold); row = row in the data file (header = row 1):")
+        cols = [
+            c
+            for c in ("row", "station", "point", "length", "residual_um", "normalised_residual")
+            if c in result.rejected.columns
+        ]
+        add(
+            f"{int(rej.sum())} reading(s) rejected by the robust option (|normalised "
+            "residual| above the threshold); row = row in the data file (header = row 1):"
+        )
         add("")
         add(_md_table(result.rejected[cols]))
     else:
-        add("None" + ("" if options.get("robust", True) else " (robust rejection was off)")
-            + ".")
+        add("None" + ("" if options.get("robust", True) else " (robust rejection was off)") + ".")
     add("")
 
     add("## Component error motions")
     add("")
-    add(f"`component_errors.csv`: every component error motion on {n_comp} positions over "
+    add(
+        f"`component_errors.csv`: every component error motion on {n_comp} positions over "
         "its axis' travel (other axes at their reference), with standard uncertainties "
         "(`u_` columns; empty where the error involves an unidentifiable parameter). "
-        "Location errors are constants: see the parameter table.")
+        "Location errors are constants: see the parameter table."
+    )
     add("")
     if plots:
         add("![component error motions](component_errors.png)")
@@ -865,33 +1083,48 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     for a in spec.axes:
         v = np.unique(grid[a.name].to_numpy(float)) if a.name in grid else np.array([])
         u = _axis_unit(spec, a.name)
-        covered.append(f"{a.name}: {len(v)} positions {v.min():g} .. {v.max():g} {u}"
-                       if len(v) > 1 else f"{a.name} at {a.reference:g} {u}")
+        covered.append(
+            f"{a.name}: {len(v)} positions {v.min():g} .. {v.max():g} {u}"
+            if len(v) > 1
+            else f"{a.name} at {a.reference:g} {u}"
+        )
     rot = [a for a in spec.axes if a.is_rotary]
     at_ref = np.ones(len(grid), bool)
     for a in rot:
         at_ref &= np.isclose(grid[a.name].to_numpy(float), a.reference)
-    add(f"`volumetric_grid.csv` covers {', '.join(_grid_axes(spec, grid)) or 'no axis'}: "
+    add(
+        f"`volumetric_grid.csv` covers {', '.join(_grid_axes(spec, grid)) or 'no axis'}: "
         f"{'; '.join(covered)}; tool offset 0; {len(grid)} poses. Largest error "
         f"{grid['norm_um'].max():.4g} um, RMS of the norm "
         f"{float(np.sqrt(np.mean(grid['norm_um'] ** 2))):.4g} um"
-        + (f"; with the rotary axes {', '.join(a.name for a in rot)} at their reference "
-           f"the largest error is {grid['norm_um'][at_ref].max():.4g} um" if rot
-           and at_ref.any() and len(_grid_axes(spec, grid)) > len(spec.axes) - len(rot)
-           else "")
+        + (
+            f"; with the rotary axes {', '.join(a.name for a in rot)} at their reference "
+            f"the largest error is {grid['norm_um'][at_ref].max():.4g} um"
+            if rot and at_ref.any() and len(_grid_axes(spec, grid)) > len(spec.axes) - len(rot)
+            else ""
+        )
         + ". Uncertainties propagate the identifiable parameters; the rigid motion between "
-        "station frame and machine frame is not determined by multilateration.")
+        "station frame and machine frame is not determined by multilateration."
+    )
     add("")
     if plots:
-        add("![volumetric error map](volumetric_map.png)" + (
-            "" if not rot else f"\n\n(The map shows the poses with "
-            f"{', '.join(a.name for a in rot)} at their reference.)"))
+        add(
+            "![volumetric error map](volumetric_map.png)"
+            + (
+                ""
+                if not rot
+                else f"\n\n(The map shows the poses with "
+                f"{', '.join(a.name for a in rot)} at their reference.)"
+            )
+        )
         add("")
 
     add("## Residuals")
     add("")
-    add("`residuals.csv`: the input rows with `residual_um` (model - measured), "
-        "`normalised_residual` (residual / standard uncertainty) and `rejected`.")
+    add(
+        "`residuals.csv`: the input rows with `residual_um` (model - measured), "
+        "`normalised_residual` (residual / standard uncertainty) and `rejected`."
+    )
     add("")
     if plots:
         add("![residuals](residuals.png)")
@@ -899,12 +1132,14 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
 
     add("## Parameters")
     add("")
-    add("Values and standard uncertainties in um (translational) or urad (angular); "
+    add(
+        "Values and standard uncertainties in um (translational) or urad (angular); "
         "`parameters.csv` holds them at full precision. Names: `<error>_<k>` is the k-th "
         "Legendre coefficient on the normalised travel, `<error>_0`, `<error>_c<k>`, "
         "`<error>_s<k>` the Fourier coefficients of 1, cos(k x), sin(k x), `<error>_b<j>` "
         "the j-th B-spline coefficient, `<error>@<pos>` a table value, `<error>` a "
-        "constant.")
+        "constant."
+    )
     add("")
     add(_md_table(result.parameters()))
     add("")
@@ -924,11 +1159,17 @@ def _report(result: IdentificationResult, *, data_name: str, created: str,
     add("")
     add("## Files")
     add("")
-    add("`parameters.csv`, `stations.csv`, `residuals.csv`, `component_errors.csv`, "
+    add(
+        "`parameters.csv`, `stations.csv`, `residuals.csv`, `component_errors.csv`, "
         "`volumetric_grid.csv`, `result.json` (everything `volcal predict --result` needs)"
-        + (", `component_errors.png`, `volumetric_map.png`, `residuals.png`, "
-           "`residuals_vs_axes.png`" if plots
-           else " (plots not written: --no-plots)") + ".")
+        + (
+            ", `component_errors.png`, `volumetric_map.png`, `residuals.png`, "
+            "`residuals_vs_axes.png`"
+            if plots
+            else " (plots not written: --no-plots)"
+        )
+        + "."
+    )
     add("")
     return "\n".join(L)
 
@@ -947,21 +1188,28 @@ def _order_selection_lines(result: IdentificationResult) -> list[str]:
     if t is None or not len(t):
         return []
     crit = str(t["criterion"].iloc[0])
-    what = ("BIC = chi2 + k ln N on the whitened residuals (k the rank of the "
-            "identification, N the readings used)" if crit == "bic" else
-            "the chi2 of held-out readings in K-fold cross-validation over the poses")
+    what = (
+        "BIC = chi2 + k ln N on the whitened residuals (k the rank of the "
+        "identification, N the readings used)"
+        if crit == "bic"
+        else "the chi2 of held-out readings in K-fold cross-validation over the poses"
+    )
     chosen = t.loc[t["chosen"], "orders"]
-    L = ["### Orders chosen from the data", "",
-         f"`--degree auto`: per-axis orders by {what}, smaller is better; greedy search one "
-         "axis at a time (`order_selection.csv` lists every candidate). Chosen: "
-         f"`{chosen.iloc[0] if len(chosen) else '?'}`.", ""]
+    L = [
+        "### Orders chosen from the data",
+        "",
+        f"`--degree auto`: per-axis orders by {what}, smaller is better; greedy search one "
+        "axis at a time (`order_selection.csv` lists every candidate). Chosen: "
+        f"`{chosen.iloc[0] if len(chosen) else '?'}`.",
+        "",
+    ]
     per = t[t["axis"] != ""]
     if len(per):
         best = per.groupby(["sweep", "axis"])["value"].transform("min")
         view = per.assign(delta=per["value"] - best)[
-            ["sweep", "axis", "kind", "order", "n_params", "value", "delta", "k"]]
-        L += [_md_table(view.rename(columns={"value": crit, "delta": f"{crit} - best"}),
-                        ".6g"), ""]
+            ["sweep", "axis", "kind", "order", "n_params", "value", "delta", "k"]
+        ]
+        L += [_md_table(view.rename(columns={"value": crit, "delta": f"{crit} - best"}), ".6g"), ""]
     return L
 
 
@@ -974,39 +1222,52 @@ def _adequacy_section(ad, plots: bool) -> str:
     lo, hi = ad.interval
     lines = ["## Model adequacy", ""]
     if ad.adequate:
-        lines.append(f"**The model fits the data within their uncertainty**: chi2/dof = "
-                     f"{ad.chi2_per_dof:.4g} lies inside its 99.9 % interval "
-                     f"[{lo:.4g}, {hi:.4g}] for {ad.dof} degrees of freedom "
-                     f"({ad.n_readings} readings used).")
+        lines.append(
+            f"**The model fits the data within their uncertainty**: chi2/dof = "
+            f"{ad.chi2_per_dof:.4g} lies inside its 99.9 % interval "
+            f"[{lo:.4g}, {hi:.4g}] for {ad.dof} degrees of freedom "
+            f"({ad.n_readings} readings used)."
+        )
     else:
-        lines.append(f"**WARNING: the model does not fit the data within their uncertainty.** "
-                     f"chi2/dof = {ad.chi2_per_dof:.4g} lies outside its 99.9 % interval "
-                     f"[{lo:.4g}, {hi:.4g}] for {ad.dof} degrees of freedom "
-                     f"({ad.n_readings} readings used). The identified errors and their "
-                     "uncertainties are not to be trusted until the cause is removed.")
-        lines += ["", "Likely cause" + ("s, most likely first:" if len(ad.causes) > 1
-                                          else ":"), ""]
-        lines += [f"- **{c.kind}** ({100 * c.share:.0f} % of the excess chi2): {c.text}"
-                  for c in ad.causes]
+        lines.append(
+            f"**WARNING: the model does not fit the data within their uncertainty.** "
+            f"chi2/dof = {ad.chi2_per_dof:.4g} lies outside its 99.9 % interval "
+            f"[{lo:.4g}, {hi:.4g}] for {ad.dof} degrees of freedom "
+            f"({ad.n_readings} readings used). The identified errors and their "
+            "uncertainties are not to be trusted until the cause is removed."
+        )
+        lines += ["", "Likely cause" + ("s, most likely first:" if len(ad.causes) > 1 else ":"), ""]
+        lines += [
+            f"- **{c.kind}** ({100 * c.share:.0f} % of the excess chi2): {c.text}"
+            for c in ad.causes
+        ]
     lines.append("")
     for w in ad.warnings:
         lines += [f"**Warning:** {w}.", ""]
     o = ad.outliers
-    lines += ["| check | value |", "|---|---|",
-              f"| largest abs. normalised residual | {_fmt(o['max_abs'])} |",
-              f"| readings beyond 5 robust sigma / 5 budget sigma | "
-              f"{o['n_beyond_5_robust']} / {o['n_beyond_5_sigma']} |",
-              f"| excess kurtosis of the normalised residuals | {_fmt(o['excess_kurtosis'])} |",
-              f"| budget factor (sigma multiplier the residuals call for) | "
-              f"{_fmt(ad.budget_factor)} |"]
-    lines += ["", "Residual structure against each axis' position (nested F-test of the "
-              "binned means per station against the station means; share: of the residual "
-              "sum of squares the binned means explain beyond chance):", "",
-              "| axis | bins | F | p-value | share |", "|---|---:|---:|---:|---:|"]
+    lines += [
+        "| check | value |",
+        "|---|---|",
+        f"| largest abs. normalised residual | {_fmt(o['max_abs'])} |",
+        f"| readings beyond 5 robust sigma / 5 budget sigma | "
+        f"{o['n_beyond_5_robust']} / {o['n_beyond_5_sigma']} |",
+        f"| excess kurtosis of the normalised residuals | {_fmt(o['excess_kurtosis'])} |",
+        f"| budget factor (sigma multiplier the residuals call for) | {_fmt(ad.budget_factor)} |",
+    ]
+    lines += [
+        "",
+        "Residual structure against each axis' position (nested F-test of the "
+        "binned means per station against the station means; share: of the residual "
+        "sum of squares the binned means explain beyond chance):",
+        "",
+        "| axis | bins | F | p-value | share |",
+        "|---|---:|---:|---:|---:|",
+    ]
     for st in ad.structure:
         p = f"{st.p_value:.2g}" if st.log10_p > -300 else "< 1e-300"
-        lines.append(f"| {st.axis} | {st.n_bins} | {st.f:.3g} | {p} | "
-                     f"{100 * st.explained_share:.1f} % |")
+        lines.append(
+            f"| {st.axis} | {st.n_bins} | {st.f:.3g} | {p} | {100 * st.explained_share:.1f} % |"
+        )
     lines.append("")
     if plots:
         lines += ["![normalised residuals against each axis](residuals_vs_axes.png)", ""]
@@ -1019,14 +1280,21 @@ def _datum_section(result: IdentificationResult) -> str:
     assert tab is not None  # the caller writes this section only for results with a datum
     imp = tab[tab["imposed"]]
     free = tab[~tab["imposed"]]
-    lines = [f"### Datum ({result.error_model.datum})", "",
-             f"{len(imp)} of {len(tab)} candidate conditions are imposed: each removes a "
-             "direction the data cannot see, so together they fix the gauge without "
-             "changing the fit (the weighted residuals are those of the fit without datum)."]
+    lines = [
+        f"### Datum ({result.error_model.datum})",
+        "",
+        f"{len(imp)} of {len(tab)} candidate conditions are imposed: each removes a "
+        "direction the data cannot see, so together they fix the gauge without "
+        "changing the fit (the weighted residuals are those of the fit without datum).",
+    ]
     if len(free):
-        lines += ["The other conditions would have constrained combinations the data "
-                  "determine; they are not imposed and take these values:", "",
-                  "| condition | value | unit |", "|---|---:|---|"]
+        lines += [
+            "The other conditions would have constrained combinations the data "
+            "determine; they are not imposed and take these values:",
+            "",
+            "| condition | value | unit |",
+            "|---|---:|---|",
+        ]
         lines += [f"| {r.condition} | {r.value:.4g} | {r.unit} |" for r in free.itertuples()]
     else:
         lines.append("Every candidate condition holds exactly.")
@@ -1037,14 +1305,21 @@ def check_out_dir(out_dir: str | Path) -> Path:
     """Raise :class:`InputError` unless ``out_dir`` can be written: it must not exist, or
     be an empty folder or a previous result folder (which is then replaced)."""
     from volcal.base.folders import check_out_dir as _check
-    return _check(out_dir, RESULT_FILES + OPTIONAL_FILES, "an identification",
-                  marker="result.json")
+
+    return _check(out_dir, RESULT_FILES + OPTIONAL_FILES, "an identification", marker="result.json")
 
 
-def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name: str = "",
-                plots: bool = True, options: Mapping[str, Any] | None = None,
-                grid_points: int = GRID_POINTS,
-                component_points: int = COMPONENT_POINTS, force: bool | None = None) -> Path:
+def save_result(
+    result: IdentificationResult,
+    out_dir: str | Path,
+    *,
+    data_name: str = "",
+    plots: bool = True,
+    options: Mapping[str, Any] | None = None,
+    grid_points: int = GRID_POINTS,
+    component_points: int = COMPONENT_POINTS,
+    force: bool | None = None,
+) -> Path:
     """Write the result folder (see the module docstring) and return its path.
 
     data_name: the data file name recorded in result.json and the report; plots: write
@@ -1062,8 +1337,10 @@ def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name:
     from volcal.base.folders import write_folder
 
     if grid_points < 1 or component_points < 2:
-        raise InputError(f"expected grid_points >= 1 and component_points >= 2, got "
-                         f"{grid_points} and {component_points}")
+        raise InputError(
+            f"expected grid_points >= 1 and component_points >= 2, got "
+            f"{grid_points} and {component_points}"
+        )
     options = dict(options or {})
 
     def writer(tmp: Path) -> None:
@@ -1078,17 +1355,21 @@ def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name:
             _save_state(result.state, tmp / "solver_state.npz")
         if result.datum is not None:
             result.datum.rename(columns={"value": "value_in_unit"}).to_csv(
-                tmp / "datum.csv", index=False)
-        comp = component_error_table(em, result.theta, result.cov_theta, result.identifiable,
-                                     component_points)
+                tmp / "datum.csv", index=False
+            )
+        comp = component_error_table(
+            em, result.theta, result.cov_theta, result.identifiable, component_points
+        )
         comp.to_csv(tmp / "component_errors.csv", index=False)
         log.info("evaluating the volumetric error on the grid")
         grid = volumetric_grid_table(machine, em, result.theta, result.cov_theta, grid_points)
         grid.to_csv(tmp / "volumetric_grid.csv", index=False)
-        doc = _result_document(result, data_name=data_name, options=options, grid=grid,
-                               created=created)
+        doc = _result_document(
+            result, data_name=data_name, options=options, grid=grid, created=created
+        )
         (tmp / "result.json").write_text(
-            json.dumps(_json_safe(doc), indent=1, allow_nan=False) + "\n", encoding="utf-8")
+            json.dumps(_json_safe(doc), indent=1, allow_nan=False) + "\n", encoding="utf-8"
+        )
         if plots:
             log.info("plotting")
             _plot_component_errors(comp, em, tmp / "component_errors.png")
@@ -1097,16 +1378,32 @@ def save_result(result: IdentificationResult, out_dir: str | Path, *, data_name:
             for a in machine.spec.axes:
                 if a.is_rotary:
                     at_ref &= np.isclose(grid[a.name].to_numpy(float), a.reference)
-            _plot_volumetric_map(machine, grid[at_ref].reset_index(drop=True),
-                                 tmp / "volumetric_map.png")
+            _plot_volumetric_map(
+                machine, grid[at_ref].reset_index(drop=True), tmp / "volumetric_map.png"
+            )
             _plot_residuals(result.residuals, tmp / "residuals.png")
             _plot_residuals_vs_axes(result, tmp / "residuals_vs_axes.png")
         (tmp / "report.md").write_text(
-            _report(result, data_name=data_name, created=created, options=options, grid=grid,
-                    n_grid=grid_points, n_comp=component_points, plots=plots),
-            encoding="utf-8")
+            _report(
+                result,
+                data_name=data_name,
+                created=created,
+                options=options,
+                grid=grid,
+                n_grid=grid_points,
+                n_comp=component_points,
+                plots=plots,
+            ),
+            encoding="utf-8",
+        )
 
-    out = write_folder(out_dir, RESULT_FILES + OPTIONAL_FILES, "an identification", writer,
-                       marker="result.json", force=force)
+    out = write_folder(
+        out_dir,
+        RESULT_FILES + OPTIONAL_FILES,
+        "an identification",
+        writer,
+        marker="result.json",
+        force=force,
+    )
     log.info("wrote %s in %.2f s", out, time.perf_counter() - t0)
     return out

@@ -15,6 +15,7 @@ problem is built; the numbers are parameters, so the solver built from it serves
 data set of that layout (Monte Carlo, studies, repeated identifications) without rebuild.
 Fixing a variable is done with equal bounds, again without rebuild.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -127,15 +128,20 @@ class Layout:
         """The layout of validated measurements
         (:class:`volcal.measurement.tables.Measurements`), with readings of identical
         commanded pose and tool offset grouped."""
-        return cls(np.asarray(meas.station_index, int), len(meas.station_ids),
-                   tuple(meas.station_ids), cls.group_poses(meas.q_internal, meas.tool))
+        return cls(
+            np.asarray(meas.station_index, int),
+            len(meas.station_ids),
+            tuple(meas.station_ids),
+            cls.group_poses(meas.q_internal, meas.tool),
+        )
 
     @staticmethod
     def group_poses(q: np.ndarray, tool: np.ndarray) -> np.ndarray:
         """Pose index of every reading: readings with identical axis positions and tool
         offset share a pose."""
-        _, inv = np.unique(np.hstack([np.asarray(q, float), np.asarray(tool, float)]), axis=0,
-                           return_inverse=True)
+        _, inv = np.unique(
+            np.hstack([np.asarray(q, float), np.asarray(tool, float)]), axis=0, return_inverse=True
+        )
         return inv.ravel()
 
 
@@ -171,10 +177,13 @@ class IdentificationProblem:
         # Variables are scaled so that a unit step is a typical uncertainty (1 um, 1 urad,
         # 1 um for stations): IPOPT then sees a Hessian whose conditioning reflects the
         # geometry of the experiment, not the choice of units.
-        self.scale = np.concatenate([
-            solver_scale(em.param_units),
-            np.full(n_ps * n_st, 1e-3),
-            solver_scale(ins.global_param_units)])
+        self.scale = np.concatenate(
+            [
+                solver_scale(em.param_units),
+                np.full(n_ps * n_st, 1e-3),
+                solver_scale(ins.global_param_units),
+            ]
+        )
 
         # Two SX functions of the *scaled* variables.  Per pose: the actual tool point and
         # its derivative wrt theta (the chain and the error functions, the expensive part,
@@ -186,29 +195,48 @@ class IdentificationProblem:
         qs, ts, ths = ca.SX.sym("q", n_ax), ca.SX.sym("t", 3), ca.SX.sym("theta", nt)
         e = em.values_function()(qs, ths * ca.DM(sc[:nt]))
         point = m["tool_point_exact" if self.exact else "tool_point"](qs, ts, e)[0]
-        f_pose = ca.Function("pose", [qs, ts, ths], [point, ca.jacobian(point, ths)],
-                             ["q", "t", "theta"], ["p", "dp_dtheta"], {"cse": True})
+        f_pose = ca.Function(
+            "pose",
+            [qs, ts, ths],
+            [point, ca.jacobian(point, ths)],
+            ["q", "t", "theta"],
+            ["p", "dp_dtheta"],
+            {"cse": True},
+        )
         # the point alone: the objective and the residuals need no derivative (an MX call
         # evaluates every output of the function it calls)
-        f_point = ca.Function("point", [qs, ts, ths], [point], ["q", "t", "theta"], ["p"],
-                              {"cse": True})
+        f_point = ca.Function(
+            "point", [qs, ts, ths], [point], ["q", "t", "theta"], ["p"], {"cse": True}
+        )
         ps, ss, gs = ca.SX.sym("p", 3), ca.SX.sym("s", n_ps), ca.SX.sym("g", n_g)
         ms, ws = ca.SX.sym("m"), ca.SX.sym("w")
-        s_phys = ss * ca.DM(sc[nt:nt + n_ps])
-        g_phys = gs * ca.DM(sc[nt + n_ps * n_st:]) if n_g else gs
+        s_phys = ss * ca.DM(sc[nt : nt + n_ps])
+        g_phys = gs * ca.DM(sc[nt + n_ps * n_st :]) if n_g else gs
         res = ws * (ins.reading(ps, s_phys, g_phys) - ms)
         row = ca.jacobian(res, ca.vertcat(ps, ss, gs)).T
-        f_read = ca.Function("reading", [ps, ss, gs, ms, ws], [res, row],
-                             ["p", "s", "g", "m", "w"], ["r", "dr_dpsg"], {"cse": True})
-        f_res = ca.Function("reading_value", [ps, ss, gs, ms, ws], [res],
-                            ["p", "s", "g", "m", "w"], ["r"], {"cse": True})
+        f_read = ca.Function(
+            "reading",
+            [ps, ss, gs, ms, ws],
+            [res, row],
+            ["p", "s", "g", "m", "w"],
+            ["r", "dr_dpsg"],
+            {"cse": True},
+        )
+        f_res = ca.Function(
+            "reading_value",
+            [ps, ss, gs, ms, ws],
+            [res],
+            ["p", "s", "g", "m", "w"],
+            ["r"],
+            {"cse": True},
+        )
         self.pose_function, self.reading_function = f_pose, f_read
 
         # all readings in MX (x is the scaled variable vector)
         xs = ca.MX.sym("x", self.n_x)
         th = xs[:nt]
-        sp = xs[nt:nt + n_ps * n_st]
-        g = xs[nt + n_ps * n_st:]
+        sp = xs[nt : nt + n_ps * n_st]
+        g = xs[nt + n_ps * n_st :]
         Q, T = ca.MX.sym("q", n_ax, N), ca.MX.sym("t", 3, N)
         meas, w = ca.MX.sym("m", N), ca.MX.sym("w", N)
         p = ca.vertcat(ca.vec(Q), ca.vec(T), meas, w)
@@ -230,34 +258,47 @@ class IdentificationProblem:
         # poses' d(point)/d(theta).
         ar = np.arange(N)
         cols = (3 * pose_idx[:, None] + np.arange(3)[None, :]).ravel()
-        D = ca.MX(ca.Sparsity.triplet(N, 3 * Np, np.repeat(ar, 3).tolist(), cols.tolist()),
-                  ca.vec(rows[:3, :])[self._csc_order(N, 3 * Np, np.repeat(ar, 3), cols,
-                                                      np.arange(3 * N))])
+        D = ca.MX(
+            ca.Sparsity.triplet(N, 3 * Np, np.repeat(ar, 3).tolist(), cols.tolist()),
+            ca.vec(rows[:3, :])[
+                self._csc_order(N, 3 * Np, np.repeat(ar, 3), cols, np.arange(3 * N))
+            ],
+        )
         Gs = self._stack_poses(G, Np, nt)  # (3 n_poses, nt), shared with the Hessian
         J_th = ca.mtimes(D, Gs)
         # station and global columns: one nonzero per row per variable
         rr = np.concatenate([ar] * (n_ps + n_g))
-        cc = np.concatenate([nt + n_ps * st_idx + k for k in range(n_ps)]
-                            + [np.full(N, nt + n_ps * n_st + j) for j in range(n_g)])
+        cc = np.concatenate(
+            [nt + n_ps * st_idx + k for k in range(n_ps)]
+            + [np.full(N, nt + n_ps * n_st + j) for j in range(n_g)]
+        )
         src = np.concatenate([(3 + v) + ar * (3 + n_ps + n_g) for v in range(n_ps + n_g)])
-        J_rest = ca.MX(ca.Sparsity.triplet(N, self.n_x, rr.tolist(), cc.tolist()),
-                       ca.vec(rows)[self._csc_order(N, self.n_x, rr, cc, src)])
+        J_rest = ca.MX(
+            ca.Sparsity.triplet(N, self.n_x, rr.tolist(), cc.tolist()),
+            ca.vec(rows)[self._csc_order(N, self.n_x, rr, cc, src)],
+        )
         J = ca.horzcat(J_th, J_rest[:, nt:])
         self.residual = ca.Function("residual", [xs, p], [r_val], ["x", "p"], ["r"])
         self.jacobian = ca.Function("jacobian", [xs, p], [r, J], ["x", "p"], ["r", "J"])
 
         self.conditions = candidate_conditions(em, em.datum)
-        self.C_all = (np.array([c.row for c in self.conditions]) if self.conditions
-                      else np.zeros((0, nt)))
+        self.C_all = (
+            np.array([c.row for c in self.conditions]) if self.conditions else np.zeros((0, nt))
+        )
         # until a datum is selected for the data at hand, every candidate is in force
         self.datum_active = np.ones(len(self.conditions), bool)
         Cs = self.C_all * self.scale[None, :nt]
-        gvec = ca.mtimes(ca.DM(Cs), xs[:em.n_params]) if self.C_all.shape[0] else ca.MX(0, 1)
+        gvec = ca.mtimes(ca.DM(Cs), xs[: em.n_params]) if self.C_all.shape[0] else ca.MX(0, 1)
         self.nlp = {"x": xs, "p": p, "f": 0.5 * ca.sumsqr(r_val), "g": gvec}
         # gradient of 0.5 ||r||^2 from the explicit Jacobian: J^T r, instead of reverse AD
         # through the map (which cost half of a small solve)
-        self.grad_f = ca.Function("nlp_grad_f", [xs, p], [0.5 * ca.sumsqr(r), ca.mtimes(J.T, r)],
-                                  ["x", "p"], ["f", "grad_f_x"])
+        self.grad_f = ca.Function(
+            "nlp_grad_f",
+            [xs, p],
+            [0.5 * ca.sumsqr(r), ca.mtimes(J.T, r)],
+            ["x", "p"],
+            ["f", "grad_f_x"],
+        )
         lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", gvec.shape[0])
         # Gauss-Newton Hessian of the Lagrangian (constraints are linear: no curvature),
         # H = J^T J assembled from the structure of J instead of a generic sparse product
@@ -275,12 +316,17 @@ class IdentificationProblem:
         H_tt, H_tr = H_top[:, :nt], H_top[:, nt:]
         H_rr = ca.mtimes(Jr.T, Jr)
         H = ca.blockcat([[H_tt, H_tr], [H_tr.T, H_rr]])
-        self.hess_lag = ca.Function("nlp_hess_l", [xs, p, lam_f, lam_g],
-                                    [ca.triu(lam_f * ca.densify(H))],
-                                    ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
+        self.hess_lag = ca.Function(
+            "nlp_hess_l",
+            [xs, p, lam_f, lam_g],
+            [ca.triu(lam_f * ca.densify(H))],
+            ["x", "p", "lam_f", "lam_g"],
+            ["triu_hess_gamma_x_x"],
+        )
         #: H = J^T J alone (for the Gauss-Newton solver and the analyses)
-        self.gram = ca.Function("gram", [xs, p], [r, ca.mtimes(J.T, r), ca.densify(H)],
-                                ["x", "p"], ["r", "g", "H"])
+        self.gram = ca.Function(
+            "gram", [xs, p], [r, ca.mtimes(J.T, r), ca.densify(H)], ["x", "p"], ["r", "g", "H"]
+        )
 
         self.names = list(em.param_names)
         self.units = list(em.param_units)
@@ -297,9 +343,14 @@ class IdentificationProblem:
         A saved solver state applies to a rebuilt problem only when the fingerprints
         agree."""
         import hashlib
+
         h = hashlib.sha256()
-        for part in (self.machine.spec.name, self.instrument.name, str(self.exact),
-                     "|".join(self.names)):
+        for part in (
+            self.machine.spec.name,
+            self.instrument.name,
+            str(self.exact),
+            "|".join(self.names),
+        ):
             h.update(part.encode())
         h.update(np.ascontiguousarray(self.C_all, float).tobytes())
         h.update(np.ascontiguousarray(self.layout.station_index, np.int64).tobytes())
@@ -331,8 +382,9 @@ class IdentificationProblem:
 
     # ---- graph helpers ----------------------------------------------------------------
     @staticmethod
-    def _csc_order(nrow: int, ncol: int, rr: np.ndarray, cc: np.ndarray,
-                   src: np.ndarray) -> list[int]:
+    def _csc_order(
+        nrow: int, ncol: int, rr: np.ndarray, cc: np.ndarray, src: np.ndarray
+    ) -> list[int]:
         """Indices into a nonzero source vector, in the column-major order CasADi stores a
         matrix built from triplets (rr, cc) whose values sit at positions src."""
         order = np.lexsort((rr, cc))
@@ -343,16 +395,25 @@ class IdentificationProblem:
         """(3, n_poses * nt) [G_0 | G_1 | ...] -> (3 n_poses, nt) [G_0; G_1; ...]."""
         # column-major: vec(G) runs G_0 col 0, G_0 col 1, ...; reshape to (3, nt, n_poses)
         # then bring the pose index in front of the component index
-        idx = (np.arange(3)[None, :, None] + 3 * np.arange(nt)[None, None, :]
-               + 3 * nt * np.arange(n_poses)[:, None, None])  # (n_poses, 3, nt)
+        idx = (
+            np.arange(3)[None, :, None]
+            + 3 * np.arange(nt)[None, None, :]
+            + 3 * nt * np.arange(n_poses)[:, None, None]
+        )  # (n_poses, 3, nt)
         flat = idx.transpose(2, 0, 1).reshape(-1)  # column-major order of the result
         return ca.reshape(ca.vec(G)[flat.tolist()], 3 * n_poses, nt)
 
     # ---- packing ------------------------------------------------------------------------
     def pack_data(self, q: np.ndarray, t: np.ndarray, m: np.ndarray, w: np.ndarray) -> np.ndarray:
         """Parameter vector p from q (N, n_axes), t (N, 3), readings m (N,), weights w (N,)."""
-        return np.concatenate([np.asarray(q, float).ravel(), np.asarray(t, float).ravel(),
-                               np.asarray(m, float), np.asarray(w, float)])
+        return np.concatenate(
+            [
+                np.asarray(q, float).ravel(),
+                np.asarray(t, float).ravel(),
+                np.asarray(m, float),
+                np.asarray(w, float),
+            ]
+        )
 
     def pack_x(self, theta: np.ndarray, stations: np.ndarray, glob: np.ndarray | None = None):
         """x from theta (n_theta,), stations (n_stations, n_station_params), globals."""
@@ -363,7 +424,7 @@ class IdentificationProblem:
         """(theta, stations (n_stations, n_station_params), globals) from x."""
         x = np.asarray(x, float).ravel()
         nt, nps, ns = self.n_theta, self.instrument.n_station_params, self.layout.n_stations
-        return x[:nt], x[nt:nt + nps * ns].reshape(ns, nps), x[nt + nps * ns:]
+        return x[:nt], x[nt : nt + nps * ns].reshape(ns, nps), x[nt + nps * ns :]
 
     def to_scaled(self, x: np.ndarray) -> np.ndarray:
         return np.asarray(x, float) / self.scale

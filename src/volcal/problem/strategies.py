@@ -20,6 +20,7 @@ parameters).
 A new strategy is a :class:`PhasedStrategy` with its phases (or a subclass), registered
 with :func:`register`.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -82,16 +83,27 @@ class ClassicPipeline(Strategy):
     point_method: str = "sqrt"
 
 
-JOINT = PhasedStrategy("joint", "error parameters, stations and dead lengths together",
-                       (Phase(),))
+JOINT = PhasedStrategy("joint", "error parameters, stations and dead lengths together", (Phase(),))
 TWO_PHASE = PhasedStrategy(
-    "two-phase", "stations on nominal points first, then the errors with stations held",
-    (Phase(hold=frozenset({"errors", "frame"}), zero=frozenset({"errors", "frame"}),
-           datum=False, pivots=False, report="phase1"),
-     Phase(hold=frozenset({"stations"}))))
+    "two-phase",
+    "stations on nominal points first, then the errors with stations held",
+    (
+        Phase(
+            hold=frozenset({"errors", "frame"}),
+            zero=frozenset({"errors", "frame"}),
+            datum=False,
+            pivots=False,
+            report="phase1",
+        ),
+        Phase(hold=frozenset({"stations"})),
+    ),
+)
 POINTS_ONLY = PhasedStrategy(
-    "points-only", "stations held at known or analytical positions, only the errors",
-    (Phase(hold=frozenset({"stations"})),), hold_stations=True)
+    "points-only",
+    "stations held at known or analytical positions, only the errors",
+    (Phase(hold=frozenset({"stations"})),),
+    hold_stations=True,
+)
 CLASSIC = ClassicPipeline("classic", "calibrate -> multilaterate -> fit (paper 000)")
 
 _REGISTRY: dict[str, Strategy] = {s.name: s for s in (JOINT, TWO_PHASE, POINTS_ONLY, CLASSIC)}
@@ -116,14 +128,28 @@ def get_strategy(strategy: str | Strategy, **options) -> Strategy:
     try:
         s = _REGISTRY[str(strategy)]
     except KeyError:
-        raise InputError(f"unknown strategy {strategy!r}; expected one of "
-                         f"{', '.join(_REGISTRY)}") from None
+        raise InputError(
+            f"unknown strategy {strategy!r}; expected one of {', '.join(_REGISTRY)}"
+        ) from None
     if isinstance(s, ClassicPipeline) and options:
         from dataclasses import replace
+
         s = replace(s, **{k: v for k, v in options.items() if v is not None})
     return s
 
 
-__all__ = ["Phase", "Strategy", "PhasedStrategy", "ClassicPipeline", "JOINT", "TWO_PHASE",
-           "POINTS_ONLY", "CLASSIC", "register", "strategies", "get_strategy", "GROUPS",
-           "field"]
+__all__ = [
+    "Phase",
+    "Strategy",
+    "PhasedStrategy",
+    "ClassicPipeline",
+    "JOINT",
+    "TWO_PHASE",
+    "POINTS_ONLY",
+    "CLASSIC",
+    "register",
+    "strategies",
+    "get_strategy",
+    "GROUPS",
+    "field",
+]

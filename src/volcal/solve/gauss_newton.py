@@ -20,6 +20,7 @@ serialised for worker processes and generated as C); only the accept/reject loop
 stopping test are Python.  At the fixed point the reduced gradient Z^T J^T r is zero, which
 is the KKT condition of the constrained problem: the minimiser is the one IPOPT finds.
 """
+
 from __future__ import annotations
 
 import time
@@ -32,8 +33,7 @@ from volcal.problem.residuals import IdentificationProblem
 from volcal.solve.outcome import SolveOutcome
 
 
-def feasible_basis(problem: IdentificationProblem, fixed: np.ndarray | None
-                   ) -> np.ndarray:
+def feasible_basis(problem: IdentificationProblem, fixed: np.ndarray | None) -> np.ndarray:
     """Z (n_x, n_z): orthonormal basis of the steps that keep the datum in force and the
     held variables where they are (scaled variables)."""
     n, nt = problem.n_x, problem.n_theta
@@ -49,8 +49,9 @@ def feasible_basis(problem: IdentificationProblem, fixed: np.ndarray | None
     return Z
 
 
-def project_feasible(problem: IdentificationProblem, xs: np.ndarray,
-                     fixed: np.ndarray | None) -> np.ndarray:
+def project_feasible(
+    problem: IdentificationProblem, xs: np.ndarray, fixed: np.ndarray | None
+) -> np.ndarray:
     """The closest point to xs (scaled) that satisfies the datum in force, moving free
     variables only."""
     n, nt = problem.n_x, problem.n_theta
@@ -70,8 +71,14 @@ class GaussNewtonSolver:
     """Gauss-Newton / Levenberg-Marquardt for an :class:`IdentificationProblem`, built once
     per problem and reused for any data of its layout (see the module docstring)."""
 
-    def __init__(self, problem: IdentificationProblem, *, max_iter: int = 50,
-                 step_tol: float = 1e-9, damping: float = 0.0):
+    def __init__(
+        self,
+        problem: IdentificationProblem,
+        *,
+        max_iter: int = 50,
+        step_tol: float = 1e-9,
+        damping: float = 0.0,
+    ):
         self.problem = problem
         self.max_iter = max_iter
         #: stop once the largest step is below this (scaled units: 1 = 1 um or 1 urad)
@@ -99,9 +106,13 @@ class GaussNewtonSolver:
             dx = ca.mtimes(Z, dz)
             pred = -(ca.dot(gz, dz) + 0.5 * ca.dot(dz, ca.mtimes(Hz, dz))) if n_z else 0
             kkt = ca.mmax(ca.fabs(gz)) if n_z else 0
-            f = ca.Function(f"gn_step_{n_z}", [x, p, Z, mu],
-                            [0.5 * ca.sumsqr(r), dx, kkt, pred],
-                            ["x", "p", "Z", "mu"], ["f", "dx", "kkt", "pred"])
+            f = ca.Function(
+                f"gn_step_{n_z}",
+                [x, p, Z, mu],
+                [0.5 * ca.sumsqr(r), dx, kkt, pred],
+                ["x", "p", "Z", "mu"],
+                ["f", "dx", "kkt", "pred"],
+            )
             self._steps[n_z] = f
         return f
 
@@ -109,8 +120,15 @@ class GaussNewtonSolver:
         r = self.problem.residual(xs, p).full().ravel()
         return 0.5 * float(r @ r)
 
-    def solve(self, x0: np.ndarray, p: np.ndarray, *, fixed: np.ndarray | None = None,
-              max_iter: int | None = None, damping: float | None = None) -> SolveOutcome:
+    def solve(
+        self,
+        x0: np.ndarray,
+        p: np.ndarray,
+        *,
+        fixed: np.ndarray | None = None,
+        max_iter: int | None = None,
+        damping: float | None = None,
+    ) -> SolveOutcome:
         """Solve from x0 (physical units) with data p, ``fixed`` variables held at x0.
         x0 is first projected onto the datum.  Returns x in physical units."""
         pr = self.problem
@@ -152,13 +170,19 @@ class GaussNewtonSolver:
                 status = "Solved_To_Acceptable_Level"
         x = pr.from_scaled(xs)
         ok = status in ("Solve_Succeeded", "Solved_To_Acceptable_Level") and bool(
-            np.all(np.isfinite(x)))
+            np.all(np.isfinite(x))
+        )
         return SolveOutcome(x, f, status, ok, it, time.perf_counter() - t0)
 
 
-def polish(solver: GaussNewtonSolver, x: np.ndarray, p: np.ndarray,
-           fixed: np.ndarray | None = None, *, steps: int = 10
-           ) -> tuple[np.ndarray, int, float]:
+def polish(
+    solver: GaussNewtonSolver,
+    x: np.ndarray,
+    p: np.ndarray,
+    fixed: np.ndarray | None = None,
+    *,
+    steps: int = 10,
+) -> tuple[np.ndarray, int, float]:
     """A few Gauss-Newton steps from IPOPT's answer x (physical units) under the datum in
     force, with ``fixed`` variables held.
 

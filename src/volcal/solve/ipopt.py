@@ -4,6 +4,7 @@ IPOPT with a Gauss-Newton Hessian passed through ``hess_lag``: for nonlinear lea
 squares it converges in a handful of iterations and costs half of the exact Hessian
 (DESIGN.md).  The exact Hessian is kept as an option.
 """
+
 from __future__ import annotations
 
 import time
@@ -21,8 +22,15 @@ _OK = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
 class NLPSolver:
     """IPOPT for an :class:`IdentificationProblem`, built once and reused for any data."""
 
-    def __init__(self, problem: IdentificationProblem, *, hessian: str = "gauss-newton",
-                 tol: float = 1e-8, max_iter: int = 100, verbose: bool = False):
+    def __init__(
+        self,
+        problem: IdentificationProblem,
+        *,
+        hessian: str = "gauss-newton",
+        tol: float = 1e-8,
+        max_iter: int = 100,
+        verbose: bool = False,
+    ):
         self.problem = problem
         opts: dict[str, Any] = {
             "ipopt.print_level": 5 if verbose else 0,
@@ -49,8 +57,9 @@ class NLPSolver:
         self.hessian = hessian
         self.solver = ca.nlpsol("identify", "ipopt", problem.nlp, opts)
 
-    def solve(self, x0: np.ndarray, p: np.ndarray, *, fixed: np.ndarray | None = None
-              ) -> SolveOutcome:
+    def solve(
+        self, x0: np.ndarray, p: np.ndarray, *, fixed: np.ndarray | None = None
+    ) -> SolveOutcome:
         """Solve from x0 (physical units) with data p; variables where ``fixed`` is True
         stay at x0.  Returns x in physical units."""
         n = self.problem.n_x

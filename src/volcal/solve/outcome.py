@@ -1,4 +1,5 @@
 """What a solve returned, whichever solver ran it."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -31,6 +31,7 @@ estimate's change as ``K @ dm`` for a matrix of reading changes (many right-hand
 The exact (non-truncated) machine model is not linear in theta; for it use the IPOPT path
 (:func:`volcal.analysis.uncertainty.montecarlo.ipopt_resolve`), which is general and slow.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -41,24 +42,27 @@ import scipy.linalg as sla
 __all__ = ["StructuredLSQ", "VolumetricMap", "unpack_data", "BatchSolution"]
 
 
-def unpack_data(n_axes: int, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                      np.ndarray]:
+def unpack_data(
+    n_axes: int, p: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(q (N, n_axes), t (N, 3), m (N,), w (N,)) from a parameter vector of
     :meth:`volcal.problem.residuals.IdentificationProblem.pack_data`."""
     p = np.asarray(p, float).ravel()
     N = p.size // (n_axes + 5)
     if N * (n_axes + 5) != p.size:
-        raise ValueError(f"data vector of length {p.size} does not split into readings of "
-                         f"{n_axes} axes")
-    q = p[:N * n_axes].reshape(N, n_axes)
-    t = p[N * n_axes:N * (n_axes + 3)].reshape(N, 3)
-    m = p[N * (n_axes + 3):N * (n_axes + 4)]
-    w = p[N * (n_axes + 4):]
+        raise ValueError(
+            f"data vector of length {p.size} does not split into readings of {n_axes} axes"
+        )
+    q = p[: N * n_axes].reshape(N, n_axes)
+    t = p[N * n_axes : N * (n_axes + 3)].reshape(N, 3)
+    m = p[N * (n_axes + 3) : N * (n_axes + 4)]
+    w = p[N * (n_axes + 4) :]
     return q, t, m, w
 
 
-def _point_model(machine, error_model, q: np.ndarray, t: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def _point_model(
+    machine, error_model, q: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """P0 (N, 3) and G (N, 3, n_theta) with P = P0 + G theta (first-order model, exact)."""
     p0, _, Je = machine.evaluate(q, t, np.zeros(machine.n_errors))
     B = error_model.basis(q)
@@ -78,11 +82,15 @@ class VolumetricMap:
     points: np.ndarray
 
     @classmethod
-    def build(cls, machine, error_model, q: np.ndarray, tool: np.ndarray | None = None
-              ) -> VolumetricMap:
+    def build(
+        cls, machine, error_model, q: np.ndarray, tool: np.ndarray | None = None
+    ) -> VolumetricMap:
         q = np.atleast_2d(np.asarray(q, float))
-        tool = np.zeros((len(q), 3)) if tool is None else np.array(
-            np.broadcast_to(np.asarray(tool, float), (len(q), 3)))
+        tool = (
+            np.zeros((len(q), 3))
+            if tool is None
+            else np.array(np.broadcast_to(np.asarray(tool, float), (len(q), 3)))
+        )
         p0, G = _point_model(machine, error_model, q, tool)
         return cls(q, tool, G, p0)
 
@@ -121,35 +129,47 @@ class StructuredLSQ:
     held variables, ``scale`` the problem's variable scaling.
     """
 
-    P0: np.ndarray            # (N, 3)
-    G: np.ndarray             # (N, 3, n_theta)
-    w: np.ndarray             # (N,)
-    m: np.ndarray             # (N,) nominal readings
+    P0: np.ndarray  # (N, 3)
+    G: np.ndarray  # (N, 3, n_theta)
+    w: np.ndarray  # (N,)
+    m: np.ndarray  # (N,) nominal readings
     station_index: np.ndarray  # (N,)
     n_stations: int
-    x_hat: np.ndarray         # (n,)
-    fixed: np.ndarray         # (n,) bool
-    scale: np.ndarray         # (n,)
-    Z: np.ndarray             # (n_free, n_z)
-    R: np.ndarray             # (n_z, n_z) upper triangular, J0 Z = Q R
+    x_hat: np.ndarray  # (n,)
+    fixed: np.ndarray  # (n,) bool
+    scale: np.ndarray  # (n,)
+    Z: np.ndarray  # (n_free, n_z)
+    R: np.ndarray  # (n_z, n_z) upper triangular, J0 Z = Q R
     names: list[str] = field(default_factory=list)
     _J0: np.ndarray | None = field(default=None, repr=False)
 
     # ---- construction -------------------------------------------------------------------
     @classmethod
-    def build(cls, problem, x_hat: np.ndarray, p: np.ndarray, fixed: np.ndarray, *,
-              constrained: bool = True, check: bool = True) -> StructuredLSQ:
+    def build(
+        cls,
+        problem,
+        x_hat: np.ndarray,
+        p: np.ndarray,
+        fixed: np.ndarray,
+        *,
+        constrained: bool = True,
+        check: bool = True,
+    ) -> StructuredLSQ:
         """From an :class:`~volcal.problem.residuals.IdentificationProblem`, its solution x_hat
         (physical), the data vector p and the held variables.  With ``check`` the
         residuals and gradient are compared with the problem's CasADi functions (relative
         1e-9), which guards this re-implementation against any change of the model."""
         if getattr(problem, "exact", False):
-            raise ValueError("the structured solver needs the first-order machine model "
-                             "(linear in theta); use the IPOPT path for exact=True")
+            raise ValueError(
+                "the structured solver needs the first-order machine model "
+                "(linear in theta); use the IPOPT path for exact=True"
+            )
         ins = problem.instrument
         if ins.n_station_params != 4 or ins.n_global_params != 6:
-            raise ValueError(f"the structured solver knows sequential multilateration only, "
-                             f"not {type(ins).__name__}")
+            raise ValueError(
+                f"the structured solver knows sequential multilateration only, "
+                f"not {type(ins).__name__}"
+            )
         m_ = problem.machine
         q, t, meas, w = unpack_data(m_.n_axes, p)
         P0, G = _point_model(m_, problem.error_model, q, t)
@@ -162,17 +182,27 @@ class StructuredLSQ:
         Cf = C[:, free]
         Cf = Cf[np.linalg.norm(Cf, axis=1) > 0]
         Z = sla.null_space(Cf) if Cf.shape[0] else np.eye(int(free.sum()))
-        self = cls(P0=P0, G=G, w=np.array(w), m=np.array(meas),
-                   station_index=np.asarray(problem.layout.station_index, int),
-                   n_stations=int(problem.layout.n_stations), x_hat=np.array(x_hat, float),
-                   fixed=fixed, scale=np.array(problem.scale, float), Z=Z,
-                   R=np.zeros((0, 0)), names=list(problem.names))
+        self = cls(
+            P0=P0,
+            G=G,
+            w=np.array(w),
+            m=np.array(meas),
+            station_index=np.asarray(problem.layout.station_index, int),
+            n_stations=int(problem.layout.n_stations),
+            x_hat=np.array(x_hat, float),
+            fixed=fixed,
+            scale=np.array(problem.scale, float),
+            Z=Z,
+            R=np.zeros((0, 0)),
+            names=list(problem.names),
+        )
         J0 = self.jacobian(self.x_hat)
         A = J0[:, free] @ Z
         self.R = np.asarray(np.linalg.qr(A, mode="r"))
         self._J0 = J0
         if check:
             import casadi  # noqa: F401  (only to fail clearly if unavailable)
+
             xs = problem.to_scaled(self.x_hat)
             r_ca, J_ca = (v.full() for v in problem.jacobian(xs, p))
             r_me = self.residuals(self.x_hat[None, :], meas[None, :])[0]
@@ -180,11 +210,12 @@ class StructuredLSQ:
             g_me = self.gradient(self.x_hat[None, :], meas[None, :])[0]
             er = np.max(np.abs(r_me - r_ca.ravel())) / max(1.0, np.max(np.abs(r_ca)))
             eJ = np.max(np.abs(J0 - J_ca)) / max(1.0, np.max(np.abs(J_ca)))
-            eg = np.max(np.abs(g_me - g_ca)) / max(1.0, np.max(np.abs(J_ca)) *
-                                                   np.sqrt(len(meas)))
+            eg = np.max(np.abs(g_me - g_ca)) / max(1.0, np.max(np.abs(J_ca)) * np.sqrt(len(meas)))
             if max(er, eJ, eg) > 1e-9:
-                raise AssertionError(f"structured model differs from the CasADi problem: "
-                                     f"residuals {er:.2e}, Jacobian {eJ:.2e}, gradient {eg:.2e}")
+                raise AssertionError(
+                    f"structured model differs from the CasADi problem: "
+                    f"residuals {er:.2e}, Jacobian {eJ:.2e}, gradient {eg:.2e}"
+                )
         return self
 
     def __getstate__(self):
@@ -216,8 +247,8 @@ class StructuredLSQ:
     def _split(self, X: np.ndarray):
         nt, K = self.n_theta, self.n_stations
         th = X[:, :nt]
-        S = X[:, nt:nt + 4 * K].reshape(-1, K, 4)
-        g = X[:, nt + 4 * K:]
+        S = X[:, nt : nt + 4 * K].reshape(-1, K, 4)
+        g = X[:, nt + 4 * K :]
         return th, S, g
 
     def _geometry(self, X: np.ndarray):
@@ -246,40 +277,40 @@ class StructuredLSQ:
         N, nt, K = self.n_readings, self.n_theta, self.n_stations
         G2 = self.G.reshape(3 * N, nt)
         th = X[:, :nt]
-        S = X[:, nt:nt + 4 * K].reshape(B, K, 4).transpose(1, 2, 0)   # (K, 4, B)
-        gl = X[:, nt + 4 * K:]                                         # (B, 6)
+        S = X[:, nt : nt + 4 * K].reshape(B, K, 4).transpose(1, 2, 0)  # (K, 4, B)
+        gl = X[:, nt + 4 * K :]  # (B, 6)
         P = (G2 @ th.T).reshape(N, 3, B)
         P += self.P0[:, :, None]
-        Qs = S[:, :3, :]                                               # (K, 3, B)
+        Qs = S[:, :3, :]  # (K, 3, B)
         frame = bool(np.any(gl))
         if frame:
-            om = gl[:, 3:6].T                                          # (3, B)
+            om = gl[:, 3:6].T  # (3, B)
             Qeff = Qs + gl[:, :3].T[None] + np.cross(om[None], Qs, axis=1)
         else:
             Qeff = Qs
         idx = self.station_index
-        P -= Qeff[idx]                                                 # D, (N, 3, B)
+        P -= Qeff[idx]  # D, (N, 3, B)
         D = P
-        L = np.sqrt(D[:, 0] ** 2 + D[:, 1] ** 2 + D[:, 2] ** 2)        # (N, B)
+        L = np.sqrt(D[:, 0] ** 2 + D[:, 1] ** 2 + D[:, 2] ** 2)  # (N, B)
         r = L - S[idx, 3, :]
         r -= MT
-        wr = r * self.w2[:, None]                                      # w * (w * raw)
+        wr = r * self.w2[:, None]  # w * (w * raw)
         coef = wr / L
-        D *= coef[:, None, :]                                          # V = r U, (N, 3, B)
+        D *= coef[:, None, :]  # V = r U, (N, 3, B)
         V = D
         g = np.empty((B, self.n))
         g[:, :nt] = (G2.T @ V.reshape(3 * N, B)).T
         Ind = self._indicator()
         VS = -(Ind @ V.reshape(N, 3 * B)).reshape(K, 3, B)
-        wrS = -(Ind @ wr)                                              # (K, B)
+        wrS = -(Ind @ wr)  # (K, B)
         if frame:
             gS = VS - np.cross(om[None], VS, axis=1)
         else:
             gS = VS
-        gsta = np.concatenate([gS, wrS[:, None, :]], axis=1)           # (K, 4, B)
-        g[:, nt:nt + 4 * K] = gsta.transpose(2, 0, 1).reshape(B, 4 * K)
-        g[:, nt + 4 * K:nt + 4 * K + 3] = VS.sum(axis=0).T
-        g[:, nt + 4 * K + 3:] = np.cross(Qs, VS, axis=1).sum(axis=0).T
+        gsta = np.concatenate([gS, wrS[:, None, :]], axis=1)  # (K, 4, B)
+        g[:, nt : nt + 4 * K] = gsta.transpose(2, 0, 1).reshape(B, 4 * K)
+        g[:, nt + 4 * K : nt + 4 * K + 3] = VS.sum(axis=0).T
+        g[:, nt + 4 * K + 3 :] = np.cross(Qs, VS, axis=1).sum(axis=0).T
         return g
 
     def _gradient(self, X, M):
@@ -290,7 +321,7 @@ class StructuredLSQ:
     def w2(self) -> np.ndarray:
         w2 = getattr(self, "_w2", None)
         if w2 is None:
-            w2 = self._w2 = self.w ** 2
+            w2 = self._w2 = self.w**2
         return w2
 
     def gradient(self, X: np.ndarray, M: np.ndarray) -> np.ndarray:
@@ -310,7 +341,7 @@ class StructuredLSQ:
         """Jacobian (N, n) of the whitened residuals wrt the scaled variables at x."""
         x = np.asarray(x, float)[None, :]
         D, L, S = self._geometry(x)
-        U = (D / L[:, :, None])[0] * self.w[:, None]          # (N, 3)
+        U = (D / L[:, :, None])[0] * self.w[:, None]  # (N, 3)
         N, nt, K = self.n_readings, self.n_theta, self.n_stations
         J = np.zeros((N, self.n))
         J[:, :nt] = np.einsum("ni,nip->np", U, self.G)
@@ -324,19 +355,26 @@ class StructuredLSQ:
         for k in range(3):
             J[rows, cols + k] = dS[:, k]
         J[rows, cols + 3] = -self.w
-        J[:, nt + 4 * K:nt + 4 * K + 3] = -U
-        J[:, nt + 4 * K + 3:] = -np.cross(S_[0, self.station_index, :3], U)
+        J[:, nt + 4 * K : nt + 4 * K + 3] = -U
+        J[:, nt + 4 * K + 3 :] = -np.cross(S_[0, self.station_index, :3], U)
         return J * self.scale
 
     # ---- solving ------------------------------------------------------------------------------
     def _step(self, g_scaled_free: np.ndarray) -> np.ndarray:
         """(B, n_free) scaled step for gradients (B, n_free)."""
-        b = g_scaled_free @ self.Z                             # (B, n_z)
+        b = g_scaled_free @ self.Z  # (B, n_z)
         y = sla.solve_triangular(self.R, sla.solve_triangular(self.R, b.T, trans="T"))
         return -(self.Z @ y).T
 
-    def solve(self, M: np.ndarray, X0: np.ndarray | None = None, *, tol: float = 1e-9,
-              stall_tol: float = 1e-7, max_iter: int = 50) -> BatchSolution:
+    def solve(
+        self,
+        M: np.ndarray,
+        X0: np.ndarray | None = None,
+        *,
+        tol: float = 1e-9,
+        stall_tol: float = 1e-7,
+        max_iter: int = 50,
+    ) -> BatchSolution:
         """Exact constrained nonlinear least-squares solutions for readings M (B, N),
         starting from X0 (B, n; default x_hat; fixed variables keep their X0 values).
 
@@ -359,8 +397,7 @@ class StructuredLSQ:
             idx = np.flatnonzero(active)
             if not idx.size:
                 break
-            g = self._gradient_t(X[idx], MT if idx.size == B else
-                                 np.ascontiguousarray(MT[:, idx]))
+            g = self._gradient_t(X[idx], MT if idx.size == B else np.ascontiguousarray(MT[:, idx]))
             dxs = self._step((g * self.scale)[:, free])
             X[np.ix_(idx, np.flatnonzero(free))] += dxs * sc
             size = np.max(np.abs(dxs), axis=1)
@@ -381,11 +418,11 @@ class StructuredLSQ:
         # dx_free(scaled) = -Z H^-1 Z^T J_f^T (dr), dr = -w dm  or  J_fixed dxs_fixed
         A = J0[:, free] @ self.Z
         Y = sla.solve_triangular(self.R, sla.solve_triangular(self.R, A.T, trans="T"))
-        P = self.Z @ Y                                        # (n_free, N): H^-1 J^T
+        P = self.Z @ Y  # (n_free, N): H^-1 J^T
         Km = np.zeros((self.n, self.n_readings))
         Km[free] = (P * self.w[None, :]) * self.scale[free][:, None]
         Kx = np.zeros((self.n, int(self.fixed.sum())))
-        Jx = J0[:, self.fixed] / self.scale[self.fixed]      # per physical unit
+        Jx = J0[:, self.fixed] / self.scale[self.fixed]  # per physical unit
         Kx[free] = -(P @ Jx) * self.scale[free][:, None]
         Kx[np.flatnonzero(self.fixed), np.arange(int(self.fixed.sum()))] = 1.0
         return Km, Kx

@@ -11,6 +11,7 @@ negligible uncertainty, U(y2) = 0.
 :func:`compare_with_reference` joins a result table with a reference table (one row per
 quantity: ``name, value, unit, U``) and adds E_n per quantity.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -21,10 +22,18 @@ from volcal.base.exceptions import InputError
 __all__ = ["evaluation_factor", "compare_with_reference", "UNIT_FACTORS"]
 
 #: factors to the report units (um for lengths, urad for angles)
-UNIT_FACTORS = {"um": ("um", 1.0), "µm": ("um", 1.0), "mm": ("um", 1e3), "nm": ("um", 1e-3),
-                "urad": ("urad", 1.0), "µrad": ("urad", 1.0), "mrad": ("urad", 1e3),
-                "rad": ("urad", 1e6), "arcsec": ("urad", np.pi / 648000.0 * 1e6),
-                "deg": ("urad", np.pi / 180.0 * 1e6)}
+UNIT_FACTORS = {
+    "um": ("um", 1.0),
+    "µm": ("um", 1.0),
+    "mm": ("um", 1e3),
+    "nm": ("um", 1e-3),
+    "urad": ("urad", 1.0),
+    "µrad": ("urad", 1.0),
+    "mrad": ("urad", 1e3),
+    "rad": ("urad", 1e6),
+    "arcsec": ("urad", np.pi / 648000.0 * 1e6),
+    "deg": ("urad", np.pi / 180.0 * 1e6),
+}
 
 
 def evaluation_factor(y1, U1, y2, U2=0.0):
@@ -34,28 +43,37 @@ def evaluation_factor(y1, U1, y2, U2=0.0):
     y1, U1, y2, U2 = (np.asarray(v, float) for v in (y1, U1, y2, U2))
     if np.any(U1 < 0) or np.any(U2 < 0):
         raise ValueError("expanded uncertainties must be >= 0")
-    den = np.sqrt(U1 ** 2 + U2 ** 2)
+    den = np.sqrt(U1**2 + U2**2)
     with np.errstate(divide="ignore", invalid="ignore"):
         out = np.abs(y1 - y2) / den
     return out if out.ndim else float(out)
 
 
-def _to_report_units(values: pd.Series, units: pd.Series, what: str) -> tuple[np.ndarray,
-                                                                                list[str]]:
+def _to_report_units(
+    values: pd.Series, units: pd.Series, what: str
+) -> tuple[np.ndarray, list[str]]:
     out, kinds = [], []
     for v, u in zip(values, units):
         if u not in UNIT_FACTORS:
-            raise InputError(f"unknown unit {u!r} in {what}; expected one of "
-                             f"{sorted(UNIT_FACTORS)}", column="unit")
+            raise InputError(
+                f"unknown unit {u!r} in {what}; expected one of {sorted(UNIT_FACTORS)}",
+                column="unit",
+            )
         kind, f = UNIT_FACTORS[u]
         out.append(float(v) * f)
         kinds.append(kind)
     return np.array(out), kinds
 
 
-def compare_with_reference(result: pd.DataFrame, reference: pd.DataFrame | str,
-                           *, name: str = "name", value: str = "value", U: str = "U",
-                           unit: str = "unit") -> pd.DataFrame:
+def compare_with_reference(
+    result: pd.DataFrame,
+    reference: pd.DataFrame | str,
+    *,
+    name: str = "name",
+    value: str = "value",
+    U: str = "U",
+    unit: str = "unit",
+) -> pd.DataFrame:
     """E_n of every quantity present in both tables.
 
     result, reference: tables with columns ``name, value, unit, U`` (U the expanded
@@ -71,16 +89,14 @@ def compare_with_reference(result: pd.DataFrame, reference: pd.DataFrame | str,
             if c not in tab:
                 raise InputError(f"the {what} table has no column {c!r}", column=c)
     if U not in result:
-        raise InputError(f"the result table has no column {U!r} (expanded uncertainty)",
-                         column=U)
+        raise InputError(f"the result table has no column {U!r} (expanded uncertainty)", column=U)
     ref = reference.copy()
     if U not in ref:
         ref[U] = 0.0
     res = result.set_index(result[name].astype(str))
     missing = [n for n in ref[name].astype(str) if n not in res.index]
     if missing:
-        raise InputError(f"reference quantities not in the result: {missing[:8]}",
-                         column=name)
+        raise InputError(f"reference quantities not in the result: {missing[:8]}", column=name)
     sub = res.loc[ref[name].astype(str)]
     y1, k1 = _to_report_units(sub[value], sub[unit], "the result")
     U1, _ = _to_report_units(sub[U], sub[unit], "the result")
@@ -90,6 +106,16 @@ def compare_with_reference(result: pd.DataFrame, reference: pd.DataFrame | str,
     if bad:
         raise InputError(f"length compared with angle for {bad[:5]}", column=unit)
     en = evaluation_factor(y1, U1, y2, U2)
-    return pd.DataFrame({"name": ref[name].astype(str).to_numpy(), "unit": k2, "value": y1,
-                         "U": U1, "reference": y2, "U_reference": U2,
-                         "difference": y1 - y2, "E_n": en, "agrees": en <= 1.0})
+    return pd.DataFrame(
+        {
+            "name": ref[name].astype(str).to_numpy(),
+            "unit": k2,
+            "value": y1,
+            "U": U1,
+            "reference": y2,
+            "U_reference": U2,
+            "difference": y1 - y2,
+            "E_n": en,
+            "agrees": en <= 1.0,
+        }
+    )

@@ -25,6 +25,7 @@ Inputs are centred on the values the identification used (the measured readings,
 commanded axis positions, the given tool offsets): the trials' spread is the
 uncertainty of the estimate, their mean the GUM S1 estimate.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -46,9 +47,22 @@ from volcal.analysis.uncertainty.sampling import InputSampler
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Chunk", "MCKernel", "MCSamples", "MCResult", "build_kernel", "run_trials",
-           "contributions", "ipopt_resolve", "verify_against_ipopt", "fixed_mask",
-           "identification_data", "monte_carlo", "error_motion_rows", "quantity_table"]
+__all__ = [
+    "Chunk",
+    "MCKernel",
+    "MCSamples",
+    "MCResult",
+    "build_kernel",
+    "run_trials",
+    "contributions",
+    "ipopt_resolve",
+    "verify_against_ipopt",
+    "fixed_mask",
+    "identification_data",
+    "monte_carlo",
+    "error_motion_rows",
+    "quantity_table",
+]
 
 DEFAULT_CHUNK = 200
 
@@ -120,18 +134,40 @@ class MCKernel:
             X, it, conv, step = sol.x, sol.iterations, sol.converged, sol.step
         else:
             raise ValueError(f"unknown mode {chunk.mode!r}")
-        vol = self.volmap(X[:, :self.n_theta])
+        vol = self.volmap(X[:, : self.n_theta])
         return {"x": X, "vol": vol, "iterations": it, "converged": conv, "step": step}
 
     def fingerprint(self) -> str:
         """Hash of everything that determines the trials' results."""
         h = hashlib.sha256()
         e, s = self.engine, self.sampler
-        for a in (e.x_hat, e.m, e.w, e.fixed.astype(np.uint8), e.station_index, e.G, e.P0,
-                  s.axis_sens, s.length_mm, s.time_s, s.tool_sens, self.volmap.G):
+        for a in (
+            e.x_hat,
+            e.m,
+            e.w,
+            e.fixed.astype(np.uint8),
+            e.station_index,
+            e.G,
+            e.P0,
+            s.axis_sens,
+            s.length_mm,
+            s.time_s,
+            s.tool_sens,
+            self.volmap.G,
+        ):
             h.update(np.ascontiguousarray(a).tobytes())
-        h.update(json.dumps([s.names, repr(s.budget), s.tool_sigma_mm, s.station_sigma_mm,
-                             self.tol, self.max_iter]).encode())
+        h.update(
+            json.dumps(
+                [
+                    s.names,
+                    repr(s.budget),
+                    s.tool_sigma_mm,
+                    s.station_sigma_mm,
+                    self.tol,
+                    self.max_iter,
+                ]
+            ).encode()
+        )
         return h.hexdigest()
 
     def linear_covariance(self, enabled: Iterable[str] | None = None) -> np.ndarray:
@@ -206,11 +242,21 @@ def identification_data(result, meas, budget=None) -> tuple[np.ndarray, np.ndarr
     return x, w
 
 
-def build_kernel(ider, x_hat: np.ndarray, p: np.ndarray, fixed: np.ndarray, budget, *,
-                 time_s: np.ndarray | None = None, eval_q: np.ndarray | None = None,
-                 eval_tool: np.ndarray | None = None, tool_sigma_mm: float = 0.0,
-                 station_sigma_mm: float = 0.0, tol: float = 1e-9,
-                 check: bool = True) -> MCKernel:
+def build_kernel(
+    ider,
+    x_hat: np.ndarray,
+    p: np.ndarray,
+    fixed: np.ndarray,
+    budget,
+    *,
+    time_s: np.ndarray | None = None,
+    eval_q: np.ndarray | None = None,
+    eval_tool: np.ndarray | None = None,
+    tool_sigma_mm: float = 0.0,
+    station_sigma_mm: float = 0.0,
+    tol: float = 1e-9,
+    check: bool = True,
+) -> MCKernel:
     """The Monte Carlo kernel of an identification (Identifier ``ider``, solution x_hat,
     data vector p, held variables ``fixed``) with a budget.  eval_q (M, n_axes; mm, rad)
     and eval_tool (M, 3) are the poses whose volumetric errors are collected (default: a
@@ -224,10 +270,20 @@ def build_kernel(ider, x_hat: np.ndarray, p: np.ndarray, fixed: np.ndarray, budg
     D, L, _ = eng._geometry(eng.x_hat[None, :])
     u = D[0] / L[0][:, None]
     length = L[0]
-    sampler = InputSampler.build(machine, q, t, pr.layout.station_index, u, length, budget,
-                                 time_s=time_s, fixed=fixed, station_slice=pr.station_slice(),
-                                 tool_sigma_mm=tool_sigma_mm,
-                                 station_sigma_mm=station_sigma_mm)
+    sampler = InputSampler.build(
+        machine,
+        q,
+        t,
+        pr.layout.station_index,
+        u,
+        length,
+        budget,
+        time_s=time_s,
+        fixed=fixed,
+        station_slice=pr.station_slice(),
+        tool_sigma_mm=tool_sigma_mm,
+        station_sigma_mm=station_sigma_mm,
+    )
     if eval_q is None:
         eval_q = machine.axis_to_internal(grid_plan(machine.spec, 5).to_numpy(float))
     volmap = VolumetricMap.build(machine, pr.error_model, eval_q, eval_tool)
@@ -259,8 +315,9 @@ class MCSamples:
         return int(self.x.shape[0])
 
 
-def _plan_chunks(trials: int, chunk_size: int, seed: int, mode: str,
-                 enabled: tuple[str, ...] | None) -> list[Chunk]:
+def _plan_chunks(
+    trials: int, chunk_size: int, seed: int, mode: str, enabled: tuple[str, ...] | None
+) -> list[Chunk]:
     out = []
     for c, start in enumerate(range(0, trials, chunk_size)):
         out.append(Chunk(c, start, min(start + chunk_size, trials), seed, mode, enabled))
@@ -290,11 +347,20 @@ def _load_npz(path: Path, chunk: Chunk) -> dict[str, np.ndarray] | None:
         return None
 
 
-def run_trials(kernel: MCKernel, trials: int, seed: int, *, mode: str = "nonlinear",
-               enabled: Iterable[str] | None = None, chunk_size: int = DEFAULT_CHUNK,
-               workers: int | None = None, scheduler: Any = None,
-               out_dir: str | Path | None = None, progress: bool = False,
-               label: str | None = None) -> MCSamples:
+def run_trials(
+    kernel: MCKernel,
+    trials: int,
+    seed: int,
+    *,
+    mode: str = "nonlinear",
+    enabled: Iterable[str] | None = None,
+    chunk_size: int = DEFAULT_CHUNK,
+    workers: int | None = None,
+    scheduler: Any = None,
+    out_dir: str | Path | None = None,
+    progress: bool = False,
+    label: str | None = None,
+) -> MCSamples:
     """Run ``trials`` Monte Carlo trials (see the module docstring).
 
     mode: ``nonlinear`` (the exact re-solve) or ``linear``; enabled: input sources on
@@ -315,13 +381,19 @@ def run_trials(kernel: MCKernel, trials: int, seed: int, *, mode: str = "nonline
     done: dict[int, dict[str, np.ndarray]] = {}
     folder = None
     if out_dir is not None:
-        key = hashlib.sha256(json.dumps([kernel.fingerprint(), int(seed), int(chunk_size), mode,
-                                         en]).encode()).hexdigest()[:16]
+        key = hashlib.sha256(
+            json.dumps([kernel.fingerprint(), int(seed), int(chunk_size), mode, en]).encode()
+        ).hexdigest()[:16]
         name = (label or "all") + "-" + key
         folder = Path(out_dir) / "samples" / name
         folder.mkdir(parents=True, exist_ok=True)
-        meta = {"seed": int(seed), "chunk_size": int(chunk_size), "mode": mode,
-                "enabled": list(en) if en else None, "key": key}
+        meta = {
+            "seed": int(seed),
+            "chunk_size": int(chunk_size),
+            "mode": mode,
+            "enabled": list(en) if en else None,
+            "key": key,
+        }
         (folder / "run.json").write_text(json.dumps(meta, indent=2) + "\n")
         for c in chunks:
             f = folder / f"chunk{c.index:05d}.npz"
@@ -334,8 +406,14 @@ def run_trials(kernel: MCKernel, trials: int, seed: int, *, mode: str = "nonline
     bar = None
     if progress:
         from tqdm.auto import tqdm
-        bar = tqdm(total=int(trials), unit="trial", desc=label or mode, leave=False,
-                   initial=sum(c.stop - c.start for c in chunks if c.index in done))
+
+        bar = tqdm(
+            total=int(trials),
+            unit="trial",
+            desc=label or mode,
+            leave=False,
+            initial=sum(c.stop - c.start for c in chunks if c.index in done),
+        )
     try:
         for c, res in _dispatch(kernel, todo, workers, scheduler):
             done[c.index] = res
@@ -348,12 +426,23 @@ def run_trials(kernel: MCKernel, trials: int, seed: int, *, mode: str = "nonline
             bar.close()
     parts = [done[c.index] for c in chunks]
     cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    return MCSamples(cat["x"], cat["vol"], cat["iterations"], cat["converged"], cat["step"],
-                     int(seed), mode, en, time.perf_counter() - t0, resumed)
+    return MCSamples(
+        cat["x"],
+        cat["vol"],
+        cat["iterations"],
+        cat["converged"],
+        cat["step"],
+        int(seed),
+        mode,
+        en,
+        time.perf_counter() - t0,
+        resumed,
+    )
 
 
 def _dispatch(kernel, chunks, workers, scheduler):
     from volcal.analysis.uncertainty.parallel import run_chunks
+
     return run_chunks(kernel, chunks, workers=workers, scheduler=scheduler)
 
 
@@ -378,11 +467,12 @@ class MCResult:
     kernel: MCKernel
     samples: MCSamples
     cov_linear: np.ndarray
-    eval_table: pd.DataFrame | None = None   # axis columns (file units) of the eval poses
+    eval_table: pd.DataFrame | None = None  # axis columns (file units) of the eval poses
 
     @classmethod
-    def from_samples(cls, kernel: MCKernel, samples: MCSamples,
-                     eval_table: pd.DataFrame | None = None) -> MCResult:
+    def from_samples(
+        cls, kernel: MCKernel, samples: MCSamples, eval_table: pd.DataFrame | None = None
+    ) -> MCResult:
         return cls(kernel, samples, kernel.linear_covariance(samples.enabled), eval_table)
 
     def parameters(self, *, include_stations: bool = True) -> pd.DataFrame:
@@ -399,16 +489,20 @@ class MCResult:
         lo, hi = _interval(X[:, idx])
         u = X[:, idx].std(axis=0, ddof=1) * f
         ul = np.sqrt(np.clip(np.diag(self.cov_linear)[idx], 0, None)) * f
-        return pd.DataFrame({
-            "name": [k.names[i] for i in idx],
-            "unit": [_factor(k.units[i])[1] for i in idx],
-            "value": k.engine.x_hat[idx] * f,
-            "mc_mean": X[:, idx].mean(axis=0) * f,
-            "u": u, "U": 2 * u,
-            "ci95_low": lo * f, "ci95_high": hi * f,
-            "u_linear": ul,
-            "u_ratio": u / np.where(ul > 0, ul, np.nan),
-        })
+        return pd.DataFrame(
+            {
+                "name": [k.names[i] for i in idx],
+                "unit": [_factor(k.units[i])[1] for i in idx],
+                "value": k.engine.x_hat[idx] * f,
+                "mc_mean": X[:, idx].mean(axis=0) * f,
+                "u": u,
+                "U": 2 * u,
+                "ci95_low": lo * f,
+                "ci95_high": hi * f,
+                "u_linear": ul,
+                "u_ratio": u / np.where(ul > 0, ul, np.nan),
+            }
+        )
 
     def volumetric(self) -> pd.DataFrame:
         """Per evaluation pose: the pose (file units, when known), tool offset, and for
@@ -416,14 +510,17 @@ class MCResult:
         identification's estimate), u, U (k = 2), 95 % interval, and for the components
         u_linear."""
         k = self.kernel
-        V = self.samples.vol * 1e3                          # (T, M, 3) um
-        est = k.volmap(k.engine.x_hat[:k.n_theta]) * 1e3     # (M, 3)
+        V = self.samples.vol * 1e3  # (T, M, 3) um
+        est = k.volmap(k.engine.x_hat[: k.n_theta]) * 1e3  # (M, 3)
         G = k.volmap.G
         nt = k.n_theta
         cov_t = self.cov_linear[:nt, :nt]
         var_l = np.einsum("mip,pq,miq->mi", G, cov_t, G) * 1e6
-        out = self.eval_table.copy() if self.eval_table is not None else pd.DataFrame(
-            {f"q{j}": k.volmap.q[:, j] for j in range(k.volmap.q.shape[1])})
+        out = (
+            self.eval_table.copy()
+            if self.eval_table is not None
+            else pd.DataFrame({f"q{j}": k.volmap.q[:, j] for j in range(k.volmap.q.shape[1])})
+        )
         out = out.reset_index(drop=True)
         out[["tool_x", "tool_y", "tool_z"]] = k.volmap.tool
         for j, c in enumerate(("dx", "dy", "dz")):
@@ -452,13 +549,18 @@ class MCResult:
         i = int(np.argmax(vol["norm_um"].to_numpy()))
         mx = np.linalg.norm(self.samples.vol * 1e3, axis=2).max(axis=1)
         lo, hi = _interval(mx)
-        return {"max_norm_um": float(vol["norm_um"].iloc[i]), "pose_index": i,
-                "U_norm_at_max_um": float(vol["U_norm_um"].iloc[i]),
-                "U_max_trial_um": float(2 * mx.std(ddof=1)),
-                "max_ci95_low_um": float(lo), "max_ci95_high_um": float(hi),
-                "U_norm_largest_um": float(vol["U_norm_um"].max()),
-                "U_component_largest_um": float(max(vol[f"U_{c}_um"].max()
-                                                    for c in ("dx", "dy", "dz")))}
+        return {
+            "max_norm_um": float(vol["norm_um"].iloc[i]),
+            "pose_index": i,
+            "U_norm_at_max_um": float(vol["U_norm_um"].iloc[i]),
+            "U_max_trial_um": float(2 * mx.std(ddof=1)),
+            "max_ci95_low_um": float(lo),
+            "max_ci95_high_um": float(hi),
+            "U_norm_largest_um": float(vol["U_norm_um"].max()),
+            "U_component_largest_um": float(
+                max(vol[f"U_{c}_um"].max() for c in ("dx", "dy", "dz"))
+            ),
+        }
 
     def agreement(self) -> dict[str, float]:
         """Largest relative difference of the MC and linearised standard uncertainties
@@ -470,14 +572,17 @@ class MCResult:
         # poses where the datum fixes a component (u = 0 both ways) carry no comparison
         ok = ul > 1e-6 * max(ul.max(), 1e-300)
         rv = um[ok] / ul[ok]
-        return {"parameters_max_rel_diff": float(np.nanmax(np.abs(par["u_ratio"] - 1))),
-                "parameters_median_ratio": float(np.nanmedian(par["u_ratio"])),
-                "volumetric_max_rel_diff": float(np.nanmax(np.abs(rv - 1))),
-                "volumetric_median_ratio": float(np.nanmedian(rv))}
+        return {
+            "parameters_max_rel_diff": float(np.nanmax(np.abs(par["u_ratio"] - 1))),
+            "parameters_median_ratio": float(np.nanmedian(par["u_ratio"])),
+            "volumetric_max_rel_diff": float(np.nanmax(np.abs(rv - 1))),
+            "volumetric_median_ratio": float(np.nanmedian(rv)),
+        }
 
 
-def error_motion_rows(error_model, quantities: Iterable[str]) -> tuple[list[str], np.ndarray,
-                                                                       list[str]]:
+def error_motion_rows(
+    error_model, quantities: Iterable[str]
+) -> tuple[list[str], np.ndarray, list[str]]:
     """Linear functionals of theta for named quantities: a parameter name (``EXX_1``,
     ``EC0Y``) or an error motion at an axis position in file units (``EXX(754)``,
     ``EBX(0)``; mm or deg).  Returns (names, rows (k, n_theta), units mm / rad)."""
@@ -497,9 +602,12 @@ def error_motion_rows(error_model, quantities: Iterable[str]) -> tuple[list[str]
             m_ = re.fullmatch(r"(E[A-Z0-9]+)\(\s*([-+0-9.eE]+)\s*\)", qn)
             if not m_ or m_.group(1) not in err:
                 from volcal.base.exceptions import InputError
-                raise InputError(f"unknown quantity {qn!r}; expected a parameter name (e.g. "
-                                 f"{em.param_names[0]}) or an error motion at a position "
-                                 f"(e.g. {em.errors[0].name}(100))")
+
+                raise InputError(
+                    f"unknown quantity {qn!r}; expected a parameter name (e.g. "
+                    f"{em.param_names[0]}) or an error motion at a position "
+                    f"(e.g. {em.errors[0].name}(100))"
+                )
             k = err[m_.group(1)]
             s_ = em.errors[k]
             a = em.spec.axis(s_.axis)
@@ -524,17 +632,34 @@ def quantity_table(mc: MCResult, error_model, quantities: Iterable[str]) -> pd.D
     lo, hi = _interval(S)
     u = S.std(axis=0, ddof=1) * f
     ul = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", A, mc.cov_linear[:nt, :nt], A), 0, None)) * f
-    return pd.DataFrame({"name": names, "unit": [_factor(x)[1] for x in units],
-                         "value": (A @ k.engine.x_hat[:nt]) * f, "mc_mean": S.mean(axis=0) * f,
-                         "u": u, "U": 2 * u, "ci95_low": lo * f, "ci95_high": hi * f,
-                         "u_linear": ul})
+    return pd.DataFrame(
+        {
+            "name": names,
+            "unit": [_factor(x)[1] for x in units],
+            "value": (A @ k.engine.x_hat[:nt]) * f,
+            "mc_mean": S.mean(axis=0) * f,
+            "u": u,
+            "U": 2 * u,
+            "ci95_low": lo * f,
+            "ci95_high": hi * f,
+            "u_linear": ul,
+        }
+    )
 
 
-def contributions(kernel: MCKernel, trials: int, seed: int, *,
-                  sources: Iterable[str] | None = None, mode: str = "nonlinear",
-                  chunk_size: int = DEFAULT_CHUNK, workers: int | None = None,
-                  scheduler: Any = None, out_dir: str | Path | None = None,
-                  progress: bool = False) -> tuple[pd.DataFrame, dict[str, MCSamples]]:
+def contributions(
+    kernel: MCKernel,
+    trials: int,
+    seed: int,
+    *,
+    sources: Iterable[str] | None = None,
+    mode: str = "nonlinear",
+    chunk_size: int = DEFAULT_CHUNK,
+    workers: int | None = None,
+    scheduler: Any = None,
+    out_dir: str | Path | None = None,
+    progress: bool = False,
+) -> tuple[pd.DataFrame, dict[str, MCSamples]]:
     """One input source at a time (paper 002 Fig. 5): for each source a run of ``trials``
     trials with only that source on (the same draws as in the full run).  Returns a long
     table ``quantity, unit, source, u, u_linear`` over the parameters (with stations) and
@@ -544,19 +669,37 @@ def contributions(kernel: MCKernel, trials: int, seed: int, *,
     rows = []
     runs = {}
     for nm in names:
-        s = run_trials(kernel, trials, seed, mode=mode, enabled=[nm], chunk_size=chunk_size,
-                       workers=workers, scheduler=scheduler, out_dir=out_dir,
-                       progress=progress, label=f"only-{nm}")
+        s = run_trials(
+            kernel,
+            trials,
+            seed,
+            mode=mode,
+            enabled=[nm],
+            chunk_size=chunk_size,
+            workers=workers,
+            scheduler=scheduler,
+            out_dir=out_dir,
+            progress=progress,
+            label=f"only-{nm}",
+        )
         runs[nm] = s
         res = MCResult.from_samples(kernel, s)
         par = res.parameters()
         for _, r in par.iterrows():
-            rows.append({"quantity": r["name"], "unit": r["unit"], "source": nm,
-                         "u": r["u"], "u_linear": r["u_linear"]})
+            rows.append(
+                {
+                    "quantity": r["name"],
+                    "unit": r["unit"],
+                    "source": nm,
+                    "u": r["u"],
+                    "u_linear": r["u_linear"],
+                }
+            )
         vol = res.volumetric()
         for i, u in enumerate(vol["u_norm_um"]):
-            rows.append({"quantity": f"|d|@{i}", "unit": "um", "source": nm, "u": u,
-                         "u_linear": np.nan})
+            rows.append(
+                {"quantity": f"|d|@{i}", "unit": "um", "source": nm, "u": u, "u_linear": np.nan}
+            )
     return pd.DataFrame(rows), runs
 
 
@@ -564,19 +707,33 @@ def contributions(kernel: MCKernel, trials: int, seed: int, *,
 # IPOPT cross-check
 
 
-def ipopt_resolve(ider, x_hat: np.ndarray, p: np.ndarray, fixed: np.ndarray,
-                  M: np.ndarray, *, tol: float = 1e-10, max_iter: int = 30
-                  ) -> tuple[np.ndarray, list[str]]:
+def ipopt_resolve(
+    ider,
+    x_hat: np.ndarray,
+    p: np.ndarray,
+    fixed: np.ndarray,
+    M: np.ndarray,
+    *,
+    tol: float = 1e-10,
+    max_iter: int = 30,
+) -> tuple[np.ndarray, list[str]]:
     """Re-solve readings M (B, N) with IPOPT on the Identifier's own NLP (tight tolerance,
     no early "acceptable" stop), from x_hat with the same held variables.  Returns
     (X (B, n) physical, statuses).  Slow (~0.5 s a solve); for verification."""
     import casadi as ca
 
     pr = ider.problem
-    opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
-            "ipopt.tol": tol, "ipopt.acceptable_iter": 0, "ipopt.max_iter": max_iter,
-            "ipopt.nlp_scaling_method": "none", "hess_lag": pr.hess_lag,
-            "error_on_fail": False}
+    opts = {
+        "ipopt.print_level": 0,
+        "print_time": False,
+        "ipopt.sb": "yes",
+        "ipopt.tol": tol,
+        "ipopt.acceptable_iter": 0,
+        "ipopt.max_iter": max_iter,
+        "ipopt.nlp_scaling_method": "none",
+        "hess_lag": pr.hess_lag,
+        "error_on_fail": False,
+    }
     S = ca.nlpsol("verify", "ipopt", pr.nlp, opts)
     q, t, _, w = unpack_data(pr.machine.n_axes, p)
     x0 = pr.to_scaled(x_hat)
@@ -591,8 +748,9 @@ def ipopt_resolve(ider, x_hat: np.ndarray, p: np.ndarray, fixed: np.ndarray,
     return np.array(out), st
 
 
-def verify_against_ipopt(kernel: MCKernel, ider, p: np.ndarray, seed: int,
-                         trials: Iterable[int] = (0, 1, 2)) -> dict[str, float]:
+def verify_against_ipopt(
+    kernel: MCKernel, ider, p: np.ndarray, seed: int, trials: Iterable[int] = (0, 1, 2)
+) -> dict[str, float]:
     """Solve a few trials with both the structured solver and IPOPT; the largest
     difference in scaled units (1 = 1 um / 1 urad) and relative to the largest theta."""
     trials = list(trials)
@@ -608,24 +766,42 @@ def verify_against_ipopt(kernel: MCKernel, ider, p: np.ndarray, seed: int,
     Xi = np.array(rows)
     d = np.abs(Xi - sol.x) / eng.scale
     nt = kernel.n_theta
-    return {"max_abs_scaled": float(d.max()),
-            "theta_rel": float(d[:, :nt].max() / np.abs(Xi[:, :nt] / eng.scale[:nt]).max()),
-            "trials": len(trials)}
+    return {
+        "max_abs_scaled": float(d.max()),
+        "theta_rel": float(d[:, :nt].max() / np.abs(Xi[:, :nt] / eng.scale[:nt]).max()),
+        "trials": len(trials),
+    }
 
 
 # --------------------------------------------------------------------------------------
 # front end
 
 
-def monte_carlo(model, data, stations=None, *, budget="paper002", trials: int = 1000,
-                seed: int = 0, mode: str = "nonlinear", workers: int | None = None,
-                scheduler: Any = None, out_dir: str | Path | None = None,
-                chunk_size: int = DEFAULT_CHUNK, error_model=None, degree: int = 3,
-                datum: str = "iso230", strategy: str = "joint",
-                eval_points: pd.DataFrame | None = None, tool_sigma_um: float = 0.0,
-                station_sigma_um: float = 0.0, with_contributions: bool = False,
-                contribution_trials: int | None = None, progress: bool = False,
-                verify: int = 0) -> dict[str, Any]:
+def monte_carlo(
+    model,
+    data,
+    stations=None,
+    *,
+    budget="paper002",
+    trials: int = 1000,
+    seed: int = 0,
+    mode: str = "nonlinear",
+    workers: int | None = None,
+    scheduler: Any = None,
+    out_dir: str | Path | None = None,
+    chunk_size: int = DEFAULT_CHUNK,
+    error_model=None,
+    degree: int = 3,
+    datum: str = "iso230",
+    strategy: str = "joint",
+    eval_points: pd.DataFrame | None = None,
+    tool_sigma_um: float = 0.0,
+    station_sigma_um: float = 0.0,
+    with_contributions: bool = False,
+    contribution_trials: int | None = None,
+    progress: bool = False,
+    verify: int = 0,
+) -> dict[str, Any]:
     """Identify, then Monte Carlo around the identification.  Returns a dict with the
     identification ``result``, ``kernel``, ``mc`` (:class:`MCResult`), ``contributions``
     (a table or None) and ``verify`` (IPOPT cross-check of ``verify`` trials, or None)."""
@@ -637,12 +813,27 @@ def monte_carlo(model, data, stations=None, *, budget="paper002", trials: int = 
 
     machine = model if isinstance(model, Machine) else Machine.from_model(model)
     bud = load_budget(budget)
-    st_table = load_stations(stations) if stations is not None and not (
-        isinstance(stations, pd.DataFrame) and "dead_length_given" in stations) else stations
-    meas = data if hasattr(data, "q_internal") else load_measurements(data, machine.spec,
-                                                                      stations=st_table)
-    res = identify(machine, meas, st_table, strategy=strategy, degree=degree, datum=datum,
-                   error_model=error_model, budget=bud)
+    st_table = (
+        load_stations(stations)
+        if stations is not None
+        and not (isinstance(stations, pd.DataFrame) and "dead_length_given" in stations)
+        else stations
+    )
+    meas = (
+        data
+        if hasattr(data, "q_internal")
+        else load_measurements(data, machine.spec, stations=st_table)
+    )
+    res = identify(
+        machine,
+        meas,
+        st_table,
+        strategy=strategy,
+        degree=degree,
+        datum=datum,
+        error_model=error_model,
+        budget=bud,
+    )
     em = res.error_model
     layout = Layout.from_measurements(meas)
     ider = Identifier(machine, em, layout)
@@ -651,24 +842,63 @@ def monte_carlo(model, data, stations=None, *, budget="paper002", trials: int = 
     fixed = fixed_mask(ider, res)
     if eval_points is None:
         from volcal.measurement.plans import grid_plan
+
         eval_points = grid_plan(machine.spec, 5)
     eq = machine.axis_to_internal(eval_points[machine.axis_names].to_numpy(float))
-    etool = eval_points[["tool_x", "tool_y", "tool_z"]].to_numpy(float) \
-        if "tool_x" in eval_points else None
-    kernel = build_kernel(ider, x_hat, p, fixed, bud, time_s=meas.time, eval_q=eq,
-                          eval_tool=etool, tool_sigma_mm=tool_sigma_um * 1e-3,
-                          station_sigma_mm=station_sigma_um * 1e-3)
-    samples = run_trials(kernel, trials, seed, mode=mode, chunk_size=chunk_size,
-                         workers=workers, scheduler=scheduler, out_dir=out_dir,
-                         progress=progress, label="all")
-    mc = MCResult.from_samples(kernel, samples,
-                               eval_points[machine.axis_names].reset_index(drop=True))
+    etool = (
+        eval_points[["tool_x", "tool_y", "tool_z"]].to_numpy(float)
+        if "tool_x" in eval_points
+        else None
+    )
+    kernel = build_kernel(
+        ider,
+        x_hat,
+        p,
+        fixed,
+        bud,
+        time_s=meas.time,
+        eval_q=eq,
+        eval_tool=etool,
+        tool_sigma_mm=tool_sigma_um * 1e-3,
+        station_sigma_mm=station_sigma_um * 1e-3,
+    )
+    samples = run_trials(
+        kernel,
+        trials,
+        seed,
+        mode=mode,
+        chunk_size=chunk_size,
+        workers=workers,
+        scheduler=scheduler,
+        out_dir=out_dir,
+        progress=progress,
+        label="all",
+    )
+    mc = MCResult.from_samples(
+        kernel, samples, eval_points[machine.axis_names].reset_index(drop=True)
+    )
     contrib = None
     if with_contributions:
-        contrib, _ = contributions(kernel, contribution_trials or trials, seed, mode=mode,
-                                   chunk_size=chunk_size, workers=workers,
-                                   scheduler=scheduler, out_dir=out_dir, progress=progress)
+        contrib, _ = contributions(
+            kernel,
+            contribution_trials or trials,
+            seed,
+            mode=mode,
+            chunk_size=chunk_size,
+            workers=workers,
+            scheduler=scheduler,
+            out_dir=out_dir,
+            progress=progress,
+        )
     ver = verify_against_ipopt(kernel, ider, p, seed, range(verify)) if verify else None
-    return {"result": res, "identifier": ider, "kernel": kernel, "mc": mc,
-            "contributions": contrib, "verify": ver, "p": p, "fixed": fixed,
-            "measurements": meas}
+    return {
+        "result": res,
+        "identifier": ider,
+        "kernel": kernel,
+        "mc": mc,
+        "contributions": contrib,
+        "verify": ver,
+        "p": p,
+        "fixed": fixed,
+        "measurements": meas,
+    }

@@ -8,6 +8,7 @@ arithmetic in every process, so a chunk gives bit-identical results wherever it 
 
 :func:`run_chunks` yields ``(chunk, result)`` as chunks finish, in completion order.
 """
+
 from __future__ import annotations
 
 import os
@@ -50,6 +51,7 @@ def _watch_parent(parent: int) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     try:  # Linux: the kernel sends SIGTERM when the parent exits
         import ctypes
+
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
     except Exception:  # pragma: no cover - not Linux
@@ -72,6 +74,7 @@ def _init_worker(blob: bytes, parent: int | None = None) -> None:
         _watch_parent(parent)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from volcal.base.threads import set_blas_threads
+
     set_blas_threads(1)
     _KERNEL = pickle.loads(blob)
 
@@ -83,12 +86,14 @@ def _run_local(chunk):
 def _run_remote(kernel, chunk):
     # on a Dask worker: the scattered kernel arrives as the object itself
     from volcal.base.threads import set_blas_threads
+
     set_blas_threads(1)
     return chunk, kernel.run_chunk(chunk)
 
 
-def run_chunks(kernel, chunks: Iterable, *, workers: int | None = None,
-               scheduler: Any = None) -> Iterator[tuple[Any, Any]]:
+def run_chunks(
+    kernel, chunks: Iterable, *, workers: int | None = None, scheduler: Any = None
+) -> Iterator[tuple[Any, Any]]:
     """Run ``kernel.run_chunk`` on every chunk.
 
     scheduler: None (local), a Dask scheduler address (``"tcp://host:8786"``) or a
@@ -103,6 +108,7 @@ def run_chunks(kernel, chunks: Iterable, *, workers: int | None = None,
     n = default_workers() if workers is None else int(workers)
     if n <= 1 or len(chunks) == 1:
         from volcal.base.threads import blas_threads
+
         with blas_threads(1):
             for c in chunks:
                 yield c, kernel.run_chunk(c)
@@ -116,8 +122,12 @@ def run_chunks(kernel, chunks: Iterable, *, workers: int | None = None,
     old = os.environ.get("OPENBLAS_NUM_THREADS")
     os.environ["OPENBLAS_NUM_THREADS"] = "1"
     try:
-        pool = ProcessPoolExecutor(max_workers=min(n, len(chunks)), mp_context=ctx,
-                                   initializer=_init_worker, initargs=(blob, os.getpid()))
+        pool = ProcessPoolExecutor(
+            max_workers=min(n, len(chunks)),
+            mp_context=ctx,
+            initializer=_init_worker,
+            initargs=(blob, os.getpid()),
+        )
     finally:
         if old is None:
             os.environ.pop("OPENBLAS_NUM_THREADS", None)

@@ -26,6 +26,7 @@ so a trial's draws of a source are the same in every run with that seed - whatev
 number of workers, the chunking, or which other sources are on.  The one-source-at-a-time
 contributions therefore use the same draws as the full run.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -39,8 +40,9 @@ __all__ = ["InputSource", "InputSampler", "trial_rng"]
 
 def trial_rng(seed: int, trial: int) -> np.random.Generator:
     """The random stream of one trial (independent of chunking and workers)."""
-    return np.random.Generator(np.random.PCG64(
-        np.random.SeedSequence(int(seed), spawn_key=(int(trial),))))
+    return np.random.Generator(
+        np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=(int(trial),)))
+    )
 
 
 @dataclass(frozen=True)
@@ -60,25 +62,36 @@ class InputSampler:
 
     sources: list[InputSource]
     budget: Budget
-    length_mm: np.ndarray                # (N,) reading lengths for per-metre sources
+    length_mm: np.ndarray  # (N,) reading lengths for per-metre sources
     axis_names: list[str]
-    axis_sens: np.ndarray                # (N, n_axes) dL/dq (mm/mm or mm/rad)
-    time_s: np.ndarray                   # (N,) NaN where unknown
-    station_rows: list[np.ndarray]       # readings of each station
-    tool_group: np.ndarray               # (N,) index of each reading's tool offset
-    tool_sens: np.ndarray                # (N, 3) dL/dt
+    axis_sens: np.ndarray  # (N, n_axes) dL/dq (mm/mm or mm/rad)
+    time_s: np.ndarray  # (N,) NaN where unknown
+    station_rows: list[np.ndarray]  # readings of each station
+    tool_group: np.ndarray  # (N,) index of each reading's tool offset
+    tool_sens: np.ndarray  # (N, 3) dL/dt
     tool_sigma_mm: float
-    fixed_station_vars: np.ndarray       # indices (into the held-variable vector) of station xyz
+    fixed_station_vars: np.ndarray  # indices (into the held-variable vector) of station xyz
     station_sigma_mm: float
     n_fixed: int
     notes: list[str] = field(default_factory=list)
 
     @classmethod
-    def build(cls, machine, q: np.ndarray, tool: np.ndarray, station_index: np.ndarray,
-              beam_unit: np.ndarray, length_mm: np.ndarray, budget, *,
-              time_s: np.ndarray | None = None, fixed: np.ndarray | None = None,
-              station_slice: slice | None = None, tool_sigma_mm: float = 0.0,
-              station_sigma_mm: float = 0.0) -> InputSampler:
+    def build(
+        cls,
+        machine,
+        q: np.ndarray,
+        tool: np.ndarray,
+        station_index: np.ndarray,
+        beam_unit: np.ndarray,
+        length_mm: np.ndarray,
+        budget,
+        *,
+        time_s: np.ndarray | None = None,
+        fixed: np.ndarray | None = None,
+        station_slice: slice | None = None,
+        tool_sigma_mm: float = 0.0,
+        station_sigma_mm: float = 0.0,
+    ) -> InputSampler:
         """Sensitivities from the machine (nominal model) at the readings' poses q (N,
         n_axes; mm, rad) and tools (N, 3); beam_unit (N, 3) unit vectors station ->
         point; length_mm (N,) the readings' lengths; budget: a Budget."""
@@ -122,34 +135,78 @@ class InputSampler:
         sources: list[InputSource] = []
         notes: list[str] = []
         for s in budget.length_sources:
-            sources.append(InputSource(s.name, "length", f"{s.distribution} length error "
-                                       f"({s.magnitude:g} + {s.per_metre:g} L/m {s.unit})"))
+            sources.append(
+                InputSource(
+                    s.name,
+                    "length",
+                    f"{s.distribution} length error "
+                    f"({s.magnitude:g} + {s.per_metre:g} L/m {s.unit})",
+                )
+            )
         for a in names:
             s = budget.axis_sources.get(a)
             if s is not None:
-                sources.append(InputSource(s.name, "axis", f"{s.distribution} positioning "
-                                           f"repeatability of {a} ({s.magnitude:g} {s.unit})"))
+                sources.append(
+                    InputSource(
+                        s.name,
+                        "axis",
+                        f"{s.distribution} positioning "
+                        f"repeatability of {a} ({s.magnitude:g} {s.unit})",
+                    )
+                )
         has_drift = budget.drift is not None or bool(budget.drift_sources)
         if has_drift:
             if np.all(np.isfinite(time_s)):
-                sources.append(InputSource("drift", "drift", "drift of the length readings, "
-                                           "one realisation per station"))
+                sources.append(
+                    InputSource(
+                        "drift",
+                        "drift",
+                        "drift of the length readings, one realisation per station",
+                    )
+                )
             else:
-                notes.append("the budget has drift but the data have no time stamps: drift "
-                             "left out")
+                notes.append(
+                    "the budget has drift but the data have no time stamps: drift left out"
+                )
         if tool_sigma_mm > 0:
-            sources.append(InputSource("tool_offsets", "tool", f"normal, u = "
-                                       f"{tool_sigma_mm * 1e3:g} um per component and offset"))
+            sources.append(
+                InputSource(
+                    "tool_offsets",
+                    "tool",
+                    f"normal, u = {tool_sigma_mm * 1e3:g} um per component and offset",
+                )
+            )
         if fsv.size:
-            sources.append(InputSource("stations", "station", f"normal, u = "
-                                       f"{station_sigma_mm * 1e3:g} um per coordinate of the "
-                                       "fixed stations"))
+            sources.append(
+                InputSource(
+                    "stations",
+                    "station",
+                    f"normal, u = "
+                    f"{station_sigma_mm * 1e3:g} um per coordinate of the "
+                    "fixed stations",
+                )
+            )
         elif station_sigma_mm > 0:
-            notes.append("station uncertainty given but no station is held fixed: the "
-                         "stations are estimated, their uncertainty is an output")
-        return cls(sources, budget, np.asarray(length_mm, float), names, sens, time_s, rows,
-                   tool_group, tsens, float(tool_sigma_mm), fsv, float(station_sigma_mm),
-                   int(fixed.sum()), notes)
+            notes.append(
+                "station uncertainty given but no station is held fixed: the "
+                "stations are estimated, their uncertainty is an output"
+            )
+        return cls(
+            sources,
+            budget,
+            np.asarray(length_mm, float),
+            names,
+            sens,
+            time_s,
+            rows,
+            tool_group,
+            tsens,
+            float(tool_sigma_mm),
+            fsv,
+            float(station_sigma_mm),
+            int(fixed.sum()),
+            notes,
+        )
 
     @property
     def names(self) -> list[str]:
@@ -223,12 +280,17 @@ class InputSampler:
                     f = np.asarray(src.half_width(self.length_mm), float)
                 plan.append(("reading", src.distribution, f * np.ones(self.length_mm.size)))
             elif s.kind == "axis":
-                j = next(j for j, a in enumerate(self.axis_names)
-                         if bud.axis_sources.get(a) is not None
-                         and bud.axis_sources[a].name == s.name)
+                j = next(
+                    j
+                    for j, a in enumerate(self.axis_names)
+                    if bud.axis_sources.get(a) is not None and bud.axis_sources[a].name == s.name
+                )
                 src = bud.axis_sources[self.axis_names[j]]
-                v = float(src.standard_uncertainty()) if src.distribution == "normal" \
+                v = (
+                    float(src.standard_uncertainty())
+                    if src.distribution == "normal"
                     else float(src.half_width())
+                )
                 plan.append(("reading", src.distribution, v * self.axis_sens[:, j]))
             else:
                 plan.append((s.kind, "", None))
@@ -246,8 +308,9 @@ class InputSampler:
         bud = self.budget
         for s in bud.length_sources:
             if s.name == name:
-                return np.asarray(s.standard_uncertainty(self.length_mm), float) ** 2 * \
-                    np.ones(self.length_mm.size)
+                return np.asarray(s.standard_uncertainty(self.length_mm), float) ** 2 * np.ones(
+                    self.length_mm.size
+                )
         for j, a in enumerate(self.axis_names):
             src = bud.axis_sources.get(a)
             if src is not None and src.name == name:

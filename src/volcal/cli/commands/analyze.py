@@ -18,6 +18,7 @@ uncertainty) and writes summary.txt, report.md, CSV tables and plots to ``--out`
 (see :mod:`volcal.outputs.analysis_report`).  Exit codes: 0 done, 1 identification failed, 2 bad
 input.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,56 +30,107 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "analyze",
         help="identifiability, conditioning and linearised uncertainty of a plan or result",
         description="Analyse a measurement plan (before any data: stations, poses, tool "
-                    "offsets, budget) or measured data (identified first): numerical rank "
-                    "of the scaled Jacobian and its tolerance, singular values, condition "
-                    "numbers, unidentifiable directions as named parameter combinations with "
-                    "their tested explanation, weak directions, the linearised covariance "
-                    "under the datum constraints, correlations and the uncertainty of the "
-                    "volumetric error over the workspace.",
+        "offsets, budget) or measured data (identified first): numerical rank "
+        "of the scaled Jacobian and its tolerance, singular values, condition "
+        "numbers, unidentifiable directions as named parameter combinations with "
+        "their tested explanation, weak directions, the linearised covariance "
+        "under the datum constraints, correlations and the uncertainty of the "
+        "volumetric error over the workspace.",
     )
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--model", metavar="M",
-                     help="bundled model name (see `volcal models`) or model TOML file")
-    src.add_argument("--example", metavar="NAME",
-                     help="a bundled example (e.g. mcv754): its model, stations, plan, "
-                          "tools and budget; the options below override parts")
-    src.add_argument("--result", type=Path, metavar="DIR",
-                     help="a result folder of `volcal identify`: its data are identified "
-                          "again with its options and analysed at the solution")
-    p.add_argument("--data", type=Path, metavar="D.csv",
-                   help="measured data: identify them and analyse the result (otherwise the "
-                        "plan is analysed)")
-    p.add_argument("--stations", type=Path, metavar="S.csv",
-                   help="stations table (station, x, y, z mm, dead_length): the plan's "
-                        "stations, or start values for --data")
-    p.add_argument("--plan", metavar="default|grid|lines|diagonals|FILE.csv",
-                   help="the plan's poses (default: the default plan of `volcal simulate`, "
-                        "a grid, with rotary axes a linear grid plus rotary sweeps; with "
-                        "--example its plan; --grid alone: a grid)")
+    src.add_argument(
+        "--model", metavar="M", help="bundled model name (see `volcal models`) or model TOML file"
+    )
+    src.add_argument(
+        "--example",
+        metavar="NAME",
+        help="a bundled example (e.g. mcv754): its model, stations, plan, "
+        "tools and budget; the options below override parts",
+    )
+    src.add_argument(
+        "--result",
+        type=Path,
+        metavar="DIR",
+        help="a result folder of `volcal identify`: its data are identified "
+        "again with its options and analysed at the solution",
+    )
+    p.add_argument(
+        "--data",
+        type=Path,
+        metavar="D.csv",
+        help="measured data: identify them and analyse the result (otherwise the plan is analysed)",
+    )
+    p.add_argument(
+        "--stations",
+        type=Path,
+        metavar="S.csv",
+        help="stations table (station, x, y, z mm, dead_length): the plan's "
+        "stations, or start values for --data",
+    )
+    p.add_argument(
+        "--plan",
+        metavar="default|grid|lines|diagonals|FILE.csv",
+        help="the plan's poses (default: the default plan of `volcal simulate`, "
+        "a grid, with rotary axes a linear grid plus rotary sweeps; with "
+        "--example its plan; --grid alone: a grid)",
+    )
     p.add_argument("--grid", metavar="N", help="positions per axis (N or X=6,Y=5,Z=5)")
-    p.add_argument("--tools", metavar="\"x,y,z;x,y,z\"",
-                   help="tool (reflector) offsets in mm (default: the example's, or those of "
-                        "`volcal simulate`: 0,0,0;0,0,-100;80,0,-100;0,80,-100)")
-    p.add_argument("--budget", metavar="NAME|FILE",
-                   help="uncertainty budget (default paper002, or the example's)")
-    p.add_argument("--degree", type=int, default=3, metavar="N",
-                   help="Legendre degree of the error motions (default 3)")
-    p.add_argument("--datum", default="iso230", choices=("iso230", "reference", "none"),
-                   help="datum convention (default iso230)")
-    p.add_argument("--strategy", default="joint",
-                   choices=("joint", "two-phase", "points-only"),
-                   help="identification strategy with --data (default joint)")
-    p.add_argument("--scale-covariance", action="store_true",
-                   help="with --data: scale the covariance by the residual variance factor "
-                        "(chi2/dof)")
-    p.add_argument("--eval-grid", type=int, default=5, metavar="N",
-                   help="poses per axis of the workspace grid for the volumetric "
-                        "uncertainty (default 5)")
-    p.add_argument("--weak", type=int, default=8, metavar="K",
-                   help="how many weakest directions to list (default 8)")
-    p.add_argument("--out", type=Path, metavar="DIR",
-                   help="output folder for the report, CSV and plots (with --force, replaces "
-                        "a previous analysis)")
+    p.add_argument(
+        "--tools",
+        metavar='"x,y,z;x,y,z"',
+        help="tool (reflector) offsets in mm (default: the example's, or those of "
+        "`volcal simulate`: 0,0,0;0,0,-100;80,0,-100;0,80,-100)",
+    )
+    p.add_argument(
+        "--budget",
+        metavar="NAME|FILE",
+        help="uncertainty budget (default paper002, or the example's)",
+    )
+    p.add_argument(
+        "--degree",
+        type=int,
+        default=3,
+        metavar="N",
+        help="Legendre degree of the error motions (default 3)",
+    )
+    p.add_argument(
+        "--datum",
+        default="iso230",
+        choices=("iso230", "reference", "none"),
+        help="datum convention (default iso230)",
+    )
+    p.add_argument(
+        "--strategy",
+        default="joint",
+        choices=("joint", "two-phase", "points-only"),
+        help="identification strategy with --data (default joint)",
+    )
+    p.add_argument(
+        "--scale-covariance",
+        action="store_true",
+        help="with --data: scale the covariance by the residual variance factor (chi2/dof)",
+    )
+    p.add_argument(
+        "--eval-grid",
+        type=int,
+        default=5,
+        metavar="N",
+        help="poses per axis of the workspace grid for the volumetric uncertainty (default 5)",
+    )
+    p.add_argument(
+        "--weak",
+        type=int,
+        default=8,
+        metavar="K",
+        help="how many weakest directions to list (default 8)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        metavar="DIR",
+        help="output folder for the report, CSV and plots (with --force, replaces "
+        "a previous analysis)",
+    )
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.set_defaults(func=run)
     return p
@@ -103,11 +155,11 @@ def run(args: argparse.Namespace) -> int:
     if args.degree < 0:
         raise InputError(f"expected a degree >= 0, got {args.degree}", source="--degree")
     if args.eval_grid < 2:
-        raise InputError(f"expected --eval-grid >= 2, got {args.eval_grid}",
-                         source="--eval-grid")
+        raise InputError(f"expected --eval-grid >= 2, got {args.eval_grid}", source="--eval-grid")
     if args.scale_covariance and args.data is None and args.result is None:
-        raise InputError("--scale-covariance needs --data (a plan has no residuals)",
-                         source="--scale-covariance")
+        raise InputError(
+            "--scale-covariance needs --data (a plan has no residuals)", source="--scale-covariance"
+        )
     tools = parse_tools(args.tools) if args.tools is not None else None
     if args.out is not None:
         # the output folder before any solving
@@ -115,10 +167,20 @@ def run(args: argparse.Namespace) -> int:
 
         from volcal.base.folders import check_out_dir
         from volcal.outputs.analysis_report import ANALYSIS_FILES
-        check_out_dir(args.out, ANALYSIS_FILES, "an analysis", inputs=[
-            args.result, args.data, args.stations, args.model and Path(args.model),
-            args.budget and Path(args.budget),
-            args.plan and Path(args.plan)])
+
+        check_out_dir(
+            args.out,
+            ANALYSIS_FILES,
+            "an analysis",
+            inputs=[
+                args.result,
+                args.data,
+                args.stations,
+                args.model and Path(args.model),
+                args.budget and Path(args.budget),
+                args.plan and Path(args.plan),
+            ],
+        )
     if args.result is not None:
         return _run_result(args)
     ex = example(args.example) if args.example else None
@@ -133,10 +195,16 @@ def run(args: argparse.Namespace) -> int:
 
     with blas_threads(1):  # small dense problems: threads only slow them down here
         if args.data is not None:
-            rep, res = analyze_data(machine, args.data, args.stations, budget=budget,
-                                    strategy=args.strategy, error_model=em,
-                                    scale_covariance=args.scale_covariance,
-                                    eval_points=evalp)
+            rep, res = analyze_data(
+                machine,
+                args.data,
+                args.stations,
+                budget=budget,
+                strategy=args.strategy,
+                error_model=em,
+                scale_covariance=args.scale_covariance,
+                eval_points=evalp,
+            )
             if not res.success:
                 print(f"volcal analyze: identification did not converge ({res.status})")
                 return 1
@@ -146,17 +214,20 @@ def run(args: argparse.Namespace) -> int:
                 plan = ex.plan
             elif kind == "default":
                 if args.grid is not None:
-                    raise InputError("--grid applies to --plan grid, lines or diagonals",
-                                     source="--grid")
+                    raise InputError(
+                        "--grid applies to --plan grid, lines or diagonals", source="--grid"
+                    )
                 plan = default_plan(spec, args.degree)
             elif kind in ("grid", "lines", "diagonals"):
                 counts = _grid_counts(args.grid, kind)
-                plan = {"grid": grid_plan, "lines": line_plan,
-                        "diagonals": diagonal_plan}[kind](spec, counts)
+                plan = {"grid": grid_plan, "lines": line_plan, "diagonals": diagonal_plan}[kind](
+                    spec, counts
+                )
             else:
                 if args.grid is not None:
-                    raise InputError("--grid applies to --plan grid, lines or diagonals",
-                                     source="--grid")
+                    raise InputError(
+                        "--grid applies to --plan grid, lines or diagonals", source="--grid"
+                    )
                 plan = plan_from_csv(kind, spec)
             if args.stations is not None:
                 stations = args.stations
@@ -164,11 +235,20 @@ def run(args: argparse.Namespace) -> int:
                 stations = ex.stations
             else:
                 from volcal.measurement.plans import default_stations
+
                 stations = default_stations(spec, 6, tools=tools)
             if tools is None:
                 tools = ex.tools if ex is not None else parse_tools(_DEFAULT_TOOLS)
-            rep = analyze_plan(machine, plan, stations, tools, budget, error_model=em,
-                               eval_points=evalp, n_weak=args.weak)
+            rep = analyze_plan(
+                machine,
+                plan,
+                stations,
+                tools,
+                budget,
+                error_model=em,
+                eval_points=evalp,
+                n_weak=args.weak,
+            )
     return _finish(args, rep)
 
 
@@ -181,18 +261,28 @@ def _run_result(args: argparse.Namespace) -> int:
 
     inp = result_inputs(args.result)
     with blas_threads(1):
-        rep, res = analyze_data(inp["machine"], inp["data"], inp["stations"],
-                                budget=args.budget or inp["budget"],
-                                strategy=inp["strategy"], error_model=inp["error_model"],
-                                scale_covariance=args.scale_covariance,
-                                eval_points=grid_plan(inp["machine"].spec, args.eval_grid))
+        rep, res = analyze_data(
+            inp["machine"],
+            inp["data"],
+            inp["stations"],
+            budget=args.budget or inp["budget"],
+            strategy=inp["strategy"],
+            error_model=inp["error_model"],
+            scale_covariance=args.scale_covariance,
+            eval_points=grid_plan(inp["machine"].spec, args.eval_grid),
+        )
     if not res.success:
         print(f"volcal analyze: identification did not converge ({res.status})")
         return 1
-    diff = float(np.max(np.abs(res.theta - inp["theta"]))) if len(res.theta) == len(
-        inp["theta"]) else float("inf")
-    rep.notes.append(f"re-identified the result's data: largest difference from the saved "
-                     f"estimate {diff:.2g} (mm / rad)")
+    diff = (
+        float(np.max(np.abs(res.theta - inp["theta"])))
+        if len(res.theta) == len(inp["theta"])
+        else float("inf")
+    )
+    rep.notes.append(
+        f"re-identified the result's data: largest difference from the saved "
+        f"estimate {diff:.2g} (mm / rad)"
+    )
     return _finish(args, rep)
 
 

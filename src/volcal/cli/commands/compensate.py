@@ -15,6 +15,7 @@ docs/compensation.md.  The result folder is only read; the output folder is writ
 atomically (``--force`` replaces an earlier export).  Exit codes: 0 success, 2 bad input
 or a compensation that exceeds the controller's limits (the message names the limit).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -48,48 +49,94 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "compensate",
         help="compensation files for a controller (ISG/TwinCAT, SINUMERIK, HEIDENHAIN, "
-             "generic grid)",
+        "generic grid)",
         description="Write the compensation files a controller reads from an identification "
-                    "result: isg (TwinCAT CNC volumetric compensation), siemens (SINUMERIK "
-                    "CEC/LEC tables), heidenhain (nonlinear axis error compensation *.COM / "
-                    "*.CMA) or generic (ISO 230-1 tables and a volumetric correction grid). "
-                    "Grid spacing follows the error's curvature to meet --tolerance; every "
-                    "file states whether it holds errors or corrections and what the format "
-                    "cannot carry, and compensation.md reports the residual error after "
-                    "compensation over the travel and the measurement's tool offsets.",
+        "result: isg (TwinCAT CNC volumetric compensation), siemens (SINUMERIK "
+        "CEC/LEC tables), heidenhain (nonlinear axis error compensation *.COM / "
+        "*.CMA) or generic (ISO 230-1 tables and a volumetric correction grid). "
+        "Grid spacing follows the error's curvature to meet --tolerance; every "
+        "file states whether it holds errors or corrections and what the format "
+        "cannot carry, and compensation.md reports the residual error after "
+        "compensation over the travel and the measurement's tool offsets.",
     )
-    p.add_argument("--result", required=True, type=Path, metavar="DIR",
-                   help="result folder written by `volcal identify` (only read)")
+    p.add_argument(
+        "--result",
+        required=True,
+        type=Path,
+        metavar="DIR",
+        help="result folder written by `volcal identify` (only read)",
+    )
     p.add_argument("--format", required=True, choices=_FORMATS, help="output format")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
-    p.add_argument("--tolerance", type=float, default=0.1, metavar="UM",
-                   help="largest interpolation error at the tool point the grid spacing must "
-                        "meet, um (default 0.1)")
-    p.add_argument("--tool", type=_tool, action="append", metavar="X,Y,Z",
-                   help="tool offset (mm, tool frame) of the residual report and of the "
-                        "generic grids; repeatable (default: the tool offsets of the "
-                        "measurement)")
-    p.add_argument("--table-tool", type=_tool, default=[0.0, 0.0, 0.0], metavar="X,Y,Z",
-                   help="tool offset the siemens / heidenhain tables are built for (default "
-                        "0,0,0: the spindle reference point)")
-    p.add_argument("--sign", choices=("correction", "error"), default="correction",
-                   help="what siemens, heidenhain and the generic grid hold: correction "
-                        "(-error, default) or error (for a control that negates them itself)")
-    p.add_argument("--axis", type=_axis, action="append", metavar="AXIS=ID",
-                   help="controller axis identifier of a model axis, repeatable: ISG logical "
-                        "axis number, SINUMERIK machine axis name (default X1 ...), "
-                        "HEIDENHAIN axis key")
-    p.add_argument("--target", choices=("840d", "828d"), default=None,
-                   help="siemens: the control whose limits apply (840d: 62 CEC tables of "
-                        "2000 points; 828d: 8 tables of 200 points; default 840d)")
-    p.add_argument("--max-points", type=int, default=None, metavar="N",
-                   help="points per table (siemens CEC, heidenhain: default 256), data "
-                        "records (isg) or grid points (generic: default 2,000,000) allowed")
-    p.add_argument("--max-tables", type=int, default=None, metavar="N",
-                   help="tables allowed (siemens CEC, heidenhain: default 8)")
-    p.add_argument("--tool-direction", default="-z",
-                   choices=("+x", "-x", "+y", "-y", "+z", "-z"),
-                   help="isg: tool zero orientation N0 (default -z)")
+    p.add_argument(
+        "--tolerance",
+        type=float,
+        default=0.1,
+        metavar="UM",
+        help="largest interpolation error at the tool point the grid spacing must "
+        "meet, um (default 0.1)",
+    )
+    p.add_argument(
+        "--tool",
+        type=_tool,
+        action="append",
+        metavar="X,Y,Z",
+        help="tool offset (mm, tool frame) of the residual report and of the "
+        "generic grids; repeatable (default: the tool offsets of the "
+        "measurement)",
+    )
+    p.add_argument(
+        "--table-tool",
+        type=_tool,
+        default=[0.0, 0.0, 0.0],
+        metavar="X,Y,Z",
+        help="tool offset the siemens / heidenhain tables are built for (default "
+        "0,0,0: the spindle reference point)",
+    )
+    p.add_argument(
+        "--sign",
+        choices=("correction", "error"),
+        default="correction",
+        help="what siemens, heidenhain and the generic grid hold: correction "
+        "(-error, default) or error (for a control that negates them itself)",
+    )
+    p.add_argument(
+        "--axis",
+        type=_axis,
+        action="append",
+        metavar="AXIS=ID",
+        help="controller axis identifier of a model axis, repeatable: ISG logical "
+        "axis number, SINUMERIK machine axis name (default X1 ...), "
+        "HEIDENHAIN axis key",
+    )
+    p.add_argument(
+        "--target",
+        choices=("840d", "828d"),
+        default=None,
+        help="siemens: the control whose limits apply (840d: 62 CEC tables of "
+        "2000 points; 828d: 8 tables of 200 points; default 840d)",
+    )
+    p.add_argument(
+        "--max-points",
+        type=int,
+        default=None,
+        metavar="N",
+        help="points per table (siemens CEC, heidenhain: default 256), data "
+        "records (isg) or grid points (generic: default 2,000,000) allowed",
+    )
+    p.add_argument(
+        "--max-tables",
+        type=int,
+        default=None,
+        metavar="N",
+        help="tables allowed (siemens CEC, heidenhain: default 8)",
+    )
+    p.add_argument(
+        "--tool-direction",
+        default="-z",
+        choices=("+x", "-x", "+y", "-y", "+z", "-z"),
+        help="isg: tool zero orientation N0 (default -z)",
+    )
     p.set_defaults(func=run)
     return p
 
@@ -102,34 +149,54 @@ def run(args: argparse.Namespace) -> int:
     for name in ("max_points", "max_tables"):
         v = getattr(args, name)
         if v is not None and v < 1:
-            raise InputError(f"expected a positive integer, got {v}",
-                             source="--" + name.replace("_", "-"))
+            raise InputError(
+                f"expected a positive integer, got {v}", source="--" + name.replace("_", "-")
+            )
     if not (args.tolerance > 0 and args.tolerance != float("inf")):
-        raise InputError(f"expected a tolerance > 0 um, got {args.tolerance:g}",
-                         source="--tolerance")
+        raise InputError(
+            f"expected a tolerance > 0 um, got {args.tolerance:g}", source="--tolerance"
+        )
     if args.target is not None and args.format != "siemens":
         raise InputError("--target applies to --format siemens only", source="--target")
     # a bad output folder costs no computing time
-    check_out_dir(args.out, (), "a compensation export (volcal compensate)",
-                  "compensation.json", inputs=[args.result])
+    check_out_dir(
+        args.out,
+        (),
+        "a compensation export (volcal compensate)",
+        "compensation.json",
+        inputs=[args.result],
+    )
     axes = dict(args.axis or [])
-    comp = compensate(args.result, args.format, args.out, tolerance_um=args.tolerance,
-                      tools=args.tool, table_tool=args.table_tool, sign=args.sign,
-                      axis_names=axes, max_points=args.max_points,
-                      max_tables=args.max_tables, target=args.target,
-                      tool_direction=args.tool_direction)
+    comp = compensate(
+        args.result,
+        args.format,
+        args.out,
+        tolerance_um=args.tolerance,
+        tools=args.tool,
+        table_tool=args.table_tool,
+        sign=args.sign,
+        axis_names=axes,
+        max_points=args.max_points,
+        max_tables=args.max_tables,
+        target=args.target,
+        tool_direction=args.tool_direction,
+    )
     if not getattr(args, "quiet", False):
         print(f"{comp.title}")
-        print(f"wrote {len(comp.files)} file(s) to {args.out}: {', '.join(comp.files)} "
-              "(+ compensation.md, compensation.json)")
+        print(
+            f"wrote {len(comp.files)} file(s) to {args.out}: {', '.join(comp.files)} "
+            "(+ compensation.md, compensation.json)"
+        )
         print(f"values: {comp.values}")
         print(comp.spacing_line())
         print(comp.residual_line())
         for r in comp.per_tool.itertuples():
-            print(f"  tool ({r.tool_x_mm:g}, {r.tool_y_mm:g}, {r.tool_z_mm:g}) mm: "
-                  f"uncorrected {r.uncorrected_rms_um:.3f} um RMS, residual "
-                  f"{r.residual_rms_um:.3f} um RMS ({100 * r.ratio:.2f} %), max "
-                  f"{r.residual_max_um:.3f} um")
+            print(
+                f"  tool ({r.tool_x_mm:g}, {r.tool_y_mm:g}, {r.tool_z_mm:g}) mm: "
+                f"uncorrected {r.uncorrected_rms_um:.3f} um RMS, residual "
+                f"{r.residual_rms_um:.3f} um RMS ({100 * r.ratio:.2f} %), max "
+                f"{r.residual_max_um:.3f} um"
+            )
         for n in comp.not_carried:
             print(f"not carried: {n}")
     return 0

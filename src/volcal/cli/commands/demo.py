@@ -3,6 +3,7 @@
 Simulate the MCV 754 example (paper 000's machine and stations, paper 002's budget),
 identify it, compare with the simulated truth, write the report and plots, print a summary.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,9 +39,14 @@ DEMO_FILES = ("truth_comparison.csv",)
 DEMO_DIRS = ("simulation", "identification")
 
 
-def run_demo(out_dir: str | Path = "volcal-demo", *, seed: int | None = None,
-             strategy: str = "joint", example_name: str = "mcv754",
-             plots: bool = True) -> DemoSummary:
+def run_demo(
+    out_dir: str | Path = "volcal-demo",
+    *,
+    seed: int | None = None,
+    strategy: str = "joint",
+    example_name: str = "mcv754",
+    plots: bool = True,
+) -> DemoSummary:
     """Simulate the bundled example, identify it, analyse it and write everything to
     ``out_dir`` (``simulation/``, ``identification/``, ``truth_comparison.csv``)."""
     from volcal.analysis.identify import identify, rigid_fit
@@ -51,14 +57,20 @@ def run_demo(out_dir: str | Path = "volcal-demo", *, seed: int | None = None,
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     # before any computing: the folder must be new, empty or an earlier demo
-    check_out_dir(out_dir, DEMO_FILES, "volcal demo", "truth_comparison.csv",
-                  allowed_dirs=DEMO_DIRS)
+    check_out_dir(
+        out_dir, DEMO_FILES, "volcal demo", "truth_comparison.csv", allowed_dirs=DEMO_DIRS
+    )
     ex = example(example_name)
     log.info("simulating %s (%s)", ex.name, ex.description)
     sim = ex.simulate(seed)
     log.info("identifying %d readings (strategy %s)", len(sim.measurements), strategy)
-    res = identify(ex.machine, sim.measurements, strategy=strategy, budget=ex.budget,
-                   error_model=ex.error_model)
+    res = identify(
+        ex.machine,
+        sim.measurements,
+        strategy=strategy,
+        budget=ex.budget,
+        error_model=ex.error_model,
+    )
 
     # identification error against the simulated truth, on the workspace grid, tool 0;
     # the rigid motion between station and machine frame is invisible to any
@@ -66,11 +78,13 @@ def run_demo(out_dir: str | Path = "volcal-demo", *, seed: int | None = None,
     # the summary grid spans the rotary axes' travel too (a model without rotary axes:
     # the 7 x 7 x 7 grid over the linear axes)
     from volcal.measurement.plans import summary_grid
+
     grid = summary_grid(ex.machine.spec, 7)
     q = ex.machine.axis_to_internal(grid.to_numpy(float))
     pred = res.predict(q)
-    _, true_dp, _ = ex.machine.evaluate(q, np.zeros(3), ex.error_model.values(q, ex.theta_true),
-                                        exact=True)
+    _, true_dp, _ = ex.machine.evaluate(
+        q, np.zeros(3), ex.error_model.values(q, ex.theta_true), exact=True
+    )
     p0, _, _ = ex.machine.evaluate(q, np.zeros(3), np.zeros(ex.machine.n_errors))
     diff = pred[["dx_um", "dy_um", "dz_um"]].to_numpy() - true_dp * 1e3
     _, diff_r = rigid_fit(p0, diff)
@@ -84,24 +98,39 @@ def run_demo(out_dir: str | Path = "volcal-demo", *, seed: int | None = None,
 
     def writer(tmp: Path) -> None:
         save_simulation(sim, tmp / "simulation", force=True)
-        save_result(res, tmp / "identification", data_name="simulation/measurements.csv",
-                    plots=plots, force=True)
+        save_result(
+            res,
+            tmp / "identification",
+            data_name="simulation/measurements.csv",
+            plots=plots,
+            force=True,
+        )
         table.to_csv(tmp / "truth_comparison.csv", index=False)
 
     # one folder written as a whole: a demo interrupted while writing leaves nothing
-    write_folder(out_dir, DEMO_FILES, "volcal demo", writer, marker="truth_comparison.csv",
-                 allowed_dirs=DEMO_DIRS)
+    write_folder(
+        out_dir,
+        DEMO_FILES,
+        "volcal demo",
+        writer,
+        marker="truth_comparison.csv",
+        allowed_dirs=DEMO_DIRS,
+    )
     names = np.asarray(res.error_model.param_names)[~res.identifiable].tolist()
     return DemoSummary(
-        out_dir=out_dir.resolve(), status=res.status,
+        out_dir=out_dir.resolve(),
+        status=res.status,
         max_volumetric_um=float(np.max(np.linalg.norm(pred[["dx_um", "dy_um", "dz_um"]], axis=1))),
         grid_axes=[a for a in ex.machine.axis_names if grid[a].nunique() > 1],
         adequacy=_adequacy_line(res),
         residual_rms_um=res.residual_rms_um,
-        field_error_rms_um=float(np.sqrt(np.mean(np.sum(diff_r ** 2, axis=1)))),
+        field_error_rms_um=float(np.sqrt(np.mean(np.sum(diff_r**2, axis=1)))),
         field_error_max_um=float(np.max(np.linalg.norm(diff_r, axis=1))),
-        within_2u_fraction=within, unidentifiable=names,
-        seconds=time.perf_counter() - t0, n_readings=len(sim.measurements))
+        within_2u_fraction=within,
+        unidentifiable=names,
+        seconds=time.perf_counter() - t0,
+        n_readings=len(sim.measurements),
+    )
 
 
 def _adequacy_line(res) -> str:
@@ -111,8 +140,10 @@ def _adequacy_line(res) -> str:
     lo, hi = ad.interval
     if ad.adequate:
         return f"fits (chi2/dof {ad.chi2_per_dof:.3g} inside [{lo:.3g}, {hi:.3g}])"
-    return (f"INADEQUATE (chi2/dof {ad.chi2_per_dof:.3g} outside [{lo:.3g}, {hi:.3g}]; "
-            f"likely cause: {', '.join(c.kind for c in ad.causes)})")
+    return (
+        f"INADEQUATE (chi2/dof {ad.chi2_per_dof:.3g} outside [{lo:.3g}, {hi:.3g}]; "
+        f"likely cause: {', '.join(c.kind for c in ad.causes)})"
+    )
 
 
 def _handler(args: argparse.Namespace) -> int:
@@ -120,13 +151,17 @@ def _handler(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(f"volcal demo: MCV 754 example, {s.n_readings} simulated length readings")
         print(f"  solver status            {s.status}")
-        print(f"  largest volumetric error {s.max_volumetric_um:.1f} um (workspace grid over "
-              f"{', '.join(s.grid_axes)}, tool offset 0)")
+        print(
+            f"  largest volumetric error {s.max_volumetric_um:.1f} um (workspace grid over "
+            f"{', '.join(s.grid_axes)}, tool offset 0)"
+        )
         print(f"  residual RMS             {s.residual_rms_um:.3f} um")
         print(f"  model adequacy           {s.adequacy}")
-        print(f"  error vs simulated truth {s.field_error_rms_um:.3f} um RMS, "
-              f"{s.field_error_max_um:.3f} um max (rigid motion removed); "
-              f"{100 * s.within_2u_fraction:.0f} % of components within 2 u")
+        print(
+            f"  error vs simulated truth {s.field_error_rms_um:.3f} um RMS, "
+            f"{s.field_error_max_um:.3f} um max (rigid motion removed); "
+            f"{100 * s.within_2u_fraction:.0f} % of components within 2 u"
+        )
         print("  unidentifiable           " + (", ".join(s.unidentifiable) or "none"))
         print(f"  time                     {s.seconds:.1f} s")
         print(f"  report                   {s.out_dir / 'identification' / 'report.md'}")
@@ -135,12 +170,15 @@ def _handler(args: argparse.Namespace) -> int:
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("demo", help="simulate, identify and analyse the bundled example",
-                       description=__doc__)
+    p = sub.add_parser(
+        "demo", help="simulate, identify and analyse the bundled example", description=__doc__
+    )
     p.add_argument("--out", default="volcal-demo", help="output folder (default ./volcal-demo)")
-    p.add_argument("--seed", type=int, default=None, help="simulation seed (default: the "
-                   "example's own)")
-    p.add_argument("--strategy", default="joint",
-                   choices=["joint", "two-phase", "points-only", "classic"])
+    p.add_argument(
+        "--seed", type=int, default=None, help="simulation seed (default: the example's own)"
+    )
+    p.add_argument(
+        "--strategy", default="joint", choices=["joint", "two-phase", "points-only", "classic"]
+    )
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.set_defaults(func=_handler)

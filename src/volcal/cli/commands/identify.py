@@ -12,6 +12,7 @@ codes: 0 success, 1 the solver did not converge, 2 bad input.  The input
 files are only read; the output folder is written atomically and replaces only a previous
 result folder, with --force.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -33,70 +34,145 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "identify",
         help="identify the geometric errors from length readings",
         description="Identify the geometric error motions of a machine from multilateration "
-                    "length readings and write parameters, stations, residuals, component "
-                    "errors, a volumetric grid, plots, report.md and result.json (for "
-                    "`volcal predict`) to --out.  Every value written is an error "
-                    "(actual - nominal), not a correction.",
+        "length readings and write parameters, stations, residuals, component "
+        "errors, a volumetric grid, plots, report.md and result.json (for "
+        "`volcal predict`) to --out.  Every value written is an error "
+        "(actual - nominal), not a correction.",
     )
-    p.add_argument("--model", required=True, metavar="M",
-                   help="bundled model name (see `volcal models`) or model TOML file")
-    p.add_argument("--data", required=True, type=Path, metavar="D.csv",
-                   help="measurement table (station, point, axis columns in mm/deg, "
-                        "optional tool_x/y/z, length in mm, optional time, sigma)")
-    p.add_argument("--stations", type=Path, metavar="S.csv",
-                   help="stations table (station, x, y, z in mm, optional dead_length, "
-                        "fixed): start values, or known positions where fixed")
-    p.add_argument("--strategy", default="joint", choices=_STRATEGIES,
-                   help="joint (default): errors, stations and dead lengths together; "
-                        "two-phase; points-only (stations held); classic "
-                        "(calibrate -> multilaterate -> fit)")
-    p.add_argument("--degree", default="3", metavar="N|auto",
-                   help="degree of the component error motions: Legendre degree, or the "
-                        "highest harmonic of the Fourier series on full-turn rotary axes "
-                        "(default 3); 'auto': per-axis orders chosen from the data by "
-                        "--order-criterion (order_selection.csv)")
-    p.add_argument("--basis", action="append", default=[], metavar="NAME=KIND[:N]",
-                   help="error basis of an axis or one error motion, repeatable: KIND poly "
-                        "(N degree), fourier (N harmonics; rotary axes), bspline (N "
-                        "segments), table (N comma-separated knots, mm/deg) or constant; "
-                        "e.g. --basis C=fourier:3 --basis X=bspline:6 (overrides the model "
-                        "file's basis declarations; docs/error_bases.md)")
-    p.add_argument("--order-criterion", default="bic", choices=["bic", "cv"],
-                   help="with --degree auto: bic (chi2 + k ln N, default) or cv (K-fold "
-                        "cross-validation on held-out poses)")
-    p.add_argument("--cv-folds", type=int, default=5, metavar="K",
-                   help="folds of --order-criterion cv (default 5)")
-    p.add_argument("--datum", default="iso230", choices=_DATUMS,
-                   help="datum convention of the error motions (default iso230)")
-    p.add_argument("--budget", default="paper002", metavar="NAME|FILE",
-                   help="uncertainty budget weighting readings without sigma: bundled name "
-                        "or TOML file (default paper002)")
-    p.add_argument("--robust", action="store_true",
-                   help="reject readings whose normalised residual exceeds --reject-k robust "
-                        "standard deviations and re-solve")
-    p.add_argument("--reject-k", type=float, default=None, metavar="K",
-                   help="rejection threshold of --robust (default 4)")
-    p.add_argument("--station-method", default="sqrt",
-                   choices=["sqrt", "squared", "linear", "linear_taylor", "paper002"],
-                   help="classic strategy: station self-calibration (paper 000 Case A sqrt, "
-                        "squared, Case B linear, Case B + Taylor; paper 002 linear)")
-    p.add_argument("--point-method", default="sqrt",
-                   choices=["sqrt", "squared", "linear", "linear_taylor"],
-                   help="classic strategy: point multilateration method")
-    p.add_argument("--solver", default="ipopt", choices=["ipopt", "gauss-newton"],
-                   help="ipopt (default, followed by Gauss-Newton polish steps) or "
-                        "gauss-newton (Levenberg-Marquardt with the datum eliminated); both "
-                        "reach the same minimiser")
-    p.add_argument("--instrument", default="tracker", metavar="NAME",
-                   help="observation model: tracker (default; sequential multilateration) "
-                        "or multilaser (paper 001's head); see volcal.measurement.instruments")
-    p.add_argument("--exact", action="store_true",
-                   help="exact rotations in the model instead of the first-order one")
-    p.add_argument("--scale-covariance", action="store_true",
-                   help="scale the covariance by the residual variance factor (chi2/dof)")
-    p.add_argument("--out", required=True, type=Path, metavar="DIR",
-                   help="output folder (created; a previous result folder is replaced "
-                        "with --force)")
+    p.add_argument(
+        "--model",
+        required=True,
+        metavar="M",
+        help="bundled model name (see `volcal models`) or model TOML file",
+    )
+    p.add_argument(
+        "--data",
+        required=True,
+        type=Path,
+        metavar="D.csv",
+        help="measurement table (station, point, axis columns in mm/deg, "
+        "optional tool_x/y/z, length in mm, optional time, sigma)",
+    )
+    p.add_argument(
+        "--stations",
+        type=Path,
+        metavar="S.csv",
+        help="stations table (station, x, y, z in mm, optional dead_length, "
+        "fixed): start values, or known positions where fixed",
+    )
+    p.add_argument(
+        "--strategy",
+        default="joint",
+        choices=_STRATEGIES,
+        help="joint (default): errors, stations and dead lengths together; "
+        "two-phase; points-only (stations held); classic "
+        "(calibrate -> multilaterate -> fit)",
+    )
+    p.add_argument(
+        "--degree",
+        default="3",
+        metavar="N|auto",
+        help="degree of the component error motions: Legendre degree, or the "
+        "highest harmonic of the Fourier series on full-turn rotary axes "
+        "(default 3); 'auto': per-axis orders chosen from the data by "
+        "--order-criterion (order_selection.csv)",
+    )
+    p.add_argument(
+        "--basis",
+        action="append",
+        default=[],
+        metavar="NAME=KIND[:N]",
+        help="error basis of an axis or one error motion, repeatable: KIND poly "
+        "(N degree), fourier (N harmonics; rotary axes), bspline (N "
+        "segments), table (N comma-separated knots, mm/deg) or constant; "
+        "e.g. --basis C=fourier:3 --basis X=bspline:6 (overrides the model "
+        "file's basis declarations; docs/error_bases.md)",
+    )
+    p.add_argument(
+        "--order-criterion",
+        default="bic",
+        choices=["bic", "cv"],
+        help="with --degree auto: bic (chi2 + k ln N, default) or cv (K-fold "
+        "cross-validation on held-out poses)",
+    )
+    p.add_argument(
+        "--cv-folds",
+        type=int,
+        default=5,
+        metavar="K",
+        help="folds of --order-criterion cv (default 5)",
+    )
+    p.add_argument(
+        "--datum",
+        default="iso230",
+        choices=_DATUMS,
+        help="datum convention of the error motions (default iso230)",
+    )
+    p.add_argument(
+        "--budget",
+        default="paper002",
+        metavar="NAME|FILE",
+        help="uncertainty budget weighting readings without sigma: bundled name "
+        "or TOML file (default paper002)",
+    )
+    p.add_argument(
+        "--robust",
+        action="store_true",
+        help="reject readings whose normalised residual exceeds --reject-k robust "
+        "standard deviations and re-solve",
+    )
+    p.add_argument(
+        "--reject-k",
+        type=float,
+        default=None,
+        metavar="K",
+        help="rejection threshold of --robust (default 4)",
+    )
+    p.add_argument(
+        "--station-method",
+        default="sqrt",
+        choices=["sqrt", "squared", "linear", "linear_taylor", "paper002"],
+        help="classic strategy: station self-calibration (paper 000 Case A sqrt, "
+        "squared, Case B linear, Case B + Taylor; paper 002 linear)",
+    )
+    p.add_argument(
+        "--point-method",
+        default="sqrt",
+        choices=["sqrt", "squared", "linear", "linear_taylor"],
+        help="classic strategy: point multilateration method",
+    )
+    p.add_argument(
+        "--solver",
+        default="ipopt",
+        choices=["ipopt", "gauss-newton"],
+        help="ipopt (default, followed by Gauss-Newton polish steps) or "
+        "gauss-newton (Levenberg-Marquardt with the datum eliminated); both "
+        "reach the same minimiser",
+    )
+    p.add_argument(
+        "--instrument",
+        default="tracker",
+        metavar="NAME",
+        help="observation model: tracker (default; sequential multilateration) "
+        "or multilaser (paper 001's head); see volcal.measurement.instruments",
+    )
+    p.add_argument(
+        "--exact",
+        action="store_true",
+        help="exact rotations in the model instead of the first-order one",
+    )
+    p.add_argument(
+        "--scale-covariance",
+        action="store_true",
+        help="scale the covariance by the residual variance factor (chi2/dof)",
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        type=Path,
+        metavar="DIR",
+        help="output folder (created; a previous result folder is replaced with --force)",
+    )
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.set_defaults(func=run)
     return p
@@ -124,13 +200,16 @@ def run(args: argparse.Namespace) -> int:
         except ValueError:
             degree = -1
         if degree < 0:
-            raise InputError(f"expected an integer degree >= 0 or 'auto', got {args.degree!r}",
-                             source="--degree")
+            raise InputError(
+                f"expected an integer degree >= 0 or 'auto', got {args.degree!r}", source="--degree"
+            )
     elif args.cv_folds < 2:
         raise InputError(f"expected at least 2 folds, got {args.cv_folds}", source="--cv-folds")
     if degree != "auto" and (args.order_criterion != "bic" or args.cv_folds != 5):
-        raise InputError("--order-criterion and --cv-folds apply with --degree auto only",
-                         source="--order-criterion")
+        raise InputError(
+            "--order-criterion and --cv-folds apply with --degree auto only",
+            source="--order-criterion",
+        )
     forms = dict(parse_basis(b) for b in args.basis) or None
     if args.reject_k is not None and not args.robust:
         raise InputError("--reject-k applies with --robust only", source="--reject-k")
@@ -139,34 +218,62 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"expected a positive threshold, got {reject_k:g}", source="--reject-k")
     # fail before the solve: the output must be writable without touching any input
     out = check_out_dir(args.out)
-    for name, path in (("--data", args.data), ("--stations", args.stations),
-                       ("--budget", Path(args.budget)), ("--model", Path(args.model))):
+    for name, path in (
+        ("--data", args.data),
+        ("--stations", args.stations),
+        ("--budget", Path(args.budget)),
+        ("--model", Path(args.model)),
+    ):
         if path is not None and path.exists() and _inside(path, out):
-            raise InputError(f"the input {path} is inside the output folder, which is "
-                             "replaced; write the result elsewhere", source=name)
+            raise InputError(
+                f"the input {path} is inside the output folder, which is "
+                "replaced; write the result elsewhere",
+                source=name,
+            )
 
-    log.info("identifying: model %s, data %s, strategy %s", args.model, args.data,
-             args.strategy)
-    res = identify(args.model, args.data, args.stations, strategy=args.strategy,
-                   degree=degree, forms=forms, order_criterion=args.order_criterion,
-                   cv_folds=args.cv_folds, datum=args.datum, budget=args.budget,
-                   robust=args.robust, reject_k=reject_k, exact=args.exact,
-                   scale_covariance=args.scale_covariance,
-                   station_method=args.station_method, point_method=args.point_method,
-                   verbose=getattr(args, "verbose", 0) > 1,
-                   progress=not getattr(args, "quiet", False), solver=args.solver,
-                   instrument=args.instrument)
+    log.info("identifying: model %s, data %s, strategy %s", args.model, args.data, args.strategy)
+    res = identify(
+        args.model,
+        args.data,
+        args.stations,
+        strategy=args.strategy,
+        degree=degree,
+        forms=forms,
+        order_criterion=args.order_criterion,
+        cv_folds=args.cv_folds,
+        datum=args.datum,
+        budget=args.budget,
+        robust=args.robust,
+        reject_k=reject_k,
+        exact=args.exact,
+        scale_covariance=args.scale_covariance,
+        station_method=args.station_method,
+        point_method=args.point_method,
+        verbose=getattr(args, "verbose", 0) > 1,
+        progress=not getattr(args, "quiet", False),
+        solver=args.solver,
+        instrument=args.instrument,
+    )
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
-    options = {"model": args.model, "strategy": args.strategy, "degree": degree,
-               "basis": list(args.basis), "order_criterion": args.order_criterion,
-               "datum": args.datum, "budget": args.budget, "robust": args.robust,
-               "reject_k": reject_k, "exact": args.exact,
-               "scale_covariance": args.scale_covariance,
-               "station_method": args.station_method, "point_method": args.point_method,
-               "solver": args.solver, "instrument": args.instrument,
-               "stations": str(args.stations) if args.stations else None}
-    path = save_result(res, out, data_name=str(args.data), plots=not args.no_plots,
-                       options=options)
+    options = {
+        "model": args.model,
+        "strategy": args.strategy,
+        "degree": degree,
+        "basis": list(args.basis),
+        "order_criterion": args.order_criterion,
+        "datum": args.datum,
+        "budget": args.budget,
+        "robust": args.robust,
+        "reject_k": reject_k,
+        "exact": args.exact,
+        "scale_covariance": args.scale_covariance,
+        "station_method": args.station_method,
+        "point_method": args.point_method,
+        "solver": args.solver,
+        "instrument": args.instrument,
+        "stations": str(args.stations) if args.stations else None,
+    }
+    path = save_result(res, out, data_name=str(args.data), plots=not args.no_plots, options=options)
     meta = json.loads((path / "result.json").read_text(encoding="utf-8"))
     adequacy = assess(res)  # computed once per result (kept on it), as in the report
     if not getattr(args, "quiet", False):
@@ -174,32 +281,50 @@ def run(args: argparse.Namespace) -> int:
         n_rej = meta["n_rejected"]
         unid = meta["unidentifiable"]
         iters = sum(o.iterations for o in res.outcomes)
-        print(f"volcal identify: model '{spec.name}', {meta['n_readings']} readings from "
-              f"{res.residuals['station'].nunique()} stations, strategy {res.strategy}")
-        print(f"  solver status            {res.status} ({iters} iterations, "
-              f"{res.seconds:.1f} s)")
-        print(f"  residual RMS             {res.residual_rms_um:.3f} um (chi2/dof "
-              f"{res.conditions.get('chi2_per_dof', float('nan')):.3g})")
+        print(
+            f"volcal identify: model '{spec.name}', {meta['n_readings']} readings from "
+            f"{res.residuals['station'].nunique()} stations, strategy {res.strategy}"
+        )
+        print(f"  solver status            {res.status} ({iters} iterations, {res.seconds:.1f} s)")
+        print(
+            f"  residual RMS             {res.residual_rms_um:.3f} um (chi2/dof "
+            f"{res.conditions.get('chi2_per_dof', float('nan')):.3g})"
+        )
         lo, hi = adequacy.interval
-        print("  model adequacy           " + (
-            f"fits (chi2/dof inside [{lo:.3g}, {hi:.3g}])" if adequacy.adequate else
-            f"INADEQUATE (chi2/dof outside [{lo:.3g}, {hi:.3g}]; likely cause: "
-            + ", ".join(c.kind + (f" against axis {c.numbers['axis']}"
-                                  if c.kind == "structure" else "")
-                        for c in adequacy.causes) + ")"))
+        print(
+            "  model adequacy           "
+            + (
+                f"fits (chi2/dof inside [{lo:.3g}, {hi:.3g}])"
+                if adequacy.adequate
+                else f"INADEQUATE (chi2/dof outside [{lo:.3g}, {hi:.3g}]; likely cause: "
+                + ", ".join(
+                    c.kind + (f" against axis {c.numbers['axis']}" if c.kind == "structure" else "")
+                    for c in adequacy.causes
+                )
+                + ")"
+            )
+        )
         axes = meta.get("max_volumetric_axes") or []
         fixed = [a for a in spec.axis_names if a not in axes]
-        print(f"  largest volumetric error {meta['max_volumetric_um']:.2f} um "
-              f"(grid over {', '.join(axes) or 'no axis'}"
-              + (f", {', '.join(fixed)} at reference" if fixed else "") + ", tool offset 0)")
+        print(
+            f"  largest volumetric error {meta['max_volumetric_um']:.2f} um "
+            f"(grid over {', '.join(axes) or 'no axis'}"
+            + (f", {', '.join(fixed)} at reference" if fixed else "")
+            + ", tool offset 0)"
+        )
         print("  unidentifiable           " + (", ".join(unid) if unid else "none"))
         if res.datum is not None and len(res.datum):
             free = res.datum.loc[~res.datum["imposed"]]
-            print(f"  datum ({res.error_model.datum})           "
-                  f"{int(res.datum['imposed'].sum())} of {len(res.datum)} conditions imposed"
-                  + ("; not imposed (the data determine them, values in datum.csv): "
-                     + ", ".join(c.split(" ")[0] for c in free["condition"]) if len(free)
-                     else ""))
+            print(
+                f"  datum ({res.error_model.datum})           "
+                f"{int(res.datum['imposed'].sum())} of {len(res.datum)} conditions imposed"
+                + (
+                    "; not imposed (the data determine them, values in datum.csv): "
+                    + ", ".join(c.split(" ")[0] for c in free["condition"])
+                    if len(free)
+                    else ""
+                )
+            )
         if args.robust:
             print(f"  rejected readings        {n_rej}")
         print(f"  report                   {path / 'report.md'}")

@@ -4,6 +4,7 @@ axes, error parameters and first-order volumetric error, written out).
 Only the ``show`` path touches SymPy, through :mod:`volcal.model.symbolic`, and it imports it
 inside the handler: ``volcal --help`` and ``volcal models`` never load it.
 """
+
 from __future__ import annotations
 
 import csv
@@ -22,29 +23,45 @@ _COMPONENT_TEXT = {"dx": "Δx", "dy": "Δy", "dz": "Δz"}
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
-        "models", help="list the bundled machine models",
+        "models",
+        help="list the bundled machine models",
         description="List the machine models shipped with volcal: name, number of axes, "
-                    "number of error parameters and description. Use the name with --model "
-                    "or with 'volcal show'.")
-    p.add_argument("--format", choices=("text", "csv"), default="text",
-                   help="output format (default: text)")
+        "number of error parameters and description. Use the name with --model "
+        "or with 'volcal show'.",
+    )
+    p.add_argument(
+        "--format", choices=("text", "csv"), default="text", help="output format (default: text)"
+    )
     p.set_defaults(func=run_models)
 
     s = subparsers.add_parser(
-        "show", help="show a model: axes, error parameters, first-order volumetric error",
+        "show",
+        help="show a model: axes, error parameters, first-order volumetric error",
         description="Show one machine model: its axes (travel in mm or deg), its error "
-                    "parameters (ISO 230-1 / 230-7 names; mm and rad inside volcal, printed "
-                    "as um and urad in reports) and the first-order volumetric error "
-                    "dx, dy, dz (actual minus nominal tool point, mm, in the workpiece frame) "
-                    "as a sum of coefficient * error, one term per error parameter. "
-                    "See docs/conventions.md.")
-    s.add_argument("model", metavar="MODEL",
-                   help="name of a bundled model (see 'volcal models') or path of a model file")
-    s.add_argument("--format", choices=("text", "csv"), default="text",
-                   help="output format (default: text); csv prints the tables one after "
-                        "the other, each after a '# axes' / '# errors' / '# volumetric' line")
-    s.add_argument("--section", choices=("all", *_SECTIONS), default="all",
-                   help="print only one table (with --format csv: one plain CSV table)")
+        "parameters (ISO 230-1 / 230-7 names; mm and rad inside volcal, printed "
+        "as um and urad in reports) and the first-order volumetric error "
+        "dx, dy, dz (actual minus nominal tool point, mm, in the workpiece frame) "
+        "as a sum of coefficient * error, one term per error parameter. "
+        "See docs/conventions.md.",
+    )
+    s.add_argument(
+        "model",
+        metavar="MODEL",
+        help="name of a bundled model (see 'volcal models') or path of a model file",
+    )
+    s.add_argument(
+        "--format",
+        choices=("text", "csv"),
+        default="text",
+        help="output format (default: text); csv prints the tables one after "
+        "the other, each after a '# axes' / '# errors' / '# volumetric' line",
+    )
+    s.add_argument(
+        "--section",
+        choices=("all", *_SECTIONS),
+        default="all",
+        help="print only one table (with --format csv: one plain CSV table)",
+    )
     s.set_defaults(func=run_show)
 
 
@@ -58,8 +75,9 @@ def run_models(args) -> int:
     rows = []
     for name, path in bundled_models().items():
         spec = load_model_file(path)
-        rows.append([name, len(spec.axes), len(error_symbols(spec)), chain_string(spec),
-                     spec.description])
+        rows.append(
+            [name, len(spec.axes), len(error_symbols(spec)), chain_string(spec), spec.description]
+        )
     header = ["name", "n_axes", "n_errors", "chain", "description"]
     if args.format == "csv":
         _write_csv(header, rows)
@@ -88,8 +106,19 @@ def axis_rows(spec: MachineSpec) -> list[list[str]]:
     for a in spec.axes:
         unit = "deg" if a.is_rotary else "mm"
         centre = [_fmt(c) for c in a.center] if a.is_rotary else ["", "", ""]
-        rows.append([a.name, a.kind, a.branch, a.direction, _fmt(a.travel[0]),
-                     _fmt(a.travel[1]), _fmt(a.reference), unit, *centre])
+        rows.append(
+            [
+                a.name,
+                a.kind,
+                a.branch,
+                a.direction,
+                _fmt(a.travel[0]),
+                _fmt(a.travel[1]),
+                _fmt(a.reference),
+                unit,
+                *centre,
+            ]
+        )
     return rows
 
 
@@ -104,20 +133,22 @@ def describe_error(spec: MachineSpec, s: ErrorSymbol) -> str:
     """What an error parameter is, in ISO 230-1 / 230-7 words."""
     if s.kind == "tool":
         d = "xyz"[s.component]
-        return (f"tool zero position in {d}" if s.quantity == "translation"
-                else f"tool zero orientation about {d}")
+        return (
+            f"tool zero position in {d}"
+            if s.quantity == "translation"
+            else f"tool zero orientation about {d}"
+        )
     a: AxisSpec = spec.axis(s.axis)
     d = "xyz"[s.component]
     own = s.component == a.dir_index
     if s.kind == "component":
         if s.quantity == "translation":
             if a.kind == "linear":
-                return ("positioning error motion" if own else f"straightness error motion in {d}")
+                return "positioning error motion" if own else f"straightness error motion in {d}"
             return "axial error motion" if own else f"radial error motion in {d}"
         if a.kind == "linear":
             return "roll" if own else f"angular error motion about {d} (pitch/yaw)"
-        return ("angular positioning error motion" if own
-                else f"tilt error motion about {d}")
+        return "angular positioning error motion" if own else f"tilt error motion about {d}"
     if a.kind == "linear":
         other = _linear_axis_along(spec, 3 - a.dir_index - s.component)
         return f"squareness of {a.name} to {other} (about {d})"
@@ -130,8 +161,7 @@ def error_rows(spec: MachineSpec) -> list[list[str]]:
     rows = []
     for s in error_symbols(spec):
         report = "um" if s.quantity == "translation" else "urad"
-        rows.append([s.name, s.axis, s.kind, s.quantity, s.unit, report,
-                     describe_error(spec, s)])
+        rows.append([s.name, s.axis, s.kind, s.quantity, s.unit, report, describe_error(spec, s)])
     return rows
 
 
@@ -161,6 +191,7 @@ def volumetric_terms(spec: MachineSpec) -> tuple[list[Term], list[str]]:
     # readable names: axis positions as the axes (measurement-table columns), tool offset
     rename = {q: sp.Symbol(a.name, real=True) for q, a in zip(ch.q, spec.axes)}
     rename.update({t: sp.Symbol(f"tool_{c}", real=True) for t, c in zip(ch.t, "xyz")})
+
     # sin^n -> sin^(n-2) (1 - cos^2) until every sine is of power one: a canonical form in
     # which sin^2 + cos^2 cancels (cheap, unlike trigsimp)
     def is_sin_power(x):
@@ -223,8 +254,19 @@ def run_show(args) -> int:
 
     spec = resolve_model(args.model)
     sections: tuple[str, ...] = _SECTIONS if args.section == "all" else (args.section,)
-    axes_header = ["axis", "kind", "branch", "direction", "travel_min", "travel_max",
-                   "reference", "unit", "center_x_mm", "center_y_mm", "center_z_mm"]
+    axes_header = [
+        "axis",
+        "kind",
+        "branch",
+        "direction",
+        "travel_min",
+        "travel_max",
+        "reference",
+        "unit",
+        "center_x_mm",
+        "center_y_mm",
+        "center_z_mm",
+    ]
     err_header = ["name", "axis", "kind", "quantity", "unit", "report_unit", "meaning"]
     vol_header = ["component", "error", "error_unit", "coefficient"]
     terms: list = []
@@ -234,12 +276,15 @@ def run_show(args) -> int:
     if "volumetric" in sections and n_rot > MAX_WRITTEN_ROTARY:
         # each rotary axis doubles the terms of the expanded formula: 4 rotary axes take
         # seconds, 6 a quarter of a minute, 12 hours; the model itself builds in linear time
-        too_big = (f"the first-order volumetric error is not written out: written out in "
-                   f"full it has about 2^{n_rot} terms per error parameter ({n_rot} rotary "
-                   f"axes; at most {MAX_WRITTEN_ROTARY} are written out); volcal builds and "
-                   "uses the model without it")
+        too_big = (
+            f"the first-order volumetric error is not written out: written out in "
+            f"full it has about 2^{n_rot} terms per error parameter ({n_rot} rotary "
+            f"axes; at most {MAX_WRITTEN_ROTARY} are written out); volcal builds and "
+            "uses the model without it"
+        )
         if args.section == "volumetric":
             from volcal.base.exceptions import InputError
+
             raise InputError(too_big, source=str(args.model))
         sections = tuple(x for x in sections if x != "volumetric")
     if "volumetric" in sections:
@@ -256,41 +301,56 @@ def run_show(args) -> int:
             elif sec == "errors":
                 _write_csv(err_header, error_rows(spec))
             else:
-                _write_csv(vol_header, [[t.component, t.error, t.unit, t.coefficient]
-                                        for t in terms])
+                _write_csv(
+                    vol_header, [[t.component, t.error, t.unit, t.coefficient] for t in terms]
+                )
         if too_big:
             print(f"\n# volumetric: {too_big}")
         return 0
 
     out = []
     if len(sections) > 1:
-        out += [f"model {spec.name}: {spec.description}".rstrip(": "),
-                f"chain {chain_string(spec)} (W workpiece, F machine frame, T tool); "
-                f"{len(spec.axes)} axes, {len(error_symbols(spec))} error parameters", ""]
+        out += [
+            f"model {spec.name}: {spec.description}".rstrip(": "),
+            f"chain {chain_string(spec)} (W workpiece, F machine frame, T tool); "
+            f"{len(spec.axes)} axes, {len(error_symbols(spec))} error parameters",
+            "",
+        ]
     if "axes" in sections:
         rows = []
         for r in axis_rows(spec):
             name, kind, branch, direction, lo, hi, ref, unit, cx, cy, cz = r
             centre = f"({cx}, {cy}, {cz})" if cx else "-"
-            rows.append([name, kind, branch, direction, f"{lo} .. {hi} {unit}",
-                         f"{ref} {unit}", centre])
-        out += ["axes (chain order: workpiece -> frame -> tool)",
-                _text_table(["axis", "kind", "branch", "direction", "travel", "reference",
-                             "centre (mm)"], rows), ""]
+            rows.append(
+                [name, kind, branch, direction, f"{lo} .. {hi} {unit}", f"{ref} {unit}", centre]
+            )
+        out += [
+            "axes (chain order: workpiece -> frame -> tool)",
+            _text_table(
+                ["axis", "kind", "branch", "direction", "travel", "reference", "centre (mm)"], rows
+            ),
+            "",
+        ]
     if "errors" in sections:
-        rows = [[n, ax, kind, f"{unit} ({rep.replace('u', 'µ')} in reports)", meaning]
-                for n, ax, kind, _q, unit, rep, meaning in error_rows(spec)]
-        out += ["error parameters (error = actual - nominal; mm and rad inside volcal, "
-                "µm and µrad in reports)",
-                _text_table(["name", "axis", "kind", "unit", "meaning"], rows), ""]
+        rows = [
+            [n, ax, kind, f"{unit} ({rep.replace('u', 'µ')} in reports)", meaning]
+            for n, ax, kind, _q, unit, rep, meaning in error_rows(spec)
+        ]
+        out += [
+            "error parameters (error = actual - nominal; mm and rad inside volcal, "
+            "µm and µrad in reports)",
+            _text_table(["name", "axis", "kind", "unit", "meaning"], rows),
+            "",
+        ]
     if "volumetric" in sections:
-        axes_legend = ", ".join(f"{a.name} ({'rad' if a.is_rotary else 'mm'})"
-                                for a in spec.axes)
-        out += ["first-order volumetric error (actual - nominal tool point, mm, workpiece "
-                "frame)",
-                f"positions: {axes_legend}; tool offset tool_x, tool_y, tool_z (mm, tool "
-                "frame)", "",
-                volumetric_text(terms, silent), ""]
+        axes_legend = ", ".join(f"{a.name} ({'rad' if a.is_rotary else 'mm'})" for a in spec.axes)
+        out += [
+            "first-order volumetric error (actual - nominal tool point, mm, workpiece frame)",
+            f"positions: {axes_legend}; tool offset tool_x, tool_y, tool_z (mm, tool frame)",
+            "",
+            volumetric_text(terms, silent),
+            "",
+        ]
     if too_big:
         out += [too_big, ""]
     print("\n".join(out).rstrip())

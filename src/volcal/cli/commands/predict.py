@@ -10,6 +10,7 @@ and adds ``dx_um, dy_um, dz_um`` (the error: actual - nominal tool point, machin
 and their standard uncertainties ``u_dx_um, u_dy_um, u_dz_um``.  Without ``--out`` the
 table goes to standard output as CSV.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,18 +28,32 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "predict",
         help="volumetric errors at given poses from an identification result",
         description="Predict the volumetric error (actual - nominal tool point, um) and its "
-                    "standard uncertainty at the poses of a points table, from the "
-                    "result.json that `volcal identify` wrote.",
+        "standard uncertainty at the poses of a points table, from the "
+        "result.json that `volcal identify` wrote.",
     )
-    p.add_argument("--result", required=True, type=Path, metavar="DIR",
-                   help="result folder written by `volcal identify`")
-    p.add_argument("--points", required=True, type=Path, metavar="P.csv",
-                   help="poses: one column per axis (mm / deg), optional tool_x, tool_y, "
-                        "tool_z (mm) and point")
-    p.add_argument("--out", type=Path, metavar="V.csv",
-                   help="output CSV (default: standard output)")
-    p.add_argument("--no-uncertainty", action="store_true",
-                   help="leave out the u_dx_um, u_dy_um, u_dz_um columns")
+    p.add_argument(
+        "--result",
+        required=True,
+        type=Path,
+        metavar="DIR",
+        help="result folder written by `volcal identify`",
+    )
+    p.add_argument(
+        "--points",
+        required=True,
+        type=Path,
+        metavar="P.csv",
+        help="poses: one column per axis (mm / deg), optional tool_x, tool_y, "
+        "tool_z (mm) and point",
+    )
+    p.add_argument(
+        "--out", type=Path, metavar="V.csv", help="output CSV (default: standard output)"
+    )
+    p.add_argument(
+        "--no-uncertainty",
+        action="store_true",
+        help="leave out the u_dx_um, u_dy_um, u_dz_um columns",
+    )
     p.set_defaults(func=run)
     return p
 
@@ -66,16 +81,20 @@ def run(args: argparse.Namespace) -> int:
     if args.out is not None:
         out = args.out.resolve()
         if args.points.exists() and out == args.points.resolve():
-            raise InputError("the output would overwrite the points file; choose another name",
-                             source="--out")
+            raise InputError(
+                "the output would overwrite the points file; choose another name", source="--out"
+            )
         if out.parent == args.result.resolve() and out.name in RESULT_FILES:
-            raise InputError("the output would overwrite a file of the result folder",
-                             source="--out")
+            raise InputError(
+                "the output would overwrite a file of the result folder", source="--out"
+            )
         if out.is_dir():
             raise InputError("expected a file name, got a folder", source="--out")
         if out.exists() and not getattr(args, "force", False):
-            raise InputError("the file exists; choose another name or pass --force to "
-                             "replace it", source=str(out))
+            raise InputError(
+                "the file exists; choose another name or pass --force to replace it",
+                source=str(out),
+            )
     log.info("loading %s", args.result)
     res = load_result(args.result)
     log.info("predicting at the poses of %s", args.points)

@@ -10,6 +10,7 @@ Writes measurements.csv, stations.csv (the true stations), true_parameters.csv (
 urad), true_volumetric.csv and simulation.json to ``--out`` (see
 :func:`volcal.measurement.simulate.save_simulation`).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,54 +28,98 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "simulate",
         help="simulate multilateration length data from true error motions",
         description="Simulate a sequential multilateration measurement: machine model + true "
-                    "error motions + stations + plan + tool offsets + budget + seed -> "
-                    "measurement table, with the true parameters and true volumetric errors "
-                    "beside it.  Actual tool points come from the exact model; the axis "
-                    "repeatability is drawn anew for every station visit; a seed always gives "
-                    "the same data.",
+        "error motions + stations + plan + tool offsets + budget + seed -> "
+        "measurement table, with the true parameters and true volumetric errors "
+        "beside it.  Actual tool points come from the exact model; the axis "
+        "repeatability is drawn anew for every station visit; a seed always gives "
+        "the same data.",
     )
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--model", metavar="M",
-                     help="bundled model name (see `volcal models`) or model TOML file")
-    src.add_argument("--example", metavar="NAME",
-                     help="use a bundled example (e.g. mcv754): its model, true parameters, "
-                          "stations, plan, tools and budget; the options below override parts")
+    src.add_argument(
+        "--model", metavar="M", help="bundled model name (see `volcal models`) or model TOML file"
+    )
+    src.add_argument(
+        "--example",
+        metavar="NAME",
+        help="use a bundled example (e.g. mcv754): its model, true parameters, "
+        "stations, plan, tools and budget; the options below override parts",
+    )
     truth = p.add_mutually_exclusive_group()
-    truth.add_argument("--true-parameters", metavar="FILE", type=Path,
-                       help="true parameters, CSV `name, value, unit` (um/urad/mm/rad ...); "
-                            "parameters not listed are zero")
-    truth.add_argument("--max-volumetric-um", type=float, metavar="UM",
-                       help="draw realistic true errors (with the seed) scaled to this maximum "
-                            "volumetric error over the workspace, um (default 60)")
-    p.add_argument("--degree", type=int, default=3, metavar="N",
-                   help="Legendre degree of the error motions (default 3)")
-    p.add_argument("--stations", metavar="S.csv", type=Path,
-                   help="true stations (station, x_mm, y_mm, z_mm[, dead_length_mm]); default: "
-                        "six stations around the workspace at two heights")
-    p.add_argument("--plan", metavar="default|grid|lines|diagonals|FILE.csv",
-                   help="measurement plan: the default (a grid over the travel; with rotary "
-                        "axes a linear-axis grid plus rotary sweeps over the whole travel at "
-                        "several linear and rotary positions, see "
-                        "volcal.measurement.plans.default_plan), "
-                        "a grid over the travel, lines along the axes, the ISO 230-6 body "
-                        "diagonals, or a CSV of poses (axis columns, mm/deg)")
-    p.add_argument("--grid", metavar="N",
-                   help="positions per axis: N for every linear axis (rotary axes coarser), or "
-                        "per axis as X=6,Y=5,Z=5; for lines/diagonals the points per line "
-                        "(default 5 for a grid, 11 for lines/diagonals)")
-    p.add_argument("--tools", metavar="\"x,y,z;x,y,z\"",
-                   help=f"tool (reflector) offsets in mm, separated by ';' (default "
-                        f"\"{_DEFAULT_TOOLS}\")")
-    p.add_argument("--budget", metavar="NAME|FILE",
-                   help="uncertainty budget: bundled name or TOML file (default paper002)")
-    p.add_argument("--no-noise", action="store_true",
-                   help="exact lengths: no length noise, no axis repeatability")
+    truth.add_argument(
+        "--true-parameters",
+        metavar="FILE",
+        type=Path,
+        help="true parameters, CSV `name, value, unit` (um/urad/mm/rad ...); "
+        "parameters not listed are zero",
+    )
+    truth.add_argument(
+        "--max-volumetric-um",
+        type=float,
+        metavar="UM",
+        help="draw realistic true errors (with the seed) scaled to this maximum "
+        "volumetric error over the workspace, um (default 60)",
+    )
+    p.add_argument(
+        "--degree",
+        type=int,
+        default=3,
+        metavar="N",
+        help="Legendre degree of the error motions (default 3)",
+    )
+    p.add_argument(
+        "--stations",
+        metavar="S.csv",
+        type=Path,
+        help="true stations (station, x_mm, y_mm, z_mm[, dead_length_mm]); default: "
+        "six stations around the workspace at two heights",
+    )
+    p.add_argument(
+        "--plan",
+        metavar="default|grid|lines|diagonals|FILE.csv",
+        help="measurement plan: the default (a grid over the travel; with rotary "
+        "axes a linear-axis grid plus rotary sweeps over the whole travel at "
+        "several linear and rotary positions, see "
+        "volcal.measurement.plans.default_plan), "
+        "a grid over the travel, lines along the axes, the ISO 230-6 body "
+        "diagonals, or a CSV of poses (axis columns, mm/deg)",
+    )
+    p.add_argument(
+        "--grid",
+        metavar="N",
+        help="positions per axis: N for every linear axis (rotary axes coarser), or "
+        "per axis as X=6,Y=5,Z=5; for lines/diagonals the points per line "
+        "(default 5 for a grid, 11 for lines/diagonals)",
+    )
+    p.add_argument(
+        "--tools",
+        metavar='"x,y,z;x,y,z"',
+        help=f"tool (reflector) offsets in mm, separated by ';' (default \"{_DEFAULT_TOOLS}\")",
+    )
+    p.add_argument(
+        "--budget",
+        metavar="NAME|FILE",
+        help="uncertainty budget: bundled name or TOML file (default paper002)",
+    )
+    p.add_argument(
+        "--no-noise",
+        action="store_true",
+        help="exact lengths: no length noise, no axis repeatability",
+    )
     p.add_argument("--drift", action="store_true", help="add the budget's drift model")
-    p.add_argument("--seed", type=int, required=True, metavar="N",
-                   help="seed of the random numbers (same seed -> same data)")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR",
-                   help="output folder (created; a previous simulation is replaced with "
-                        "--force)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        required=True,
+        metavar="N",
+        help="seed of the random numbers (same seed -> same data)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="output folder (created; a previous simulation is replaced with --force)",
+    )
     p.set_defaults(func=run)
     return p
 
@@ -84,8 +129,10 @@ def _grid_counts(text: str | None, plan: str):
 
     if plan == "default":
         if text is not None:
-            raise InputError("--grid applies to --plan grid, lines or diagonals, not to the "
-                             "default plan", source="--grid")
+            raise InputError(
+                "--grid applies to --plan grid, lines or diagonals, not to the default plan",
+                source="--grid",
+            )
         return None
     if text is None:
         return 5 if plan == "grid" else 11
@@ -93,14 +140,14 @@ def _grid_counts(text: str | None, plan: str):
     if re.fullmatch(r"\d+", text):
         return int(text)
     if plan != "grid":
-        raise InputError(f"expected one number of points per line, got {text!r}",
-                         source="--grid")
+        raise InputError(f"expected one number of points per line, got {text!r}", source="--grid")
     out = {}
     for item in text.split(","):
         m = re.fullmatch(r"\s*([A-Z][A-Z0-9]{0,3})\s*=\s*(\d+)\s*", item)
         if not m:
-            raise InputError(f"expected N or AXIS=N,AXIS=N (e.g. X=6,Y=5,Z=5), got {text!r}",
-                             source="--grid")
+            raise InputError(
+                f"expected N or AXIS=N,AXIS=N (e.g. X=6,Y=5,Z=5), got {text!r}", source="--grid"
+            )
         out[m.group(1)] = int(m.group(2))
     return out
 
@@ -139,16 +186,24 @@ def run(args: argparse.Namespace) -> int:
     if plan_kind in ("default", "grid", "lines", "diagonals"):
         counts = _grid_counts(args.grid, plan_kind)
     elif args.grid is not None:
-        raise InputError("--grid applies to --plan grid, lines or diagonals, not to a plan file",
-                         source="--grid")
+        raise InputError(
+            "--grid applies to --plan grid, lines or diagonals, not to a plan file", source="--grid"
+        )
 
     # the output folder before any model is built
     from volcal.base.folders import check_out_dir
     from volcal.measurement.simulate import SIMULATION_FILES
-    check_out_dir(args.out, SIMULATION_FILES, "a simulation",
-                  inputs=[getattr(args, k, None) for k in ("plan", "true_parameters", "stations",
-                                                           "model", "budget")
-                          if isinstance(getattr(args, k, None), (str, Path))])
+
+    check_out_dir(
+        args.out,
+        SIMULATION_FILES,
+        "a simulation",
+        inputs=[
+            getattr(args, k, None)
+            for k in ("plan", "true_parameters", "stations", "model", "budget")
+            if isinstance(getattr(args, k, None), (str, Path))
+        ],
+    )
     ex = example(args.example) if args.example else None
     machine = ex.machine if ex else Machine.from_model(args.model)
     spec = machine.spec
@@ -161,16 +216,18 @@ def run(args: argparse.Namespace) -> int:
         theta = load_true_parameters(args.true_parameters, em)
         C, _ = em.constraints()
         if C.shape[0] and np.abs(C @ theta).max() > 1e-12:
-            log.warning("the true parameters do not satisfy the datum constraints (%s); an "
-                        "identification with those constraints estimates their projection",
-                        em.datum)
+            log.warning(
+                "the true parameters do not satisfy the datum constraints (%s); an "
+                "identification with those constraints estimates their projection",
+                em.datum,
+            )
     elif ex is not None and args.max_volumetric_um is None and em is ex.error_model:
         theta = ex.theta_true
     else:
         rng = np.random.default_rng(np.random.SeedSequence(args.seed, spawn_key=(99,)))
-        theta = draw_true_parameters(machine, em, rng,
-                                     60.0 if args.max_volumetric_um is None
-                                     else args.max_volumetric_um)
+        theta = draw_true_parameters(
+            machine, em, rng, 60.0 if args.max_volumetric_um is None else args.max_volumetric_um
+        )
 
     if args.stations is not None:
         stations = args.stations
@@ -196,13 +253,25 @@ def run(args: argparse.Namespace) -> int:
         tools = ex.tools if ex is not None else parse_tools(_DEFAULT_TOOLS)
     budget = args.budget or (ex.budget if ex is not None else "paper002")
 
-    sim = simulate(machine, em, theta, stations, plan, tools, budget, args.seed,
-                   noise=not args.no_noise, drift=args.drift)
+    sim = simulate(
+        machine,
+        em,
+        theta,
+        stations,
+        plan,
+        tools,
+        budget,
+        args.seed,
+        noise=not args.no_noise,
+        drift=args.drift,
+    )
     out = save_simulation(sim, args.out)
     if not getattr(args, "quiet", False):
-        print(f"simulated {len(sim.measurements)} readings ({len(sim.stations)} stations x "
-              f"{len(plan)} poses x {len(tools)} tool offsets) on model '{spec.name}', seed "
-              f"{sim.seed}, noise {'off' if not sim.noise else '+'.join(sim.noise)}; max true "
-              f"volumetric error {sim.max_volumetric_um:.1f} um")
+        print(
+            f"simulated {len(sim.measurements)} readings ({len(sim.stations)} stations x "
+            f"{len(plan)} poses x {len(tools)} tool offsets) on model '{spec.name}', seed "
+            f"{sim.seed}, noise {'off' if not sim.noise else '+'.join(sim.noise)}; max true "
+            f"volumetric error {sim.max_volumetric_um:.1f} um"
+        )
         print(f"wrote {out}")
     return 0

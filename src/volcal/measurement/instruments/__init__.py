@@ -3,6 +3,7 @@
 ``get_instrument("tracker")`` (the default, sequential multilateration) or
 ``"multilaser"`` (paper 001's head); :func:`register` adds one (a class in one file).
 """
+
 from __future__ import annotations
 
 from volcal.base.exceptions import InputError
@@ -10,8 +11,14 @@ from volcal.measurement.instruments.base import Instrument
 from volcal.measurement.instruments.multilaser import MultiLaserInstrument
 from volcal.measurement.instruments.tracker import SequentialMultilateration
 
-__all__ = ["Instrument", "SequentialMultilateration", "MultiLaserInstrument", "register",
-           "get_instrument", "instruments"]
+__all__ = [
+    "Instrument",
+    "SequentialMultilateration",
+    "MultiLaserInstrument",
+    "register",
+    "get_instrument",
+    "instruments",
+]
 
 _REGISTRY: dict[str, type[Instrument]] = {
     "tracker": SequentialMultilateration,
@@ -41,5 +48,6 @@ def get_instrument(instrument: str | Instrument | None = None) -> Instrument:
     try:
         return _REGISTRY[str(instrument)]()
     except KeyError:
-        raise InputError(f"unknown instrument {instrument!r}; expected one of "
-                         f"{', '.join(instruments())}") from None
+        raise InputError(
+            f"unknown instrument {instrument!r}; expected one of {', '.join(instruments())}"
+        ) from None

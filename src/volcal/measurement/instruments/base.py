@@ -19,6 +19,7 @@ A new instrument is one class in one file (see ``tests/coordinate_probe.py`` for
 that reads 3-D coordinates), registered with :func:`volcal.measurement.instruments.register`;
 nothing in the problem, the solvers or the analyses changes.
 """
+
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
@@ -77,12 +78,18 @@ class Instrument(ABC):
         s = ca.SX.sym("s", self.n_station_params)
         g = ca.SX.sym("g", self.n_global_params)
         v = self.reading(p, s, g)
-        return ca.Function(f"{self.name}_reading", [p, s, g], [v, ca.jacobian(v, p)],
-                           ["point", "station", "glob"], ["value", "dvalue_dpoint"],
-                           {"cse": True})
+        return ca.Function(
+            f"{self.name}_reading",
+            [p, s, g],
+            [v, ca.jacobian(v, p)],
+            ["point", "station", "glob"],
+            ["value", "dvalue_dpoint"],
+            {"cse": True},
+        )
 
-    def evaluate(self, points: np.ndarray, stations: np.ndarray,
-                 glob: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def evaluate(
+        self, points: np.ndarray, stations: np.ndarray, glob: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Readings (N,) mm and their gradients wrt the point (N, 3) for points (N, 3) mm
         and the station parameters of every reading (N, n_station_params)."""
         points = np.atleast_2d(np.asarray(points, float))
@@ -96,8 +103,13 @@ class Instrument(ABC):
 
     # ---- start values --------------------------------------------------------------------
     @abstractmethod
-    def start_values(self, station_ids: list[str], station_index: np.ndarray,
-                     points: np.ndarray, readings: np.ndarray) -> np.ndarray:
+    def start_values(
+        self,
+        station_ids: list[str],
+        station_index: np.ndarray,
+        points: np.ndarray,
+        readings: np.ndarray,
+    ) -> np.ndarray:
         """Start values (K, n_station_params) of every station from the nominal points
         (N, 3) mm of its readings and the readings (N,) mm.  Raises
         :class:`volcal.base.exceptions.SolverError` when a station cannot be located."""
@@ -112,6 +124,8 @@ class Instrument(ABC):
         return f"station start values: {self.name} start values from the nominal points"
 
     def __repr__(self) -> str:
-        return (f"{type(self).__name__}(name={self.name!r}, stations: "
-                f"{', '.join(self.station_param_names)}; global: "
-                f"{', '.join(self.global_param_names) or 'none'})")
+        return (
+            f"{type(self).__name__}(name={self.name!r}, stations: "
+            f"{', '.join(self.station_param_names)}; global: "
+            f"{', '.join(self.global_param_names) or 'none'})"
+        )

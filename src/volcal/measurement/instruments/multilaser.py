@@ -5,6 +5,7 @@ length offset (mm); global ``instrument_T_machine`` (tx, ty, tz mm; rx, ry, rz r
 rotation R = Rz Ry Rx):  ``reading = ||R P + t - Q|| - offset``.  The instrument's own frame
 convention (ICRS, paper sec. 3) holds laser1.x/y/z, laser2.y/z and laser3.z at 0.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -14,14 +15,26 @@ import numpy as np
 
 from volcal.measurement.instruments.base import Instrument
 
-FRAME_NAMES = ("frame_tx_mm", "frame_ty_mm", "frame_tz_mm",
-               "frame_rx_rad", "frame_ry_rad", "frame_rz_rad")
+FRAME_NAMES = (
+    "frame_tx_mm",
+    "frame_ty_mm",
+    "frame_tz_mm",
+    "frame_rx_rad",
+    "frame_ry_rad",
+    "frame_rz_rad",
+)
 
 
 def rotation_sx(r):
     """R = Rz(rz) Ry(ry) Rx(rx) for CasADi symbols r = (rx, ry, rz) rad."""
-    cx, sx, cy, sy, cz, sz = (ca.cos(r[0]), ca.sin(r[0]), ca.cos(r[1]), ca.sin(r[1]),
-                              ca.cos(r[2]), ca.sin(r[2]))
+    cx, sx, cy, sy, cz, sz = (
+        ca.cos(r[0]),
+        ca.sin(r[0]),
+        ca.cos(r[1]),
+        ca.sin(r[1]),
+        ca.cos(r[2]),
+        ca.sin(r[2]),
+    )
     Rx = ca.blockcat([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
     Ry = ca.blockcat([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
     Rz = ca.blockcat([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
@@ -48,8 +61,7 @@ class MultiLaserInstrument(Instrument):
     @staticmethod
     def icrs_fixed() -> dict[str, tuple[str, ...]]:
         """Station parameters the ICRS convention fixes at 0 (per laser)."""
-        return {"laser1": ("x_mm", "y_mm", "z_mm"), "laser2": ("y_mm", "z_mm"),
-                "laser3": ("z_mm",)}
+        return {"laser1": ("x_mm", "y_mm", "z_mm"), "laser2": ("y_mm", "z_mm"), "laser3": ("z_mm",)}
 
     def held_station_params(self, station_id: str) -> tuple[str, ...]:
         return self.icrs_fixed().get(station_id, ())
@@ -60,8 +72,7 @@ class MultiLaserInstrument(Instrument):
         the origin, laser 2 on x, laser 3 in the xy plane); offsets from that fit."""
         from volcal.measurement.instruments.tracker import SequentialMultilateration
 
-        est = SequentialMultilateration().start_values(station_ids, station_index, points,
-                                                        readings)
+        est = SequentialMultilateration().start_values(station_ids, station_index, points, readings)
         Q = est[:, :3]
         if len(Q) >= 3:
             ex = Q[1] - Q[0]

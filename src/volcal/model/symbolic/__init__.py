@@ -4,6 +4,7 @@
 homogeneous transforms, ``chain`` turns a :class:`~volcal.model.spec.MachineSpec` into the
 first-order and the exact tool-point expressions.
 """
+
 from volcal.model.symbolic.chain import ChainExpressions, build_chain
 
 __all__ = ["ChainExpressions", "build_chain"]

@@ -16,6 +16,7 @@ Conventions (documented in docs/conventions.md):
   a rotary axis shift and tilt its average line (ISO 230-7) and leave the carried part
   undisplaced at zero angle.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -70,8 +71,13 @@ def _axis_factors(axis, q: sp.Symbol, err: dict[str, sp.Expr]) -> list[Factor]:
     sign = axis.dir_sign if axis.branch == "tool" else -axis.dir_sign
     if axis.kind == "linear":
         omega = (g(f"EA0{n}"), g(f"EB0{n}"), g(f"EC0{n}"))
-        return [SmallRotate(omega), Translate(_unit(i, sign * q)), SmallRotate(omega, inverse=True),
-                Translate((_0, _0, _0), delta), SmallRotate(eps)]
+        return [
+            SmallRotate(omega),
+            Translate(_unit(i, sign * q)),
+            SmallRotate(omega, inverse=True),
+            Translate((_0, _0, _0), delta),
+            SmallRotate(eps),
+        ]
     c = tuple(sp.nsimplify(v) for v in axis.center)
     minus_c = tuple(-v for v in c)
     loc_t = (g(f"EX0{n}"), g(f"EY0{n}"), g(f"EZ0{n}"))
@@ -79,10 +85,16 @@ def _axis_factors(axis, q: sp.Symbol, err: dict[str, sp.Expr]) -> list[Factor]:
     neg_loc_t = tuple(-v for v in loc_t)
     return [
         # component error motion at the nominal centre, in the carrier's orientation
-        Translate(c), Translate((_0, _0, _0), delta), SmallRotate(eps), Translate(minus_c),
+        Translate(c),
+        Translate((_0, _0, _0), delta),
+        SmallRotate(eps),
+        Translate(minus_c),
         # nominal rotation about the actual average line (location errors)
-        Translate(c, loc_t), SmallRotate(loc_r), Rotate(i, sign * q),
-        SmallRotate(loc_r, inverse=True), Translate(minus_c, neg_loc_t),
+        Translate(c, loc_t),
+        SmallRotate(loc_r),
+        Rotate(i, sign * q),
+        SmallRotate(loc_r, inverse=True),
+        Translate(minus_c, neg_loc_t),
     ]
 
 
@@ -111,8 +123,10 @@ def build_chain(spec: MachineSpec) -> ChainExpressions:
         exact_chain = exact_chain * x
     # the tool's zero position and orientation relative to the last axis of the chain
     g = lambda name: err.get(name, _0)  # noqa: E731 - unselected errors are zero
-    for f in (Translate((_0, _0, _0), (g("EX0T"), g("EY0T"), g("EZ0T"))),
-              SmallRotate((g("EA0T"), g("EB0T"), g("EC0T")))):
+    for f in (
+        Translate((_0, _0, _0), (g("EX0T"), g("EY0T"), g("EZ0T"))),
+        SmallRotate((g("EA0T"), g("EB0T"), g("EC0T"))),
+    ):
         dual_chain = dual_chain @ as_dual(f)
         exact_chain = exact_chain * as_exact(f)
     tool = sp.Matrix([*t, 1])
@@ -120,4 +134,3 @@ def build_chain(spec: MachineSpec) -> ChainExpressions:
     p1 = dual_chain.dual * tool
     px = exact_chain * tool
     return ChainExpressions(q, t, e, tuple(p0[:3]), tuple(p1[:3]), tuple(px[:3]))
-

@@ -4,6 +4,7 @@ Composing a chain this way keeps the error part linear in the error symbols at e
 which is what makes building a 5-axis model take milliseconds instead of the minutes that
 expanding and truncating (or differentiating) the exact product takes.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -7,6 +7,7 @@ A factor is one of
 * ``SmallRotate(omega)``: rotation by an error vector omega (rad): ``I + [omega]x`` to
   first order, ``Rx(wx) Ry(wy) Rz(wz)`` exactly (they differ at second order only).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

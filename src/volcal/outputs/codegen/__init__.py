@@ -31,17 +31,28 @@ Gauss-Newton on the range residual, the minimiser Python's ``calibrate_stations`
 A plan without lengths needs a stations table with approximate positions (for the
 export-time analysis).
 """
+
 from volcal.outputs.codegen.export import (
-                                   DEFAULT_OPTIONS,
-                                   EXPORT_STRATEGIES,
-                                   ExportInfo,
-                                   build,
-                                   define_solver,
-                                   export_model,
-                                   export_solver,
+    DEFAULT_OPTIONS,
+    EXPORT_STRATEGIES,
+    ExportInfo,
+    build,
+    define_solver,
+    export_model,
+    export_solver,
 )
 from volcal.outputs.codegen.loader import CompiledModel, CompiledSolver, CResult, load
 
-__all__ = ["export_solver", "export_model", "build", "load", "define_solver", "ExportInfo",
-           "CompiledSolver", "CompiledModel", "CResult", "DEFAULT_OPTIONS",
-           "EXPORT_STRATEGIES"]
+__all__ = [
+    "export_solver",
+    "export_model",
+    "build",
+    "load",
+    "define_solver",
+    "ExportInfo",
+    "CompiledSolver",
+    "CompiledModel",
+    "CResult",
+    "DEFAULT_OPTIONS",
+    "EXPORT_STRATEGIES",
+]

@@ -7,6 +7,7 @@ An export folder whose manifest records the same inputs (model content, plan con
 stations table, options, volcal / CasADi versions) and whose files still have the
 recorded hashes is reused: nothing is regenerated, ``make`` only rebuilds what is missing.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -101,6 +102,7 @@ class ExportInfo:
     def load(self):
         """The compiled export as a Python object (:func:`volcal.outputs.codegen.loader.load`)."""
         from volcal.outputs.codegen.loader import load
+
         return load(self.path)
 
 
@@ -114,8 +116,10 @@ def default_name(spec: MachineSpec) -> str:
 
 def _check_name(name: str) -> str:
     if not _NAME_RE.match(name):
-        raise InputError(f"export name {name!r} is not a C identifier (letters, digits and "
-                         "'_', not starting with a digit, at most 41 characters)")
+        raise InputError(
+            f"export name {name!r} is not a C identifier (letters, digits and "
+            "'_', not starting with a digit, at most 41 characters)"
+        )
     return name
 
 
@@ -135,7 +139,7 @@ def _c_list(values, fmt=str, per_line: int = 8) -> str:
     items = [fmt(v) for v in values]
     if not items:
         return "0"
-    lines = [", ".join(items[i:i + per_line]) for i in range(0, len(items), per_line)]
+    lines = [", ".join(items[i : i + per_line]) for i in range(0, len(items), per_line)]
     return "\n  " + ",\n  ".join(lines) + "\n"
 
 
@@ -156,8 +160,12 @@ def _generator_hash() -> str:
 
 
 def _versions() -> dict:
-    return {"volcal": __version__, "casadi": ca.CasadiMeta.version(),
-            "python": ".".join(map(str, sys.version_info[:3])), "generator": _generator_hash()}
+    return {
+        "volcal": __version__,
+        "casadi": ca.CasadiMeta.version(),
+        "python": ".".join(map(str, sys.version_info[:3])),
+        "generator": _generator_hash(),
+    }
 
 
 def _machine(model) -> Machine:
@@ -169,8 +177,12 @@ def _model_label(model, spec: MachineSpec) -> str:
 
 
 def _budget_blob(b: Budget) -> str:
-    return json.dumps([[s.name, s.magnitude, s.unit, s.distribution, s.applies_to, s.k,
-                        s.per_metre] for s in b.sources])
+    return json.dumps(
+        [
+            [s.name, s.magnitude, s.unit, s.distribution, s.applies_to, s.k, s.per_metre]
+            for s in b.sources
+        ]
+    )
 
 
 def _load_plan(plan, spec: MachineSpec, st_table: pd.DataFrame | None):
@@ -250,20 +262,25 @@ def _write_files(out: Path, files: Mapping[str, str | bytes], manifest: dict) ->
 
 def _generate_casadi(functions: list[ca.Function], name: str) -> dict[str, str]:
     """CasADi C for the functions: {file name: text} of <name>_generated.c/.h."""
-    cg = ca.CodeGenerator(f"{name}_generated", {"with_header": True, "casadi_real": "double",
-                                                "verbose": False})
+    cg = ca.CodeGenerator(
+        f"{name}_generated", {"with_header": True, "casadi_real": "double", "verbose": False}
+    )
     for f in functions:
         cg.add(f)
     with tempfile.TemporaryDirectory() as d:
         cg.generate(d + os.sep)
-        return {f"{name}_generated.c": (Path(d) / f"{name}_generated.c").read_text(),
-                f"{name}_generated.h": (Path(d) / f"{name}_generated.h").read_text()}
+        return {
+            f"{name}_generated.c": (Path(d) / f"{name}_generated.c").read_text(),
+            f"{name}_generated.h": (Path(d) / f"{name}_generated.h").read_text(),
+        }
 
 
 def _common(machine: Machine, em: ErrorModel, name: str) -> dict[str, str]:
     return {
-        "NAME": name, "UNAME": name.upper(),
-        "n_axes": str(machine.n_axes), "n_params": str(em.n_params),
+        "NAME": name,
+        "UNAME": name.upper(),
+        "n_axes": str(machine.n_axes),
+        "n_params": str(em.n_params),
         "n_errors": str(em.n_errors),
         "axis_names": _c_list(machine.axis_names, _c_str),
         "axis_rotary": _c_list([int(a.is_rotary) for a in machine.spec.axes]),
@@ -282,8 +299,7 @@ def _render(template: str, mapping: dict) -> str:
 # build
 
 
-def build(path: str | Path, *, cc: str = "gcc", cflags: str | None = None,
-          jobs: int = 2) -> float:
+def build(path: str | Path, *, cc: str = "gcc", cflags: str | None = None, jobs: int = 2) -> float:
     """Run ``make`` in an export folder; returns the seconds it took.  ``cflags`` replaces
     the Makefile's CFLAGS (default ``-O2 -Wall -Werror``).  Raises RuntimeError with the
     compiler output when the build fails."""
@@ -314,14 +330,14 @@ class SolverDefinition:
     identifier: Identifier
     strategy: str
     budget: Budget
-    layout: pd.DataFrame          # station, point, axes (file units), tool_x..z
+    layout: pd.DataFrame  # station, point, axes (file units), tool_x..z
     station_ids: list[str]
     station_index: np.ndarray
     phases: list[S.Phase]
-    st_given: np.ndarray          # (K,) bool: start values from the stations table
-    st_table: np.ndarray          # (K, 4)
-    st0: np.ndarray               # (K, 4) start stations used for the analysis
-    user_fixed: np.ndarray        # (n_x,) bool
+    st_given: np.ndarray  # (K,) bool: start values from the stations table
+    st_table: np.ndarray  # (K, 4)
+    st0: np.ndarray  # (K, 4) start stations used for the analysis
+    user_fixed: np.ndarray  # (n_x,) bool
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -329,9 +345,17 @@ class SolverDefinition:
         return self.identifier.problem
 
 
-def define_solver(model, plan, *, stations=None, strategy: str = "joint", degree: int = 3,
-                  datum: Datum = "iso230", budget: str | Path | Budget = "paper002",
-                  exact: bool = False) -> SolverDefinition:
+def define_solver(
+    model,
+    plan,
+    *,
+    stations=None,
+    strategy: str = "joint",
+    degree: int = 3,
+    datum: Datum = "iso230",
+    budget: str | Path | Budget = "paper002",
+    exact: bool = False,
+) -> SolverDefinition:
     """Decide everything an exported solver fixes, from the model and the plan.
 
     plan: measurement table (CSV path or DataFrame) with or without lengths.  With lengths
@@ -342,15 +366,35 @@ def define_solver(model, plan, *, stations=None, strategy: str = "joint", degree
     machine = _machine(model)
     st_table = None if stations is None else load_stations(stations)
     meas, has_lengths = _load_plan(plan, machine.spec, st_table)
-    return _define(machine, meas, has_lengths, st_table, strategy=strategy, degree=degree,
-                   datum=datum, budget=budget, exact=exact)
+    return _define(
+        machine,
+        meas,
+        has_lengths,
+        st_table,
+        strategy=strategy,
+        degree=degree,
+        datum=datum,
+        budget=budget,
+        exact=exact,
+    )
 
 
-def _define(machine: Machine, meas, has_lengths: bool, st_table: pd.DataFrame | None, *,
-            strategy: str, degree: int, datum: Datum, budget, exact: bool) -> SolverDefinition:
+def _define(
+    machine: Machine,
+    meas,
+    has_lengths: bool,
+    st_table: pd.DataFrame | None,
+    *,
+    strategy: str,
+    degree: int,
+    datum: Datum,
+    budget,
+    exact: bool,
+) -> SolverDefinition:
     if strategy not in EXPORT_STRATEGIES:
-        raise InputError(f"strategy {strategy!r} cannot be exported; expected one of "
-                         f"{list(EXPORT_STRATEGIES)}")
+        raise InputError(
+            f"strategy {strategy!r} cannot be exported; expected one of {list(EXPORT_STRATEGIES)}"
+        )
     spec = machine.spec
     K = len(meas.station_ids)
     st_given = np.zeros(K, bool)
@@ -371,8 +415,10 @@ def _define(machine: Machine, meas, has_lengths: bool, st_table: pd.DataFrame | 
     else:
         if not st_given.all():
             missing = [s for s, g in zip(meas.station_ids, st_given) if not g]
-            raise InputError("the plan has no lengths, so the stations table must give "
-                             f"approximate positions of every station; missing: {missing}")
+            raise InputError(
+                "the plan has no lengths, so the stations table must give "
+                f"approximate positions of every station; missing: {missing}"
+            )
         st0 = st_tab.copy()
         notes.append("analysis at the approximate stations of the stations table")
     em = build_error_model(spec, degree=degree, datum=datum)
@@ -386,8 +432,9 @@ def _define(machine: Machine, meas, has_lengths: bool, st_table: pd.DataFrame | 
     else:
         # nominal distances stand in for the lengths (budget and analysis only)
         p0, _, _ = machine.evaluate(meas.q_internal, meas.tool, np.zeros(machine.n_errors))
-        length = np.linalg.norm(p0 - st0[meas.station_index, :3], axis=1) - \
-            st0[meas.station_index, 3]
+        length = (
+            np.linalg.norm(p0 - st0[meas.station_index, :3], axis=1) - st0[meas.station_index, 3]
+        )
         sigma = S.analysis_sigma(machine, bud, dataclasses.replace(meas, length=length), st0)
     p = pr.pack_data(meas.q_internal, meas.tool, length, 1.0 / sigma)
     x0 = pr.pack_x(np.zeros(em.n_params), st0)
@@ -399,13 +446,25 @@ def _define(machine: Machine, meas, has_lengths: bool, st_table: pd.DataFrame | 
     Cs = S.scaled_constraints(pr)
     for ph in phases:
         S.eliminate(ph, Cs)
-    return SolverDefinition(machine, em, ider, strategy, bud, _layout_frame(meas, spec),
-                            list(meas.station_ids), np.asarray(meas.station_index),
-                            phases, st_given, st_tab, st0, user_fixed, notes)
+    return SolverDefinition(
+        machine,
+        em,
+        ider,
+        strategy,
+        bud,
+        _layout_frame(meas, spec),
+        list(meas.station_ids),
+        np.asarray(meas.station_index),
+        phases,
+        st_given,
+        st_tab,
+        st0,
+        user_fixed,
+        notes,
+    )
 
 
-def solver_functions(d: SolverDefinition, name: str, *, linsol: str = "ldl"
-                     ) -> list[ca.Function]:
+def solver_functions(d: SolverDefinition, name: str, *, linsol: str = "ldl") -> list[ca.Function]:
     pr, m, em = d.problem, d.machine, d.error_model
     K = len(d.station_ids)
     fs = [
@@ -423,12 +482,25 @@ def solver_functions(d: SolverDefinition, name: str, *, linsol: str = "ldl"
     return fs
 
 
-def export_solver(model, plan, out: str | Path, *, stations=None, strategy: str = "joint",
-                  degree: int = 3, datum: Datum = "iso230",
-                  budget: str | Path | Budget = "paper002", exact: bool = False,
-                  name: str | None = None, linsol: str = "ldl", options: dict | None = None,
-                  build_it: bool = True, force: bool = False, cc: str = "gcc",
-                  cflags: str | None = None) -> ExportInfo:
+def export_solver(
+    model,
+    plan,
+    out: str | Path,
+    *,
+    stations=None,
+    strategy: str = "joint",
+    degree: int = 3,
+    datum: Datum = "iso230",
+    budget: str | Path | Budget = "paper002",
+    exact: bool = False,
+    name: str | None = None,
+    linsol: str = "ldl",
+    options: dict | None = None,
+    build_it: bool = True,
+    force: bool = False,
+    cc: str = "gcc",
+    cflags: str | None = None,
+) -> ExportInfo:
     """Export a C identification solver for a model and a plan (see the package doc).
 
     model: bundled model name, model file, spec or Machine; plan: measurement table (CSV
@@ -461,11 +533,25 @@ def export_solver(model, plan, out: str | Path, *, stations=None, strategy: str 
 
     # ---- input hash (everything the generated files depend on)
     h = hashlib.sha256()
-    h.update(json.dumps({"format": EXPORT_FORMAT, "kind": "solver", "name": name,
-                         "model": spec.fingerprint(), "strategy": strategy,
-                         "degree": degree, "datum": datum, "budget": _budget_blob(bud),
-                         "exact": exact, "linsol": linsol, "options": opts,
-                         "versions": _versions()}, sort_keys=True).encode())
+    h.update(
+        json.dumps(
+            {
+                "format": EXPORT_FORMAT,
+                "kind": "solver",
+                "name": name,
+                "model": spec.fingerprint(),
+                "strategy": strategy,
+                "degree": degree,
+                "datum": datum,
+                "budget": _budget_blob(bud),
+                "exact": exact,
+                "linsol": linsol,
+                "options": opts,
+                "versions": _versions(),
+            },
+            sort_keys=True,
+        ).encode()
+    )
     lay = _layout_frame(meas, spec)
     h.update(lay.to_csv(index=False).encode())
     if has_lengths:
@@ -483,8 +569,17 @@ def export_solver(model, plan, out: str | Path, *, stations=None, strategy: str 
                 info.build_seconds = build(out, cc=cc, cflags=cflags)
             return info
 
-    d = _define(machine, meas, has_lengths, st_table, strategy=strategy, degree=degree,
-                datum=datum, budget=bud, exact=exact)
+    d = _define(
+        machine,
+        meas,
+        has_lengths,
+        st_table,
+        strategy=strategy,
+        degree=degree,
+        datum=datum,
+        budget=bud,
+        exact=exact,
+    )
     pr, em = d.problem, d.error_model
     funcs = solver_functions(d, name, linsol=linsol)
     files = _generate_casadi(funcs, name)
@@ -492,29 +587,40 @@ def export_solver(model, plan, out: str | Path, *, stations=None, strategy: str 
     keys = list(zip(d.layout["station"], d.layout["point"]))
     n_a = [S.theta_block(pr, ph).shape[1] for ph in d.phases]
     mp = _common(machine, em, name)
-    mp.update({
-        "volcal_version": __version__, "casadi_version": ca.CasadiMeta.version(),
-        "model": _model_label(model, spec), "fingerprint": spec.fingerprint(),
-        "n_readings": str(N), "n_stations": str(K),
-        "n_poses": str(d.layout["point"].nunique()), "strategy": strategy,
-        "degree": str(degree), "datum": datum, "budget": bud.name,
-        "n_phases": str(len(d.phases)), "n_x": str(pr.n_x),
-        "n_p": str(pr.nlp["p"].shape[0]), "n_constraints": str(pr.C.shape[0]),
-        "station_ids": _c_list(d.station_ids, _c_str),
-        "reading_station": _c_list(d.station_index.tolist(), per_line=24),
-        "reading_point": _c_list(d.layout["point"].tolist(), _c_str, per_line=10),
-        "plan_keys_unique": str(int(len(set(keys)) == len(keys))),
-        "scale": _c_list(pr.scale, _c_double, per_line=6),
-        "st_given": _c_list(d.st_given.astype(int).tolist()),
-        "st_table": _c_list(d.st_table.ravel(), _c_double, per_line=4),
-        "n_z": _c_list([ph.n_z for ph in d.phases]),
-        "rows_fns": ", ".join(f"{name}_ca_rows{k}" for k in range(len(d.phases))),
-        "solve_fns": ", ".join(f"{name}_ca_solve{k}" for k in range(len(d.phases))),
-        "n_a": _c_list(n_a), "n_a_max": str(max(n_a)),
-        "project_fns": ", ".join(f"{name}_ca_project{k}" for k in range(len(d.phases))),
-        "work_fns": ",\n  ".join(f"{f.name()}_work" for f in funcs),
-        "max_iter": str(int(opts["max_iter"])),
-    })
+    mp.update(
+        {
+            "volcal_version": __version__,
+            "casadi_version": ca.CasadiMeta.version(),
+            "model": _model_label(model, spec),
+            "fingerprint": spec.fingerprint(),
+            "n_readings": str(N),
+            "n_stations": str(K),
+            "n_poses": str(d.layout["point"].nunique()),
+            "strategy": strategy,
+            "degree": str(degree),
+            "datum": datum,
+            "budget": bud.name,
+            "n_phases": str(len(d.phases)),
+            "n_x": str(pr.n_x),
+            "n_p": str(pr.nlp["p"].shape[0]),
+            "n_constraints": str(pr.C.shape[0]),
+            "station_ids": _c_list(d.station_ids, _c_str),
+            "reading_station": _c_list(d.station_index.tolist(), per_line=24),
+            "reading_point": _c_list(d.layout["point"].tolist(), _c_str, per_line=10),
+            "plan_keys_unique": str(int(len(set(keys)) == len(keys))),
+            "scale": _c_list(pr.scale, _c_double, per_line=6),
+            "st_given": _c_list(d.st_given.astype(int).tolist()),
+            "st_table": _c_list(d.st_table.ravel(), _c_double, per_line=4),
+            "n_z": _c_list([ph.n_z for ph in d.phases]),
+            "rows_fns": ", ".join(f"{name}_ca_rows{k}" for k in range(len(d.phases))),
+            "solve_fns": ", ".join(f"{name}_ca_solve{k}" for k in range(len(d.phases))),
+            "n_a": _c_list(n_a),
+            "n_a_max": str(max(n_a)),
+            "project_fns": ", ".join(f"{name}_ca_project{k}" for k in range(len(d.phases))),
+            "work_fns": ",\n  ".join(f"{f.name()}_work" for f in funcs),
+            "max_iter": str(int(opts["max_iter"])),
+        }
+    )
     for k in ("tol_kkt", "tol_step", "tol_constraint", "max_chi2", "max_station_rms"):
         mp[k] = _c_double(opts[k])
     files[f"{name}.h"] = _render("solver.h.j2", mp)
@@ -523,31 +629,64 @@ def export_solver(model, plan, out: str | Path, *, stations=None, strategy: str 
     files["Makefile"] = _render("Makefile.j2", mp)
     files["plan.csv"] = d.layout.to_csv(index=False)
     names = np.asarray(pr.names)
-    phases = [{"name": ph.name, "fixed": names[ph.fixed].tolist(),
-               "zero": names[ph.zero].tolist(), "n_free": int((~ph.fixed).sum()),
-               "n_reduced": ph.n_z, "basic": names[ph.basic].tolist()} for ph in d.phases]
+    phases = [
+        {
+            "name": ph.name,
+            "fixed": names[ph.fixed].tolist(),
+            "zero": names[ph.zero].tolist(),
+            "n_free": int((~ph.fixed).sum()),
+            "n_reduced": ph.n_z,
+            "basic": names[ph.basic].tolist(),
+        }
+        for ph in d.phases
+    ]
     files["README.md"] = _readme_solver(d, name, mp, phases, opts, linsol)
     manifest = {
-        "format": EXPORT_FORMAT, "kind": "solver", "name": name,
-        "model": {"name": spec.name, "source": _model_label(model, spec),
-                  "fingerprint": spec.fingerprint(), "axes": machine.axis_names,
-                  "rotary": [bool(a.is_rotary) for a in spec.axes]},
-        "plan": {"n_readings": N, "n_stations": K, "station_ids": d.station_ids,
-                 "has_lengths": has_lengths,
-                 "sha256": _sha(lay.to_csv(index=False).encode())},
-        "options": {"strategy": strategy, "degree": degree, "datum": datum,
-                    "budget": bud.name, "exact": exact, "linsol": linsol,
-                    "stations_table": st_table is not None, "runtime_defaults": opts},
-        "sizes": {"n_x": pr.n_x, "n_theta": pr.n_theta, "n_errors": em.n_errors,
-                  "n_axes": machine.n_axes, "n_constraints": int(pr.C.shape[0]),
-                  "n_p": int(pr.nlp["p"].shape[0])},
+        "format": EXPORT_FORMAT,
+        "kind": "solver",
+        "name": name,
+        "model": {
+            "name": spec.name,
+            "source": _model_label(model, spec),
+            "fingerprint": spec.fingerprint(),
+            "axes": machine.axis_names,
+            "rotary": [bool(a.is_rotary) for a in spec.axes],
+        },
+        "plan": {
+            "n_readings": N,
+            "n_stations": K,
+            "station_ids": d.station_ids,
+            "has_lengths": has_lengths,
+            "sha256": _sha(lay.to_csv(index=False).encode()),
+        },
+        "options": {
+            "strategy": strategy,
+            "degree": degree,
+            "datum": datum,
+            "budget": bud.name,
+            "exact": exact,
+            "linsol": linsol,
+            "stations_table": st_table is not None,
+            "runtime_defaults": opts,
+        },
+        "sizes": {
+            "n_x": pr.n_x,
+            "n_theta": pr.n_theta,
+            "n_errors": em.n_errors,
+            "n_axes": machine.n_axes,
+            "n_constraints": int(pr.C.shape[0]),
+            "n_p": int(pr.nlp["p"].shape[0]),
+        },
         "parameters": {"names": list(em.param_names), "units": list(em.param_units)},
         "errors": [s.name for s in em.errors],
         "variables": list(pr.names),
         "scale": pr.scale.tolist(),
         "phases": phases,
-        "start_stations": {"given": d.st_given.tolist(), "table": d.st_table.tolist(),
-                           "analysis": d.st0.tolist()},
+        "start_stations": {
+            "given": d.st_given.tolist(),
+            "table": d.st_table.tolist(),
+            "analysis": d.st0.tolist(),
+        },
         "notes": d.notes,
         "versions": _versions(),
         "input_hash": input_hash,
@@ -565,10 +704,19 @@ def export_solver(model, plan, out: str | Path, *, stations=None, strategy: str 
 # model export
 
 
-def export_model(model, out: str | Path, *, degree: int = 3, datum: Datum = "iso230",
-                 exact: bool = False, name: str | None = None, build_it: bool = True,
-                 force: bool = False, cc: str = "gcc", cflags: str | None = None
-                 ) -> ExportInfo:
+def export_model(
+    model,
+    out: str | Path,
+    *,
+    degree: int = 3,
+    datum: Datum = "iso230",
+    exact: bool = False,
+    name: str | None = None,
+    build_it: bool = True,
+    force: bool = False,
+    cc: str = "gcc",
+    cflags: str | None = None,
+) -> ExportInfo:
     """Export the model function alone (tool point, volumetric error and Jacobians) for
     controllers that only evaluate a compensation.  Parameters as :func:`export_solver`."""
     t0 = time.perf_counter()
@@ -576,10 +724,21 @@ def export_model(model, out: str | Path, *, degree: int = 3, datum: Datum = "iso
     machine = _machine(model)
     spec = machine.spec
     name = _check_name(name or default_name(spec))
-    input_hash = _sha(json.dumps({"format": EXPORT_FORMAT, "kind": "model", "name": name,
-                                  "model": spec.fingerprint(), "degree": degree,
-                                  "datum": datum, "exact": exact, "versions": _versions()},
-                                 sort_keys=True).encode())
+    input_hash = _sha(
+        json.dumps(
+            {
+                "format": EXPORT_FORMAT,
+                "kind": "model",
+                "name": name,
+                "model": spec.fingerprint(),
+                "degree": degree,
+                "datum": datum,
+                "exact": exact,
+                "versions": _versions(),
+            },
+            sort_keys=True,
+        ).encode()
+    )
     if not force:
         man = _reuse(out, input_hash)
         if man is not None:
@@ -588,23 +747,38 @@ def export_model(model, out: str | Path, *, degree: int = 3, datum: Datum = "iso
                 info.build_seconds = build(out, cc=cc, cflags=cflags)
             return info
     em = build_error_model(spec, degree=degree, datum=datum)
-    funcs = [S.model_function(machine, em, f"{name}_ca_model", exact=exact),
-             S.error_values_function(machine, em, f"{name}_ca_error_values")]
+    funcs = [
+        S.model_function(machine, em, f"{name}_ca_model", exact=exact),
+        S.error_values_function(machine, em, f"{name}_ca_error_values"),
+    ]
     files = _generate_casadi(funcs, name)
     mp = _common(machine, em, name)
-    mp.update({"volcal_version": __version__, "casadi_version": ca.CasadiMeta.version(),
-               "model": _model_label(model, spec), "fingerprint": spec.fingerprint(),
-               "degree": str(degree), "datum": datum})
+    mp.update(
+        {
+            "volcal_version": __version__,
+            "casadi_version": ca.CasadiMeta.version(),
+            "model": _model_label(model, spec),
+            "fingerprint": spec.fingerprint(),
+            "degree": str(degree),
+            "datum": datum,
+        }
+    )
     files[f"{name}.h"] = _render("model.h.j2", mp)
     files[f"{name}.c"] = _render("model.c.j2", mp)
     files["main.c"] = _render("model_main.c.j2", mp)
     files["Makefile"] = _render("Makefile.j2", mp)
     files["README.md"] = _render("README_model.md.j2", mp)
     manifest = {
-        "format": EXPORT_FORMAT, "kind": "model", "name": name,
-        "model": {"name": spec.name, "source": _model_label(model, spec),
-                  "fingerprint": spec.fingerprint(), "axes": machine.axis_names,
-                  "rotary": [bool(a.is_rotary) for a in spec.axes]},
+        "format": EXPORT_FORMAT,
+        "kind": "model",
+        "name": name,
+        "model": {
+            "name": spec.name,
+            "source": _model_label(model, spec),
+            "fingerprint": spec.fingerprint(),
+            "axes": machine.axis_names,
+            "rotary": [bool(a.is_rotary) for a in spec.axes],
+        },
         "options": {"degree": degree, "datum": datum, "exact": exact},
         "sizes": {"n_theta": em.n_params, "n_errors": em.n_errors, "n_axes": machine.n_axes},
         "parameters": {"names": list(em.param_names), "units": list(em.param_units)},
@@ -620,26 +794,31 @@ def export_model(model, out: str | Path, *, degree: int = 3, datum: Datum = "iso
     return info
 
 
-def _readme_solver(d: SolverDefinition, name: str, mp: dict, phases: list[dict],
-                   opts: dict, linsol: str) -> str:
+def _readme_solver(
+    d: SolverDefinition, name: str, mp: dict, phases: list[dict], opts: dict, linsol: str
+) -> str:
     lines = []
     for k, ph in enumerate(phases):
         fixed = ", ".join(ph["fixed"]) if ph["fixed"] else "none"
         if len(ph["fixed"]) > 30:
             fixed = ", ".join(ph["fixed"][:30]) + f", ... ({len(ph['fixed'])} in all)"
         zero = ", ".join(ph["zero"]) if ph["zero"] else "none"
-        lines.append(f"- phase {k} ({ph['name']}): {ph['n_free']} free variables, "
-                     f"{ph['n_reduced']} after eliminating the datum constraints; fixed: "
-                     f"{fixed}; of these held at zero: {zero}")
+        lines.append(
+            f"- phase {k} ({ph['name']}): {ph['n_free']} free variables, "
+            f"{ph['n_reduced']} after eliminating the datum constraints; fixed: "
+            f"{fixed}; of these held at zero: {zero}"
+        )
     m = dict(mp)
     m["phase_lines"] = "\n".join(lines)
     m["linsol"] = linsol
     m["start_rule"] = (
-        "from the stations table given at export" if d.st_given.all() else
-        "computed from the readings on the nominal points (linear solution of the squared "
+        "from the stations table given at export"
+        if d.st_given.all()
+        else "computed from the readings on the nominal points (linear solution of the squared "
         "range equations, then Gauss-Newton on the range residual), as volcal's "
-        "`identify` does" + (" (stations in the export's stations table: from the table)"
-                             if d.st_given.any() else ""))
+        "`identify` does"
+        + (" (stations in the export's stations table: from the table)" if d.st_given.any() else "")
+    )
     for k, v in opts.items():
         m[f"opt_{k}"] = str(v)
     return _render("README_solver.md.j2", m)

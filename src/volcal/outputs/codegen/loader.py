@@ -8,6 +8,7 @@
 The loader reads the export's ``manifest.json`` for the sizes and names, and calls the C
 API of ``lib<name>.so`` exactly as a C program would (see the export's header).
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -37,24 +38,37 @@ def _arr(a, shape, name) -> np.ndarray:
 
 
 class _Options(ctypes.Structure):
-    _fields_ = [("max_iter", ctypes.c_int), ("tol_kkt", ctypes.c_double),
-                ("tol_step", ctypes.c_double), ("tol_constraint", ctypes.c_double),
-                ("max_chi2", ctypes.c_double), ("max_station_rms", ctypes.c_double)]
+    _fields_ = [
+        ("max_iter", ctypes.c_int),
+        ("tol_kkt", ctypes.c_double),
+        ("tol_step", ctypes.c_double),
+        ("tol_constraint", ctypes.c_double),
+        ("max_chi2", ctypes.c_double),
+        ("max_station_rms", ctypes.c_double),
+    ]
 
 
 def _result_type(n_params: int, n_stations: int, n_readings: int):
     class _Result(ctypes.Structure):
-        _fields_ = [("converged", ctypes.c_int), ("status", ctypes.c_int),
-                    ("phase", ctypes.c_int), ("iterations", ctypes.c_int),
-                    ("kkt", ctypes.c_double), ("kkt_rel", ctypes.c_double),
-                    ("step", ctypes.c_double), ("constraint_violation", ctypes.c_double),
-                    ("cost", ctypes.c_double), ("chi2_per_dof", ctypes.c_double),
-                    ("dof", ctypes.c_int),
-                    ("theta", ctypes.c_double * n_params),
-                    ("stations", ctypes.c_double * (4 * n_stations)),
-                    ("frame", ctypes.c_double * 6),
-                    ("residual_mm", ctypes.c_double * n_readings),
-                    ("sigma_mm", ctypes.c_double * n_readings)]
+        _fields_ = [
+            ("converged", ctypes.c_int),
+            ("status", ctypes.c_int),
+            ("phase", ctypes.c_int),
+            ("iterations", ctypes.c_int),
+            ("kkt", ctypes.c_double),
+            ("kkt_rel", ctypes.c_double),
+            ("step", ctypes.c_double),
+            ("constraint_violation", ctypes.c_double),
+            ("cost", ctypes.c_double),
+            ("chi2_per_dof", ctypes.c_double),
+            ("dof", ctypes.c_int),
+            ("theta", ctypes.c_double * n_params),
+            ("stations", ctypes.c_double * (4 * n_stations)),
+            ("frame", ctypes.c_double * 6),
+            ("residual_mm", ctypes.c_double * n_readings),
+            ("sigma_mm", ctypes.c_double * n_readings),
+        ]
+
     return _Result
 
 
@@ -97,8 +111,13 @@ class CResult:
     def parameters(self) -> pd.DataFrame:
         """name, value, unit (um / urad), as volcal's parameter tables."""
         f = np.array([1e3 if u == "mm" else 1e6 for u in self.param_units])
-        return pd.DataFrame({"name": self.param_names, "value": self.theta * f,
-                             "unit": ["um" if u == "mm" else "urad" for u in self.param_units]})
+        return pd.DataFrame(
+            {
+                "name": self.param_names,
+                "value": self.theta * f,
+                "unit": ["um" if u == "mm" else "urad" for u in self.param_units],
+            }
+        )
 
 
 class _Compiled:
@@ -111,8 +130,11 @@ class _Compiled:
         self.name = self.manifest["name"]
         lib = self.path / f"lib{self.name}.so"
         if not lib.is_file():
-            raise InputError(f"lib{self.name}.so not built; run make in the export folder "
-                             "or export with build_it=True", source=str(self.path))
+            raise InputError(
+                f"lib{self.name}.so not built; run make in the export folder "
+                "or export with build_it=True",
+                source=str(self.path),
+            )
         self.lib = ctypes.CDLL(str(lib.resolve()))
         sz = self.manifest["sizes"]
         self.n_axes, self.n_params = int(sz["n_axes"]), int(sz["n_theta"])
@@ -143,9 +165,15 @@ class _Compiled:
         Jt = np.zeros((M, 3, self.n_params)) if jacobians else None
         Jq = np.zeros((M, 3, self.n_axes)) if jacobians else None
         for i in range(M):
-            flag = self._vol(_ptr(q[i]), _ptr(tool[i]), _ptr(theta), _ptr(p[i]), _ptr(dp[i]),
-                             _ptr(Jt[i]) if Jt is not None else None,
-                             _ptr(Jq[i]) if Jq is not None else None)
+            flag = self._vol(
+                _ptr(q[i]),
+                _ptr(tool[i]),
+                _ptr(theta),
+                _ptr(p[i]),
+                _ptr(dp[i]),
+                _ptr(Jt[i]) if Jt is not None else None,
+                _ptr(Jq[i]) if Jq is not None else None,
+            )
             if flag:
                 raise RuntimeError("the C model function failed")
         return (p, dp, Jt, Jq) if jacobians else (p, dp)
@@ -172,8 +200,7 @@ class CompiledSolver(_Compiled):
     def __init__(self, path: str | Path):
         super().__init__(path)
         if self.manifest.get("kind") != "solver":
-            raise InputError("this export holds a model only, not a solver",
-                             source=str(self.path))
+            raise InputError("this export holds a model only, not a solver", source=str(self.path))
         plan = self.manifest["plan"]
         self.n_readings, self.n_stations = int(plan["n_readings"]), int(plan["n_stations"])
         self.station_ids = list(plan["station_ids"])
@@ -182,8 +209,11 @@ class CompiledSolver(_Compiled):
         n = self.name
         self._identify = getattr(self.lib, f"{n}_identify")
         self._identify.restype = ctypes.c_int
-        self._identify.argtypes = [_DP] * 6 + [ctypes.POINTER(_Options), ctypes.c_void_p,
-                                                ctypes.POINTER(self._Result)]
+        self._identify.argtypes = [_DP] * 6 + [
+            ctypes.POINTER(_Options),
+            ctypes.c_void_p,
+            ctypes.POINTER(self._Result),
+        ]
         self._defaults = getattr(self.lib, f"{n}_default_options")
         self._defaults.argtypes = [ctypes.POINTER(_Options)]
         self._defaults.restype = None
@@ -217,8 +247,9 @@ class CompiledSolver(_Compiled):
             raise RuntimeError(f"start stations failed: {self._status(st).decode()}")
         return S, rms
 
-    def identify(self, q, tool=None, length=None, sigma=None, *, stations0=None,
-                 theta0=None, **options) -> CResult:
+    def identify(
+        self, q, tool=None, length=None, sigma=None, *, stations0=None, theta0=None, **options
+    ) -> CResult:
         """Run the C solver on arrays in plan order (see the export's header): q (N, n_axes)
         mm / deg, tool (N, 3) or (3,) mm, length (N,) mm, sigma (N,) mm or None (NaN:
         budget, inf: dropped), stations0 (K, 4) or None, theta0 (n_params,) or None;
@@ -240,50 +271,95 @@ class CompiledSolver(_Compiled):
             setattr(opt, k, v)
         res = self._Result()
         t0 = time.perf_counter()
-        self._identify(_ptr(q), _ptr(tool), _ptr(length), _ptr(sigma), _ptr(stations0),
-                       _ptr(theta0), ctypes.byref(opt), None, ctypes.byref(res))
+        self._identify(
+            _ptr(q),
+            _ptr(tool),
+            _ptr(length),
+            _ptr(sigma),
+            _ptr(stations0),
+            _ptr(theta0),
+            ctypes.byref(opt),
+            None,
+            ctypes.byref(res),
+        )
         dt = time.perf_counter() - t0
         st = np.ctypeslib.as_array(res.stations).reshape(K, 4).copy()
         return CResult(
-            converged=bool(res.converged), status=int(res.status),
-            status_text=self._status(res.status).decode(), phase=int(res.phase),
-            iterations=int(res.iterations), kkt=res.kkt, kkt_rel=res.kkt_rel, step=res.step,
-            constraint_violation=res.constraint_violation, cost=res.cost,
-            chi2_per_dof=res.chi2_per_dof, dof=int(res.dof),
+            converged=bool(res.converged),
+            status=int(res.status),
+            status_text=self._status(res.status).decode(),
+            phase=int(res.phase),
+            iterations=int(res.iterations),
+            kkt=res.kkt,
+            kkt_rel=res.kkt_rel,
+            step=res.step,
+            constraint_violation=res.constraint_violation,
+            cost=res.cost,
+            chi2_per_dof=res.chi2_per_dof,
+            dof=int(res.dof),
             theta=np.ctypeslib.as_array(res.theta).copy(),
-            stations=pd.DataFrame({"station": self.station_ids, "x_mm": st[:, 0],
-                                   "y_mm": st[:, 1], "z_mm": st[:, 2],
-                                   "dead_length_mm": st[:, 3]}),
+            stations=pd.DataFrame(
+                {
+                    "station": self.station_ids,
+                    "x_mm": st[:, 0],
+                    "y_mm": st[:, 1],
+                    "z_mm": st[:, 2],
+                    "dead_length_mm": st[:, 3],
+                }
+            ),
             frame=np.ctypeslib.as_array(res.frame).copy(),
             residual_mm=np.ctypeslib.as_array(res.residual_mm).copy(),
-            sigma_mm=np.ctypeslib.as_array(res.sigma_mm).copy(), seconds=dt,
-            param_names=self.param_names, param_units=self.param_units)
+            sigma_mm=np.ctypeslib.as_array(res.sigma_mm).copy(),
+            seconds=dt,
+            param_names=self.param_names,
+            param_units=self.param_units,
+        )
 
     def arrays_from_table(self, data) -> dict:
         """q, tool, length, sigma in plan order from a measurement table (CSV path or
         DataFrame in volcal's format), matched to the plan by (station, point)."""
-        df = data if isinstance(data, pd.DataFrame) else pd.read_csv(
-            data, dtype={"station": str, "point": str}, skipinitialspace=True)
-        ren = {f"{a}_{'deg' if r else 'mm'}": a
-               for a, r in zip(self.axis_names, self.manifest["model"]["rotary"])}
-        ren.update({"tool_x_mm": "tool_x", "tool_y_mm": "tool_y", "tool_z_mm": "tool_z",
-                    "length_mm": "length", "sigma_mm": "sigma"})
+        df = (
+            data
+            if isinstance(data, pd.DataFrame)
+            else pd.read_csv(data, dtype={"station": str, "point": str}, skipinitialspace=True)
+        )
+        ren = {
+            f"{a}_{'deg' if r else 'mm'}": a
+            for a, r in zip(self.axis_names, self.manifest["model"]["rotary"])
+        }
+        ren.update(
+            {
+                "tool_x_mm": "tool_x",
+                "tool_y_mm": "tool_y",
+                "tool_z_mm": "tool_z",
+                "length_mm": "length",
+                "sigma_mm": "sigma",
+            }
+        )
         df = df.rename(columns={k: v for k, v in ren.items() if k in df.columns})
         key = pd.MultiIndex.from_arrays([df["station"].astype(str), df["point"].astype(str)])
         plan_key = pd.MultiIndex.from_arrays([self.plan["station"], self.plan["point"]])
         if len(df) != self.n_readings or not key.is_unique:
-            raise InputError(f"expected {self.n_readings} readings with distinct (station, "
-                             f"point), got {len(df)}")
+            raise InputError(
+                f"expected {self.n_readings} readings with distinct (station, point), got {len(df)}"
+            )
         pos = key.get_indexer(plan_key)
         if (pos < 0).any():
             i = int(np.flatnonzero(pos < 0)[0])
             raise InputError(f"reading {plan_key[i]} of the plan is missing from the data")
         d = df.iloc[pos]
-        tool = np.column_stack([d[c].to_numpy(float) if c in d else np.zeros(len(d))
-                                for c in ("tool_x", "tool_y", "tool_z")])
-        return {"q": d[self.axis_names].to_numpy(float), "tool": tool,
-                "length": d["length"].to_numpy(float),
-                "sigma": d["sigma"].to_numpy(float) if "sigma" in d else None}
+        tool = np.column_stack(
+            [
+                d[c].to_numpy(float) if c in d else np.zeros(len(d))
+                for c in ("tool_x", "tool_y", "tool_z")
+            ]
+        )
+        return {
+            "q": d[self.axis_names].to_numpy(float),
+            "tool": tool,
+            "length": d["length"].to_numpy(float),
+            "sigma": d["sigma"].to_numpy(float) if "sigma" in d else None,
+        }
 
     def identify_table(self, data, **kwargs) -> CResult:
         """:meth:`identify` on a measurement table (see :meth:`arrays_from_table`)."""
@@ -293,6 +369,9 @@ class CompiledSolver(_Compiled):
 
 def load(path: str | Path) -> CompiledSolver | CompiledModel:
     """The compiled export in ``path`` (a solver or a model export)."""
-    man = json.loads((Path(path) / "manifest.json").read_text()) \
-        if (Path(path) / "manifest.json").is_file() else {}
+    man = (
+        json.loads((Path(path) / "manifest.json").read_text())
+        if (Path(path) / "manifest.json").is_file()
+        else {}
+    )
     return CompiledSolver(path) if man.get("kind") == "solver" else CompiledModel(path)

@@ -59,6 +59,7 @@ The C functions (all take and return column vectors; x is the *scaled* variable 
 ``error_values(q, theta) -> e``
     the error motions (mm / rad) at a pose, q in file units.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -86,8 +87,8 @@ class Phase:
     and the elimination of the constraints (see the module docstring)."""
 
     name: str
-    fixed: np.ndarray           # (n_x,) bool
-    zero: np.ndarray            # (n_x,) bool, fixed variables set to 0 before the phase
+    fixed: np.ndarray  # (n_x,) bool
+    zero: np.ndarray  # (n_x,) bool, fixed variables set to 0 before the phase
     # set by :func:`eliminate`
     basic: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # basic variables
     nonbasic: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # free non-basic
@@ -118,7 +119,7 @@ def eliminate(phase: Phase, Cs: np.ndarray) -> Phase:
         Cr = Cs[np.linalg.norm(Cs[:, free], axis=1) > 0][rows]
         A = Cr[:, free]
         _, _, piv = sla.qr(A, pivoting=True, mode="economic")
-        basic_loc = np.sort(piv[:len(rows)])
+        basic_loc = np.sort(piv[: len(rows)])
         nonbasic_loc = np.setdiff1d(np.arange(len(free)), basic_loc)
         A_B, A_N = A[:, basic_loc], A[:, nonbasic_loc]
         T = -np.linalg.solve(A_B, A_N)
@@ -149,15 +150,24 @@ def eliminate(phase: Phase, Cs: np.ndarray) -> Phase:
     return phase
 
 
-def plan_phases(ider: Identifier, strategy: str, x0: np.ndarray, p: np.ndarray,
-                user_fixed: np.ndarray, *, solve: bool) -> list[Phase]:
+def plan_phases(
+    ider: Identifier,
+    strategy: str,
+    x0: np.ndarray,
+    p: np.ndarray,
+    user_fixed: np.ndarray,
+    *,
+    solve: bool,
+) -> list[Phase]:
     """The phases of a strategy with the fixed sets :meth:`Identifier.run` uses: it is run
     here as is (with IPOPT when ``solve``, so that a two-phase analysis happens at the
     phase-1 solution exactly as in Python; without solving, at the start point, when the
     plan has no data)."""
     if strategy not in ("joint", "two-phase", "points-only"):
-        raise InputError(f"strategy {strategy!r} cannot be exported; exportable strategies: "
-                         "joint, two-phase, points-only")
+        raise InputError(
+            f"strategy {strategy!r} cannot be exported; exportable strategies: "
+            "joint, two-phase, points-only"
+        )
     is_st, is_th, is_fr = ider.is_station, ider.is_theta, ider.is_frame
     _, _, fixed, _ = ider.run(strategy, x0, p, user_fixed=user_fixed, solve=solve)
     phases: list[Phase] = []
@@ -165,8 +175,9 @@ def plan_phases(ider: Identifier, strategy: str, x0: np.ndarray, p: np.ndarray,
         # phase 1: stations only, error parameters and frame held at zero
         phases.append(Phase("stations", user_fixed | is_th | is_fr, is_th | is_fr))
     # the final phase: variables held by the analysis start at zero (stations keep theirs)
-    phases.append(Phase("joint" if strategy == "joint" else "errors", fixed,
-                        fixed & ~user_fixed & ~is_st))
+    phases.append(
+        Phase("joint" if strategy == "joint" else "errors", fixed, fixed & ~user_fixed & ~is_st)
+    )
     return phases
 
 
@@ -182,8 +193,9 @@ def _dm(M: np.ndarray) -> ca.DM:
     r, c = np.nonzero(M)
     o = np.lexsort((r, c))  # the nonzeros of a DM are stored column by column
     r, c = r[o], c[o]
-    return ca.DM(ca.Sparsity.triplet(M.shape[0], M.shape[1], r.tolist(), c.tolist()),
-                 M[r, c].tolist())
+    return ca.DM(
+        ca.Sparsity.triplet(M.shape[0], M.shape[1], r.tolist(), c.tolist()), M[r, c].tolist()
+    )
 
 
 def _dense(f: ca.Function) -> ca.Function:
@@ -202,7 +214,7 @@ def theta_block(pr: IdentificationProblem, phase: Phase) -> np.ndarray:
     """The theta rows of E restricted to the theta columns of z: (n_theta, n_a)."""
     nt = pr.n_theta
     cols = np.flatnonzero(phase.nonbasic < nt)
-    if np.any(np.abs(phase.E[nt:, cols]) > 0) or np.any(np.abs(phase.E[:nt, len(cols):]) > 0):
+    if np.any(np.abs(phase.E[nt:, cols]) > 0) or np.any(np.abs(phase.E[:nt, len(cols) :]) > 0):
         raise RuntimeError("constraints couple error parameters with instrument variables")
     return phase.E[:nt, cols]
 
@@ -223,8 +235,13 @@ def rows_function(pr: IdentificationProblem, phase: Phase, name: str) -> ca.Func
     the C driver (a symmetric rank-N update is far faster there than a generic sparse
     product), then solved by :func:`solve_function`."""
     m, em, ins, lay = pr.machine, pr.error_model, pr.instrument, pr.layout
-    nt, nps, ng, K, N = pr.n_theta, ins.n_station_params, ins.n_global_params, \
-        lay.n_stations, lay.n_readings
+    nt, nps, ng, K, N = (
+        pr.n_theta,
+        ins.n_station_params,
+        ins.n_global_params,
+        lay.n_stations,
+        lay.n_readings,
+    )
     Et = theta_block(pr, phase) * pr.scale[:nt, None]
     qs, ts, ths = ca.SX.sym("q", m.n_axes), ca.SX.sym("t", 3), ca.SX.sym("theta", nt)
     ss, gs, ms, ws = ca.SX.sym("s", nps), ca.SX.sym("g", ng), ca.SX.sym("m"), ca.SX.sym("w")
@@ -233,30 +250,36 @@ def rows_function(pr: IdentificationProblem, phase: Phase, name: str) -> ca.Func
     point = m["tool_point_exact" if pr.exact else "tool_point"](qs, ts, e)[0]
     val = ins.reading(point, ss, gs)
     row = ca.jacobian(val, ca.vertcat(ths, ss, gs)).T
-    sc_s = ca.DM(pr.scale[nt:nt + nps])
-    sc_g = ca.DM(pr.scale[nt + nps * K:])
-    one = ca.Function("row1", [qs, ts, ths, ss, gs, ms, ws],
-                      [ws * (val - ms), ws * ca.mtimes(_dm(Et).T, row[:nt]),
-                       ws * row[nt:nt + nps] * sc_s, ws * row[nt + nps:] * sc_g],
-                      {"cse": True})
+    sc_s = ca.DM(pr.scale[nt : nt + nps])
+    sc_g = ca.DM(pr.scale[nt + nps * K :])
+    one = ca.Function(
+        "row1",
+        [qs, ts, ths, ss, gs, ms, ws],
+        [
+            ws * (val - ms),
+            ws * ca.mtimes(_dm(Et).T, row[:nt]),
+            ws * row[nt : nt + nps] * sc_s,
+            ws * row[nt + nps :] * sc_g,
+        ],
+        {"cse": True},
+    )
     xs = ca.MX.sym("x", pr.n_x)
     p = ca.MX.sym("p", pr.nlp["p"].shape[0])
     xp = xs * ca.DM(pr.scale)
-    th, sp, g = xp[:nt], xp[nt:nt + nps * K], xp[nt + nps * K:]
+    th, sp, g = xp[:nt], xp[nt : nt + nps * K], xp[nt + nps * K :]
     n_ax = m.n_axes
-    Q = ca.reshape(p[:n_ax * N], n_ax, N)
-    T = ca.reshape(p[n_ax * N:(n_ax + 3) * N], 3, N)
-    meas, w = p[(n_ax + 3) * N:(n_ax + 4) * N], p[(n_ax + 4) * N:]
-    sel = ca.DM(ca.Sparsity.triplet(K, N, [int(i) for i in lay.station_index],
-                                    list(range(N))), 1.0)
+    Q = ca.reshape(p[: n_ax * N], n_ax, N)
+    T = ca.reshape(p[n_ax * N : (n_ax + 3) * N], 3, N)
+    meas, w = p[(n_ax + 3) * N : (n_ax + 4) * N], p[(n_ax + 4) * N :]
+    sel = ca.DM(ca.Sparsity.triplet(K, N, [int(i) for i in lay.station_index], list(range(N))), 1.0)
     SN = ca.densify(ca.mtimes(ca.reshape(sp, nps, K), sel))
     rw, A, B, G = one.map(N)(Q, T, th, SN, g, meas.T, w.T)
-    return _dense(ca.Function(name, [xs, p], [rw.T, A, B, G], ["x", "p"],
-                              ["rw", "A", "B", "G"]))
+    return _dense(ca.Function(name, [xs, p], [rw.T, A, B, G], ["x", "p"], ["rw", "A", "B", "G"]))
 
 
-def solve_function(pr: IdentificationProblem, phase: Phase, name: str, *,
-                   linsol: str = "ldl") -> ca.Function:
+def solve_function(
+    pr: IdentificationProblem, phase: Phase, name: str, *, linsol: str = "ldl"
+) -> ca.Function:
     """Gauss-Newton step of a phase from the local normal equations (H full symmetric,
     column-major, g) and |r|: (dx, gdx, kkt, kkt_rel, step) as described in the module
     docstring."""
@@ -275,8 +298,15 @@ def solve_function(pr: IdentificationProblem, phase: Phase, name: str, *,
         gdx = ca.dot(gr, dz)
     else:
         dx, kkt, kkt_rel, step, gdx = ca.MX(pr.n_x, 1), ca.MX(0), ca.MX(0), ca.MX(0), ca.MX(0)
-    return _dense(ca.Function(name, [H, g, rn], [dx, gdx, kkt, kkt_rel, step],
-                              ["H", "g", "rnorm"], ["dx", "gdx", "kkt", "kkt_rel", "step"]))
+    return _dense(
+        ca.Function(
+            name,
+            [H, g, rn],
+            [dx, gdx, kkt, kkt_rel, step],
+            ["H", "g", "rnorm"],
+            ["dx", "gdx", "kkt", "kkt_rel", "step"],
+        )
+    )
 
 
 def step_reference(pr: IdentificationProblem, phase: Phase, x: np.ndarray, p: np.ndarray):
@@ -288,8 +318,7 @@ def step_reference(pr: IdentificationProblem, phase: Phase, x: np.ndarray, p: np
     g = Jz.T @ r
     dz = -np.linalg.solve(Jz.T @ Jz, g)
     dx = phase.E @ dz
-    rel = np.abs(g) / np.maximum(np.linalg.norm(Jz, axis=0), 1e-300) / max(
-        np.linalg.norm(r), 1.0)
+    rel = np.abs(g) / np.maximum(np.linalg.norm(Jz, axis=0), 1e-300) / max(np.linalg.norm(r), 1.0)
     return dx, 0.5 * r @ r, np.abs(g).max(), rel.max(), np.abs(dx).max()
 
 
@@ -303,37 +332,43 @@ def residual_function(pr: IdentificationProblem, name: str) -> ca.Function:
     N = pr.layout.n_readings
     xs = ca.MX.sym("x", pr.n_x)
     p = ca.MX.sym("p", pr.nlp["p"].shape[0])
-    p1 = ca.vertcat(p[:p.shape[0] - N], ca.DM.ones(N))
+    p1 = ca.vertcat(p[: p.shape[0] - N], ca.DM.ones(N))
     return _dense(ca.Function(name, [xs, p], [pr.residual(xs, p1)], ["x", "p"], ["r"]))
 
 
 def constraints_function(pr: IdentificationProblem, name: str) -> ca.Function:
     xs = ca.MX.sym("x", pr.n_x)
     Cs = np.zeros((pr.C.shape[0], pr.n_x))
-    Cs[:, :pr.n_theta] = pr.C * pr.scale[None, :pr.n_theta]
+    Cs[:, : pr.n_theta] = pr.C * pr.scale[None, : pr.n_theta]
     g = ca.mtimes(_dm(Cs), xs) if Cs.shape[0] else ca.MX(1, 1)
     return _dense(ca.Function(name, [xs], [g], ["x"], ["g"]))
 
 
 def scaled_constraints(pr: IdentificationProblem) -> np.ndarray:
     Cs = np.zeros((pr.C.shape[0], pr.n_x))
-    Cs[:, :pr.n_theta] = pr.C * pr.scale[None, :pr.n_theta]
+    Cs[:, : pr.n_theta] = pr.C * pr.scale[None, : pr.n_theta]
     return Cs
 
 
-def station_start_function(machine: Machine, station_index: np.ndarray, n_stations: int,
-                           name: str, steps: int = STATION_START_STEPS) -> ca.Function:
+def station_start_function(
+    machine: Machine,
+    station_index: np.ndarray,
+    n_stations: int,
+    name: str,
+    steps: int = STATION_START_STEPS,
+) -> ca.Function:
     """Start stations from the nominal points (see the module docstring).
 
     Written as per-reading SX functions mapped over all readings and summed per station
     with a constant selection matrix, so that the generated C stays small."""
     N, n_ax, K = len(station_index), machine.n_axes, n_stations
     q, t, m = ca.MX.sym("q", n_ax * N), ca.MX.sym("t", 3 * N), ca.MX.sym("m", N)
-    sel = ca.DM(ca.Sparsity.triplet(N, K, list(range(N)), [int(i) for i in station_index]),
-                1.0)                                       # reading -> station (N x K)
+    sel = ca.DM(
+        ca.Sparsity.triplet(N, K, list(range(N)), [int(i) for i in station_index]), 1.0
+    )  # reading -> station (N x K)
     counts = np.bincount(station_index, minlength=K).astype(float)
     P = machine["nominal"].map(N)(ca.reshape(q, n_ax, N), ca.reshape(t, 3, N))  # 3 x N
-    c = ca.mtimes(P, sel) / ca.repmat(ca.DM(counts).T, 3, 1)                     # 3 x K
+    c = ca.mtimes(P, sel) / ca.repmat(ca.DM(counts).T, 3, 1)  # 3 x K
     Pc = P - ca.mtimes(c, sel.T)
     # case B (paper 000): 2 Pc.Q + 2 l d - C = |Pc|^2 - l^2; normal equations per station
     ps, ls = ca.SX.sym("P", 3), ca.SX.sym("l")
@@ -342,10 +377,10 @@ def station_start_function(machine: Machine, station_index: np.ndarray, n_statio
     lin = ca.Function("lin", [ps, ls], [ca.vertcat(ca.vec(ca.mtimes(a, a.T)), a * b)])
     Ms = ca.SX.sym("M", 30)
     M, v = ca.reshape(Ms[:25], 5, 5), Ms[25:]
-    dsc = 1.0 / ca.sqrt(ca.diag(M))                         # unit-diagonal scaling
+    dsc = 1.0 / ca.sqrt(ca.diag(M))  # unit-diagonal scaling
     y: Any = dsc * ca.solve(M * ca.mtimes(dsc, dsc.T), dsc * v)
     lin_solve = ca.Function("lin_solve", [Ms], [y[:4]], {"cse": True})
-    y = lin_solve.map(K)(ca.mtimes(lin.map(N)(Pc, m.T), sel))                     # 4 x K
+    y = lin_solve.map(K)(ca.mtimes(lin.map(N)(Pc, m.T), sel))  # 4 x K
     u: Any = ca.vertcat(y[:3, :] + c, y[3, :])
     # Gauss-Newton on the sqrt residual ||P - Q|| - d - l
     us = ca.SX.sym("u", 4)
@@ -353,11 +388,13 @@ def station_start_function(machine: Machine, station_index: np.ndarray, n_statio
     dist = ca.sqrt(ca.sumsqr(diff))
     rr = dist - us[3] - ls
     row = ca.vertcat(diff / dist, -1.0)
-    gn = ca.Function("gn", [ps, ls, us], [ca.vertcat(ca.vec(ca.mtimes(row, row.T)), row * rr),
-                                          rr * rr])
+    gn = ca.Function(
+        "gn", [ps, ls, us], [ca.vertcat(ca.vec(ca.mtimes(row, row.T)), row * rr), rr * rr]
+    )
     Hs = ca.SX.sym("H", 20)
-    gn_solve = ca.Function("gn_solve", [Hs], [ca.solve(ca.reshape(Hs[:16], 4, 4), Hs[16:])],
-                           {"cse": True})
+    gn_solve = ca.Function(
+        "gn_solve", [Hs], [ca.solve(ca.reshape(Hs[:16], 4, 4), Hs[16:])], {"cse": True}
+    )
     gnN = gn.map(N)
     for _ in range(steps):
         vals, _ = gnN(P, m.T, ca.mtimes(u, sel.T))
@@ -367,8 +404,9 @@ def station_start_function(machine: Machine, station_index: np.ndarray, n_statio
     return _dense(ca.Function(name, [q, t, m], [u, rms], ["q", "t", "m"], ["S", "rms"]))
 
 
-def budget_sigma_function(machine: Machine, budget: Budget, station_index: np.ndarray,
-                          n_stations: int, name: str) -> ca.Function:
+def budget_sigma_function(
+    machine: Machine, budget: Budget, station_index: np.ndarray, n_stations: int, name: str
+) -> ca.Function:
     """sigma (mm) of every reading from the budget and the start stations."""
     N, n_ax = len(station_index), machine.n_axes
     qs, ts, Ls, Ss = ca.SX.sym("q", n_ax), ca.SX.sym("t", 3), ca.SX.sym("L"), ca.SX.sym("S", 3)
@@ -387,30 +425,36 @@ def budget_sigma_function(machine: Machine, budget: Budget, station_index: np.nd
     one = ca.Function("sigma1", [qs, ts, Ls, Ss], [ca.sqrt(var)], {"cse": True})
     q, t, m = ca.MX.sym("q", n_ax * N), ca.MX.sym("t", 3 * N), ca.MX.sym("m", N)
     S = ca.MX.sym("S", 4, n_stations)
-    sel = ca.DM(ca.Sparsity.triplet(n_stations, N, [int(i) for i in station_index],
-                                    list(range(N))), 1.0)
+    sel = ca.DM(
+        ca.Sparsity.triplet(n_stations, N, [int(i) for i in station_index], list(range(N))), 1.0
+    )
     SN = ca.mtimes(S[:3, :], sel)
     sigma_all = one.map(N)(ca.reshape(q, n_ax, N), ca.reshape(t, 3, N), m.T, SN)
-    return _dense(ca.Function(name, [q, t, m, S], [sigma_all.T], ["q", "t", "m", "S"],
-                              ["sigma"]))
+    return _dense(ca.Function(name, [q, t, m, S], [sigma_all.T], ["q", "t", "m", "S"], ["sigma"]))
 
 
 def _deg_factor(machine: Machine) -> np.ndarray:
     return np.array([np.pi / 180.0 if a.is_rotary else 1.0 for a in machine.spec.axes])
 
 
-def model_function(machine: Machine, em: ErrorModel, name: str, *, exact: bool = False
-                   ) -> ca.Function:
+def model_function(
+    machine: Machine, em: ErrorModel, name: str, *, exact: bool = False
+) -> ca.Function:
     """Tool point, volumetric error and Jacobians at one pose (q in file units)."""
-    qf, t, th = ca.SX.sym("q", machine.n_axes), ca.SX.sym("t", 3), ca.SX.sym("theta",
-                                                                           em.n_params)
+    qf, t, th = ca.SX.sym("q", machine.n_axes), ca.SX.sym("t", 3), ca.SX.sym("theta", em.n_params)
     q = qf * ca.DM(_deg_factor(machine))
     e = em.values_function()(q, th)
     p, dp, _ = machine["tool_point_exact" if exact else "tool_point"](q, t, e)
-    return _dense(ca.Function(name, [qf, t, th],
-                              [p, dp, ca.jacobian(dp, th).T, ca.jacobian(p, qf).T],
-                              ["q", "t", "theta"], ["p", "dp", "dp_dtheta", "dp_dq"],
-                              {"cse": True}))
+    return _dense(
+        ca.Function(
+            name,
+            [qf, t, th],
+            [p, dp, ca.jacobian(dp, th).T, ca.jacobian(p, qf).T],
+            ["q", "t", "theta"],
+            ["p", "dp", "dp_dtheta", "dp_dq"],
+            {"cse": True},
+        )
+    )
 
 
 def error_values_function(machine: Machine, em: ErrorModel, name: str) -> ca.Function:
@@ -430,5 +474,12 @@ def analysis_sigma(machine: Machine, budget: Budget, meas, st0: np.ndarray) -> n
 
 
 def stations_frame(ids, st: np.ndarray) -> pd.DataFrame:
-    return pd.DataFrame({"station": list(ids), "x_mm": st[:, 0], "y_mm": st[:, 1],
-                         "z_mm": st[:, 2], "dead_length_mm": st[:, 3]})
+    return pd.DataFrame(
+        {
+            "station": list(ids),
+            "x_mm": st[:, 0],
+            "y_mm": st[:, 1],
+            "z_mm": st[:, 2],
+            "dead_length_mm": st[:, 3],
+        }
+    )

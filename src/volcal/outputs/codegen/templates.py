@@ -11,6 +11,7 @@ newline, and nothing is escaped: what a template holds is what is written.  A C 
 initialiser is written ``{ {{- values }}}`` (the ``-`` removes the space, so the output
 reads ``{values}``).
 """
+
 from __future__ import annotations
 
 from functools import lru_cache
@@ -23,9 +24,12 @@ TEMPLATE_DIR = Path(__file__).parent / "templates"
 
 @lru_cache(maxsize=1)
 def environment() -> jinja2.Environment:
-    return jinja2.Environment(loader=jinja2.FileSystemLoader(str(TEMPLATE_DIR)),
-                              undefined=jinja2.StrictUndefined, autoescape=False,
-                              keep_trailing_newline=True)
+    return jinja2.Environment(
+        loader=jinja2.FileSystemLoader(str(TEMPLATE_DIR)),
+        undefined=jinja2.StrictUndefined,
+        autoescape=False,
+        keep_trailing_newline=True,
+    )
 
 
 def render(template: str, mapping: dict) -> str:

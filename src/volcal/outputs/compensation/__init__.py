@@ -24,6 +24,7 @@ what is tabulated so that linear interpolation between nodes stays within
 ``tolerance_um`` at the tool point (:mod:`.grid`).  docs/compensation.md describes each
 format.
 """
+
 from __future__ import annotations
 
 import json
@@ -53,11 +54,10 @@ WHAT = "a compensation export (volcal compensate)"
 
 _TITLES = {
     "isg": "Beckhoff TwinCAT CNC volumetric compensation (TF5280, ISG kernel): ISG CSV "
-           "parameter files and .lis configuration",
+    "parameter files and .lis configuration",
     "siemens": "SINUMERIK 840D sl / 828D interpolatory compensation: CEC and LEC tables "
-               "(init programs)",
-    "heidenhain": "HEIDENHAIN nonlinear axis error compensation: *.COM tables and *.CMA "
-                  "assignment",
+    "(init programs)",
+    "heidenhain": "HEIDENHAIN nonlinear axis error compensation: *.COM tables and *.CMA assignment",
     "generic": "generic: per-axis ISO 230-1 error tables and a volumetric correction grid",
 }
 
@@ -145,59 +145,88 @@ class Compensation:
         ok = np.isfinite(self.per_tool["residual_rms_um"].to_numpy(float))
         if not ok.any():
             return math.nan
-        return _pooled(self.per_tool[ok], "residual_rms_um") / \
-            _pooled(self.per_tool[ok], "uncorrected_rms_um")
+        return _pooled(self.per_tool[ok], "residual_rms_um") / _pooled(
+            self.per_tool[ok], "uncorrected_rms_um"
+        )
 
     def residual_line(self) -> str:
-        return (f"residual volumetric error after compensation: RMS {self.residual_rms_um:.3f} "
-                f"um ({100 * self.ratio:.2f} % of the uncorrected {self.uncorrected_rms_um:.3f}"
-                f" um RMS), max {self.residual_max_um:.3f} um; {self.n_poses} poses over the "
-                f"travel x {len(self.per_tool)} tool offset(s)")
+        return (
+            f"residual volumetric error after compensation: RMS {self.residual_rms_um:.3f} "
+            f"um ({100 * self.ratio:.2f} % of the uncorrected {self.uncorrected_rms_um:.3f}"
+            f" um RMS), max {self.residual_max_um:.3f} um; {self.n_poses} poses over the "
+            f"travel x {len(self.per_tool)} tool offset(s)"
+        )
 
     def spacing_line(self) -> str:
         sp = ", ".join(f"{a} {v}" for a, v in self.spacing.items())
-        meas = ("" if self.interpolation_max_um is None
-                else f", measured {self.interpolation_max_um:.3g} um")
-        return (f"node spacing {sp}: chosen from the curvature of the tabulated errors for an "
-                f"interpolation error of at most {self.tolerance_um:g} um at the tool point "
-                f"(bound {self.interpolation_bound_um:.3g} um{meas})")
+        meas = (
+            ""
+            if self.interpolation_max_um is None
+            else f", measured {self.interpolation_max_um:.3g} um"
+        )
+        return (
+            f"node spacing {sp}: chosen from the curvature of the tabulated errors for an "
+            f"interpolation error of at most {self.tolerance_um:g} um at the tool point "
+            f"(bound {self.interpolation_bound_um:.3g} um{meas})"
+        )
 
     def to_dict(self) -> dict[str, Any]:
         def tool(t):
             return None if t is None else [float(v) for v in t]
+
         return {
-            "format": "volcal-compensation", "format_version": 1,
-            "compensation_format": self.format, "title": self.title, "files": self.files,
-            "values": self.values, "tolerance_um": self.tolerance_um,
-            "spacing": self.spacing, "interpolation_bound_um": self.interpolation_bound_um,
+            "format": "volcal-compensation",
+            "format_version": 1,
+            "compensation_format": self.format,
+            "title": self.title,
+            "files": self.files,
+            "values": self.values,
+            "tolerance_um": self.tolerance_um,
+            "spacing": self.spacing,
+            "interpolation_bound_um": self.interpolation_bound_um,
             "interpolation_max_um": self.interpolation_max_um,
             "table_tool_mm": tool(self.table_tool),
             "uncorrected_rms_um": self.uncorrected_rms_um,
-            "residual_rms_um": self.residual_rms_um, "residual_max_um": self.residual_max_um,
-            "ratio": self.ratio, "per_tool": _records(self.per_tool),
-            "not_carried": self.not_carried, "tables": _records(pd.DataFrame(self.tables)),
-            "limits": self.limits, "n_poses": self.n_poses, "model": self.model,
-            "model_fingerprint": self.fingerprint, "source": self.source,
-            "created": self.created, "notes": self.notes,
+            "residual_rms_um": self.residual_rms_um,
+            "residual_max_um": self.residual_max_um,
+            "ratio": self.ratio,
+            "per_tool": _records(self.per_tool),
+            "not_carried": self.not_carried,
+            "tables": _records(pd.DataFrame(self.tables)),
+            "limits": self.limits,
+            "n_poses": self.n_poses,
+            "model": self.model,
+            "model_fingerprint": self.fingerprint,
+            "source": self.source,
+            "created": self.created,
+            "notes": self.notes,
         }
 
     def header(self) -> list[str]:
         """The lines every file of the export starts with (without comment marks)."""
         from volcal import __version__
-        lines = [f"volcal {__version__} compensation export: {self.title}",
-                 f"model {self.model} (fingerprint {self.fingerprint}); identification "
-                 f"result {self.source}; created {self.created}",
-                 f"VALUES: {self.values}"]
+
+        lines = [
+            f"volcal {__version__} compensation export: {self.title}",
+            f"model {self.model} (fingerprint {self.fingerprint}); identification "
+            f"result {self.source}; created {self.created}",
+            f"VALUES: {self.values}",
+        ]
         if self.table_tool is not None:
-            lines.append("tables built for the tool offset (" + ", ".join(
-                f"{v:g}" for v in self.table_tool) + ") mm (tool frame)")
+            lines.append(
+                "tables built for the tool offset ("
+                + ", ".join(f"{v:g}" for v in self.table_tool)
+                + ") mm (tool frame)"
+            )
         lines.append(self.spacing_line())
         lines.append(self.residual_line())
         for n in self.not_carried:
             lines.append(f"NOT CARRIED: {n}")
         if not self.not_carried:
-            lines.append("NOT CARRIED: nothing of the identified model; what remains is the "
-                         "interpolation error (residual above)")
+            lines.append(
+                "NOT CARRIED: nothing of the identified model; what remains is the "
+                "interpolation error (residual above)"
+            )
         lines.append("conventions: docs/compensation.md and docs/conventions.md of volcal")
         return lines
 
@@ -211,17 +240,27 @@ def _pooled(df: pd.DataFrame, col: str) -> float:
 def _records(df: pd.DataFrame) -> list[dict[str, Any]]:
     out = []
     for rec in df.to_dict(orient="records"):
-        out.append({k: (None if isinstance(v, float) and not math.isfinite(v)
-                        else v.item() if isinstance(v, np.generic) else v)
-                    for k, v in rec.items()})
+        out.append(
+            {
+                k: (
+                    None
+                    if isinstance(v, float) and not math.isfinite(v)
+                    else v.item()
+                    if isinstance(v, np.generic)
+                    else v
+                )
+                for k, v in rec.items()
+            }
+        )
     return out
 
 
 def _parse_tool(t, where: str) -> np.ndarray:
     a = np.asarray(t, float).reshape(-1)
     if a.shape != (3,) or not np.all(np.isfinite(a)):
-        raise InputError(f"expected a tool offset of three finite numbers (mm), got {t!r}",
-                         source=where)
+        raise InputError(
+            f"expected a tool offset of three finite numbers (mm), got {t!r}", source=where
+        )
     return a
 
 
@@ -233,10 +272,14 @@ def render_template(template: str, /, **mapping: Any) -> str:
     variables are errors, nothing is escaped, the last newline is kept)."""
     import jinja2
 
-    env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(TEMPLATE_DIR)),
-                             undefined=jinja2.StrictUndefined, autoescape=False,
-                             keep_trailing_newline=True, trim_blocks=True,
-                             lstrip_blocks=True)
+    env = jinja2.Environment(
+        loader=jinja2.FileSystemLoader(str(TEMPLATE_DIR)),
+        undefined=jinja2.StrictUndefined,
+        autoescape=False,
+        keep_trailing_newline=True,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
     return env.get_template(template).render(mapping)
 
 
@@ -250,30 +293,45 @@ def rms_um(v_mm: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(np.asarray(v_mm) ** 2, axis=1)))) * 1e3
 
 
-def table_residuals(fld: ErrorField, tables, ctx: Context
-                    ) -> tuple[float, list[tuple[float, np.ndarray]]]:
+def table_residuals(
+    fld: ErrorField, tables, ctx: Context
+) -> tuple[float, list[tuple[float, np.ndarray]]]:
     """What 1-D tables leave: (RMS um at the tables' tool offset, [(RMS um, tool offset)]
     at every other tool offset of the plan), over the check poses."""
     from volcal.outputs.compensation.grid import correction_residual
 
     q = check_poses(fld)
     at_table = rms_um(correction_residual(fld, tables, q, ctx.table_tool))
-    others = [(rms_um(correction_residual(fld, tables, q, t)), t) for t in ctx.tools
-              if np.abs(t - ctx.table_tool).max() > 1e-9]
+    others = [
+        (rms_um(correction_residual(fld, tables, q, t)), t)
+        for t in ctx.tools
+        if np.abs(t - ctx.table_tool).max() > 1e-9
+    ]
     return at_table, others
 
 
 def _builder(fmt: str):
     from importlib import import_module
+
     return import_module(f"volcal.outputs.compensation.{fmt}").build
 
 
-def compensate(result: Any, format: str, out_dir: str | Path | None, *,
-               tolerance_um: float = 0.1, tools=None, table_tool=(0.0, 0.0, 0.0),
-               sign: str = "correction", axis_names: dict[str, str] | None = None,
-               max_points: int | None = None, max_tables: int | None = None,
-               target: str | None = None, tool_direction: str = "-z",
-               force: bool | None = None) -> Compensation:
+def compensate(
+    result: Any,
+    format: str,
+    out_dir: str | Path | None,
+    *,
+    tolerance_um: float = 0.1,
+    tools=None,
+    table_tool=(0.0, 0.0, 0.0),
+    sign: str = "correction",
+    axis_names: dict[str, str] | None = None,
+    max_points: int | None = None,
+    max_tables: int | None = None,
+    target: str | None = None,
+    tool_direction: str = "-z",
+    force: bool | None = None,
+) -> Compensation:
     """Write the compensation files of ``format`` for an identification ``result`` to
     ``out_dir`` (None: compute and report only) and return what was written with its
     residual figures (:class:`Compensation`).
@@ -299,43 +357,56 @@ def compensate(result: Any, format: str, out_dir: str | Path | None, *,
     """
     fmt = str(format).lower()
     if fmt not in FORMATS:
-        raise InputError(f"unknown format {format!r}; expected one of {list(FORMATS)}",
-                         source="--format")
+        raise InputError(
+            f"unknown format {format!r}; expected one of {list(FORMATS)}", source="--format"
+        )
     if sign not in ("correction", "error"):
         raise InputError(f"expected 'correction' or 'error', got {sign!r}", source="--sign")
     try:
         tolerance_um = float(tolerance_um)
     except (TypeError, ValueError):
-        raise InputError(f"expected a number, got {tolerance_um!r}", source="--tolerance") \
-            from None
+        raise InputError(f"expected a number, got {tolerance_um!r}", source="--tolerance") from None
     if not (math.isfinite(tolerance_um) and tolerance_um > 0):
-        raise InputError(f"expected a tolerance > 0 um, got {tolerance_um!r}",
-                         source="--tolerance")
+        raise InputError(f"expected a tolerance > 0 um, got {tolerance_um!r}", source="--tolerance")
     for name, v in (("--max-points", max_points), ("--max-tables", max_tables)):
-        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer))
-                              or v < 1):
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1):
             raise InputError(f"expected a positive integer, got {v!r}", source=name)
     machine, em, theta, src, plan = as_field_input(result)
     fld = ErrorField(machine, em, theta)
     if tools is None:
         tools = plan if plan is not None else np.zeros((1, 3))
     tools = np.atleast_2d(np.asarray(tools, float))
-    if tools.ndim != 2 or tools.shape[1] != 3 or not np.all(np.isfinite(tools)) \
-            or len(tools) == 0:
-        raise InputError("expected tool offsets as rows of three finite numbers (mm)",
-                         source="--tool")
+    if tools.ndim != 2 or tools.shape[1] != 3 or not np.all(np.isfinite(tools)) or len(tools) == 0:
+        raise InputError(
+            "expected tool offsets as rows of three finite numbers (mm)", source="--tool"
+        )
     tools = np.unique(tools, axis=0)
     table_tool = _parse_tool(table_tool, "--table-tool")
     created = datetime.now(UTC).isoformat(timespec="seconds")
-    options = dict(axis_names=dict(axis_names or {}), max_points=max_points,
-                   max_tables=max_tables, target=target, tool_direction=tool_direction)
-    ctx = Context(fld, tolerance_um, tools, table_tool, sign, options, created,
-                  str(src) if src is not None else "(in memory)")
+    options = dict(
+        axis_names=dict(axis_names or {}),
+        max_points=max_points,
+        max_tables=max_tables,
+        target=target,
+        tool_direction=tool_direction,
+    )
+    ctx = Context(
+        fld,
+        tolerance_um,
+        tools,
+        table_tool,
+        sign,
+        options,
+        created,
+        str(src) if src is not None else "(in memory)",
+    )
     built = _builder(fmt)(ctx)
     # the residual over the workspace at every tool offset
     report_tools = tools
-    if built.table_tool is not None and not (np.abs(tools - built.table_tool).max(axis=1)
-                                             < 1e-9).any():
+    if (
+        built.table_tool is not None
+        and not (np.abs(tools - built.table_tool).max(axis=1) < 1e-9).any()
+    ):
         report_tools = np.vstack([built.table_tool, tools])
     q = check_poses(fld)
     rows = []
@@ -343,29 +414,51 @@ def compensate(result: Any, format: str, out_dir: str | Path | None, *,
         dp = fld.volumetric(q, t) * 1e3
         r = built.residual(q, t) * 1e3
         nd, nr = np.linalg.norm(dp, axis=1), np.linalg.norm(r, axis=1)
-        rows.append({"tool_x_mm": float(t[0]), "tool_y_mm": float(t[1]),
-                     "tool_z_mm": float(t[2]),
-                     "uncorrected_rms_um": float(np.sqrt(np.mean(nd ** 2))),
-                     "uncorrected_max_um": float(nd.max()),
-                     "residual_rms_um": float(np.sqrt(np.mean(nr ** 2))),
-                     "residual_max_um": float(nr.max()),
-                     "ratio": float(np.sqrt(np.mean(nr ** 2)) / np.sqrt(np.mean(nd ** 2)))})
+        rows.append(
+            {
+                "tool_x_mm": float(t[0]),
+                "tool_y_mm": float(t[1]),
+                "tool_z_mm": float(t[2]),
+                "uncorrected_rms_um": float(np.sqrt(np.mean(nd**2))),
+                "uncorrected_max_um": float(nd.max()),
+                "residual_rms_um": float(np.sqrt(np.mean(nr**2))),
+                "residual_max_um": float(nr.max()),
+                "ratio": float(np.sqrt(np.mean(nr**2)) / np.sqrt(np.mean(nd**2))),
+            }
+        )
     per_tool = pd.DataFrame(rows)
     spacing = {}
     for ax, h in built.spacing.items():
         a = fld.axis(ax)
         spacing[ax] = f"{a.to_file(h):.4g} {a.unit}"
     comp = Compensation(
-        format=fmt, title=_TITLES[fmt], path=None, files=[], values=built.values,
-        tolerance_um=tolerance_um, spacing=spacing, interpolation_bound_um=built.bound_um,
-        interpolation_max_um=built.measured_um, per_tool=per_tool,
-        not_carried=built.not_carried, tables=built.tables, limits=built.limits,
-        n_poses=len(q), model=fld.spec.name, fingerprint=fld.spec.fingerprint(),
-        source=ctx.source, created=created, table_tool=built.table_tool, notes=built.notes)
+        format=fmt,
+        title=_TITLES[fmt],
+        path=None,
+        files=[],
+        values=built.values,
+        tolerance_um=tolerance_um,
+        spacing=spacing,
+        interpolation_bound_um=built.bound_um,
+        interpolation_max_um=built.measured_um,
+        per_tool=per_tool,
+        not_carried=built.not_carried,
+        tables=built.tables,
+        limits=built.limits,
+        n_poses=len(q),
+        model=fld.spec.name,
+        fingerprint=fld.spec.fingerprint(),
+        source=ctx.source,
+        created=created,
+        table_tool=built.table_tool,
+        notes=built.notes,
+    )
     ident = getattr(result, "identifiable", None)
     if ident is not None and not np.all(ident):
-        comp.notes.append(f"{int(np.sum(~np.asarray(ident, bool)))} parameter(s) were not "
-                          "identifiable: the files carry the values the datum chose for them")
+        comp.notes.append(
+            f"{int(np.sum(~np.asarray(ident, bool)))} parameter(s) were not "
+            "identifiable: the files carry the values the datum chose for them"
+        )
     files = built.render(comp)
     comp.files = sorted(files)
     if out_dir is None:
@@ -383,9 +476,16 @@ def compensate(result: Any, format: str, out_dir: str | Path | None, *,
                 p.write_text(content, encoding="utf-8", newline="")
 
     from volcal.base.folders import write_folder
-    comp.path = write_folder(out_dir, tuple(files), WHAT, writer,
-                             marker="compensation.json",
-                             inputs=[src] if src is not None else (), force=force)
+
+    comp.path = write_folder(
+        out_dir,
+        tuple(files),
+        WHAT,
+        writer,
+        marker="compensation.json",
+        inputs=[src] if src is not None else (),
+        force=force,
+    )
     return comp
 
 
@@ -411,24 +511,37 @@ def report_markdown(comp: Compensation) -> str:
     from tabulate import tabulate
 
     def table(df: pd.DataFrame) -> str:
-        return tabulate(df, headers="keys", tablefmt="github", showindex=False,
-                        floatfmt=".4g")
+        return tabulate(df, headers="keys", tablefmt="github", showindex=False, floatfmt=".4g")
 
-    lines = [f"# Compensation: {comp.format}", "", comp.title, "",
-             f"Model `{comp.model}` (fingerprint `{comp.fingerprint}`), identification "
-             f"result `{comp.source}`, created {comp.created}.", "",
-             f"**Values.** {comp.values}", "",
-             f"**Grid.** {comp.spacing_line()}.", "",
-             f"**Residual.** {comp.residual_line()} (first-order model, the files applied as "
-             "the controller applies them: linear interpolation between nodes, modulo 360 "
-             "deg on full-turn rotary axes).", "", table(comp.per_tool), ""]
+    lines = [
+        f"# Compensation: {comp.format}",
+        "",
+        comp.title,
+        "",
+        f"Model `{comp.model}` (fingerprint `{comp.fingerprint}`), identification "
+        f"result `{comp.source}`, created {comp.created}.",
+        "",
+        f"**Values.** {comp.values}",
+        "",
+        f"**Grid.** {comp.spacing_line()}.",
+        "",
+        f"**Residual.** {comp.residual_line()} (first-order model, the files applied as "
+        "the controller applies them: linear interpolation between nodes, modulo 360 "
+        "deg on full-turn rotary axes).",
+        "",
+        table(comp.per_tool),
+        "",
+    ]
     if comp.table_tool is not None:
-        lines += ["The 1-D tables are built for the tool offset (" + ", ".join(
-            f"{v:g}" for v in comp.table_tool) + ") mm; at other tool offsets the "
-            "tool-length-dependent part of the error remains.", ""]
+        lines += [
+            "The 1-D tables are built for the tool offset ("
+            + ", ".join(f"{v:g}" for v in comp.table_tool)
+            + ") mm; at other tool offsets the "
+            "tool-length-dependent part of the error remains.",
+            "",
+        ]
     lines += ["**What this format cannot carry.**", ""]
-    lines += [f"- {n}" for n in comp.not_carried] or ["- nothing beyond the interpolation "
-                                                      "error"]
+    lines += [f"- {n}" for n in comp.not_carried] or ["- nothing beyond the interpolation error"]
     lines += ["", "**Files.**", ""] + [f"- `{f}`" for f in comp.files]
     if comp.tables:
         lines += ["", "**Tables.**", "", table(pd.DataFrame(comp.tables))]

@@ -17,6 +17,7 @@ parameters built in as constants, mapped over many poses at once:
 Units inside: mm and rad; positions in files and tables: mm and deg
 (:meth:`AxisInfo.to_file`).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -84,16 +85,20 @@ def as_field_input(result: Any):
     src = None
     if isinstance(result, (str, Path)):
         from volcal.outputs.results import load_result
+
         src = Path(result)
         result = load_result(result)
     for attr in ("machine", "error_model", "theta"):
         if not hasattr(result, attr):
-            raise InputError(f"expected an identification result (or its folder), got "
-                             f"{type(result).__name__} without '{attr}'")
+            raise InputError(
+                f"expected an identification result (or its folder), got "
+                f"{type(result).__name__} without '{attr}'"
+            )
     theta = np.asarray(result.theta, float)
     if theta.shape != (result.error_model.n_params,) or not np.all(np.isfinite(theta)):
-        raise InputError("the result's parameters are inconsistent with its error model or "
-                         "not finite")
+        raise InputError(
+            "the result's parameters are inconsistent with its error model or not finite"
+        )
     if src is None and getattr(result, "path", None) is not None:
         src = Path(result.path)
     return result.machine, result.error_model, theta, src, plan_tools(result, src)
@@ -141,15 +146,29 @@ class ErrorField:
             lo, hi = float(conv(a.travel[0])), float(conv(a.travel[1]))
             # periodic: a full turn whose error motions are periodic functions of the angle
             # (Fourier series, constants); its tables then span one turn from the lower end
-            kinds = {f.kind for s, f in zip(error_model.errors, error_model.forms)
-                     if s.kind == "component" and s.axis == a.name}
+            kinds = {
+                f.kind
+                for s, f in zip(error_model.errors, error_model.forms)
+                if s.kind == "component" and s.axis == a.name
+            }
             periodic = a.full_turn and kinds <= {"fourier", "constant"}
             if periodic:
                 hi = lo + 2 * np.pi
-            self.axes.append(AxisInfo(
-                a.name, k, a.is_rotary, periodic, lo, hi, float(conv(a.reference)),
-                a.dir_index, a.dir_sign, a.branch,
-                (float(a.center[0]), float(a.center[1]), float(a.center[2]))))
+            self.axes.append(
+                AxisInfo(
+                    a.name,
+                    k,
+                    a.is_rotary,
+                    periodic,
+                    lo,
+                    hi,
+                    float(conv(a.reference)),
+                    a.dir_index,
+                    a.dir_sign,
+                    a.branch,
+                    (float(a.center[0]), float(a.center[1]), float(a.center[2])),
+                )
+            )
         n, ne = len(self.axes), len(self.errors_list)
         q = ca.SX.sym("q", n)
         t = ca.SX.sym("t", 3)
@@ -165,8 +184,9 @@ class ErrorField:
             "e": ca.Function("e", [q], [e]),
             "ab": ca.Function("ab", [q], [a0, ca.reshape(B0, 9, 1)]),
             "dpe": ca.Function("dpe", [q, t, es], [tp(q, t, es)[1]]),
-            "M": ca.Function("M", [q, t], [ca.reshape(ca.jacobian(machine["nominal"](q, t), q),
-                                                      3 * n, 1)]),
+            "M": ca.Function(
+                "M", [q, t], [ca.reshape(ca.jacobian(machine["nominal"](q, t), q), 3 * n, 1)]
+            ),
         }
         self._maps: dict[tuple[str, int], ca.Function] = {}
 
@@ -199,12 +219,13 @@ class ErrorField:
             key = (name, m)
             if key not in self._maps:
                 self._maps[key] = self._fn[name].map(m)
-            res = self._maps[key](*[np.ascontiguousarray(a[i:i + m].T) for a in args])
+            res = self._maps[key](*[np.ascontiguousarray(a[i : i + m].T) for a in args])
             res = res if isinstance(res, (list, tuple)) else [res]
             outs.append([np.asarray(r.full()).T for r in res])
         if not outs:
-            return [np.zeros((0, self._fn[name].size1_out(k)))
-                    for k in range(self._fn[name].n_out())]
+            return [
+                np.zeros((0, self._fn[name].size1_out(k))) for k in range(self._fn[name].n_out())
+            ]
         return [np.vstack([o[k] for o in outs]) for k in range(len(outs[0]))]
 
     @staticmethod
@@ -242,8 +263,9 @@ class ErrorField:
     def volumetric_from_errors(self, q: np.ndarray, tools, e: np.ndarray) -> np.ndarray:
         """First-order volumetric error (N, 3) mm for error values e (N, n_errors)."""
         q = np.atleast_2d(np.asarray(q, float))
-        return self._map("dpe", q, self._tools(tools, len(q)),
-                         np.ascontiguousarray(e, dtype=float))[0]
+        return self._map(
+            "dpe", q, self._tools(tools, len(q)), np.ascontiguousarray(e, dtype=float)
+        )[0]
 
     def axis_jacobian(self, q: np.ndarray, tools=None) -> np.ndarray:
         """d p_nominal / d q (N, 3, n_axes): mm per mm (linear axes), mm per rad (rotary)."""
@@ -257,7 +279,8 @@ class ErrorField:
         t = self._tools(tools, len(q))
         out = np.empty((len(q), 3, len(self.errors_list)))
         for i in range(0, len(q), 2000):
-            _, _, J = self.machine.evaluate(q[i:i + 2000], t[i:i + 2000],
-                                            np.zeros(len(self.errors_list)))
-            out[i:i + 2000] = J
+            _, _, J = self.machine.evaluate(
+                q[i : i + 2000], t[i : i + 2000], np.zeros(len(self.errors_list))
+            )
+            out[i : i + 2000] = J
         return out

@@ -26,6 +26,7 @@ stays within the tolerance.  The grid carries the whole model at its tool offset
 other tool offsets the per-axis tables (with the kinematic chain) do.  ``max_points``
 bounds the number of grid nodes times tool offsets (default 2,000,000).
 """
+
 from __future__ import annotations
 
 import io
@@ -46,8 +47,10 @@ from .grid import (
 
 MAX_GRID_POINTS = 2_000_000
 
-_MEANING = {"location": "location error (constant)",
-            "tool": "tool zero position / orientation error (constant, tool frame)"}
+_MEANING = {
+    "location": "location error (constant)",
+    "tool": "tool zero position / orientation error (constant, tool frame)",
+}
 
 
 def _unit(unit: str) -> tuple[float, str]:
@@ -72,8 +75,7 @@ def build(ctx: Context) -> Built:
     fld = ctx.field
     tools = np.asarray(ctx.tools, float)
     max_points = int(ctx.options.get("max_points") or MAX_GRID_POINTS)
-    tabs = component_tables(fld, np.vstack([np.zeros(3), tools]), ctx.tolerance_um,
-                            fold_tool=False)
+    tabs = component_tables(fld, np.vstack([np.zeros(3), tools]), ctx.tolerance_um, fold_tool=False)
     # ---- the volumetric grid over every axis, one per tool offset
     lo, hi = fld.lower, fld.upper
     axes = fld.axes
@@ -88,20 +90,28 @@ def build(ctx: Context) -> Built:
     per = [a.full_turn for a in axes]
     scale, measured = 1.0, np.inf
     for _ in range(5):
-        sp = choose_spacing([a.length for a in axes], S * scale, ctx.tolerance_um,
-                            min_intervals=[8 if a.full_turn else 1 for a in axes])
+        sp = choose_spacing(
+            [a.length for a in axes],
+            S * scale,
+            ctx.tolerance_um,
+            min_intervals=[8 if a.full_turn else 1 for a in axes],
+        )
         nodes = [uniform_nodes(a.lo, a.hi, sp.h[j]) for j, a in enumerate(axes)]
         shape = tuple(len(n) for n in nodes)
         n_nodes = int(np.prod(shape))
-        check_limit(n_nodes * len(tools), max_points,
-                    f"volumetric grid points ({' x '.join(map(str, shape))} nodes x "
-                    f"{len(tools)} tool offset(s))",
-                    "--max-points (default 2,000,000)",
-                    "raise --tolerance, give fewer --tool offsets or raise --max-points")
+        check_limit(
+            n_nodes * len(tools),
+            max_points,
+            f"volumetric grid points ({' x '.join(map(str, shape))} nodes x "
+            f"{len(tools)} tool offset(s))",
+            "--max-points (default 2,000,000)",
+            "raise --tolerance, give fewer --tool offsets or raise --max-points",
+        )
         Q = np.stack(np.meshgrid(*nodes, indexing="ij"), axis=-1).reshape(-1, len(axes))
         a0, B0 = fld.affine(Q)
-        vals = np.stack([(a0 + np.einsum("nij,j->ni", B0, t)).reshape(*shape, 3)
-                         for t in tools])  # error, mm
+        vals = np.stack(
+            [(a0 + np.einsum("nij,j->ni", B0, t)).reshape(*shape, 3) for t in tools]
+        )  # error, mm
         err = 0.0
         for k in range(len(tools)):
             d = multilinear(nodes, vals[k], qv, per) - exact[k]
@@ -120,12 +130,16 @@ def build(ctx: Context) -> Built:
             return np.full((len(q), 3), np.nan)
         return fld.volumetric(q, t) - multilinear(nodes, vals[k[0]], q, per)
 
-    values = ("errors in the per-axis tables and constants (actual - nominal, ISO 230-1, um / "
-              "urad); in the volumetric grid "
-              + ("corrections (= -error) to add to the commanded tool point"
-                 if ctx.sign == "correction" else
-                 "errors (actual - nominal tool point; the correction is their negative)")
-              + ", um, workspace frame")
+    values = (
+        "errors in the per-axis tables and constants (actual - nominal, ISO 230-1, um / "
+        "urad); in the volumetric grid "
+        + (
+            "corrections (= -error) to add to the commanded tool point"
+            if ctx.sign == "correction"
+            else "errors (actual - nominal tool point; the correction is their negative)"
+        )
+        + ", um, workspace frame"
+    )
     names = {s.name: s for s in fld.errors_list}
 
     def render(comp) -> dict[str, str | bytes]:
@@ -138,23 +152,36 @@ def build(ctx: Context) -> Built:
                 f, u = _unit(names[n].unit)
                 df[f"{n}_{u}"] = tabs.values[ax][:, j] * f + 0.0
             out[f"errors_{ax}.csv"] = _csv(
-                head + [f"component error motions of axis {ax} (ISO 230-1 names): errors, "
-                        "actual - nominal; linear interpolation between the rows"
-                        + ("; one full turn, repeats modulo 360 deg" if a.full_turn else "")],
-                df)
+                head
+                + [
+                    f"component error motions of axis {ax} (ISO 230-1 names): errors, "
+                    "actual - nominal; linear interpolation between the rows"
+                    + ("; one full turn, repeats modulo 360 deg" if a.full_turn else "")
+                ],
+                df,
+            )
         rows = []
         for n, v in tabs.constants.items():
             f, u = _unit(names[n].unit)
-            rows.append({"name": n, "value": v * f + 0.0, "unit": u, "kind": names[n].kind,
-                         "meaning": _MEANING[names[n].kind]})
-        out["constants.csv"] = _csv(head + ["constant errors (actual - nominal)"],
-                                    pd.DataFrame(rows, columns=["name", "value", "unit", "kind",
-                                                                "meaning"]))
+            rows.append(
+                {
+                    "name": n,
+                    "value": v * f + 0.0,
+                    "unit": u,
+                    "kind": names[n].kind,
+                    "meaning": _MEANING[names[n].kind],
+                }
+            )
+        out["constants.csv"] = _csv(
+            head + ["constant errors (actual - nominal)"],
+            pd.DataFrame(rows, columns=["name", "value", "unit", "kind", "meaning"]),
+        )
         Q = np.stack(np.meshgrid(*nodes, indexing="ij"), axis=-1).reshape(-1, len(axes))
         frames = []
         for k, t in enumerate(tools):
-            df = pd.DataFrame({"tool_x_mm": t[0], "tool_y_mm": t[1], "tool_z_mm": t[2]},
-                              index=range(len(Q)))
+            df = pd.DataFrame(
+                {"tool_x_mm": t[0], "tool_y_mm": t[1], "tool_z_mm": t[2]}, index=range(len(Q))
+            )
             for j, a in enumerate(axes):
                 df[f"{a.name}_{a.unit}"] = a.to_file(Q[:, j])
             v = vals[k].reshape(-1, 3) * sgn * 1e3 + 0.0
@@ -166,55 +193,95 @@ def build(ctx: Context) -> Built:
             f"{', '.join(a.name for a in axes)} per tool offset; "
             + ("corrections (= -error)" if ctx.sign == "correction" else "errors")
             + " of the tool point in um, workpiece frame; multilinear interpolation"
-            + (", modulo 360 deg on " + ", ".join(a.name for a in axes if a.full_turn)
-               if any(per) else "")
-            + f"; measured interpolation error {measured:.3g} um"]
+            + (
+                ", modulo 360 deg on " + ", ".join(a.name for a in axes if a.full_turn)
+                if any(per)
+                else ""
+            )
+            + f"; measured interpolation error {measured:.3g} um"
+        ]
         out["volumetric_grid.csv"] = _csv(grid_head, pd.concat(frames, ignore_index=True))
         meta = {
-            "format": "volcal-volumetric-grid", "format_version": 1,
+            "format": "volcal-volumetric-grid",
+            "format_version": 1,
             "values": "correction" if ctx.sign == "correction" else "error",
-            "sign": ("correction = -error (error = actual - nominal tool point)"
-                     if ctx.sign == "correction" else "error = actual - nominal tool point"),
-            "units": {"values": "um", "linear axes": "mm", "rotary axes": "deg",
-                      "tools": "mm"},
+            "sign": (
+                "correction = -error (error = actual - nominal tool point)"
+                if ctx.sign == "correction"
+                else "error = actual - nominal tool point"
+            ),
+            "units": {"values": "um", "linear axes": "mm", "rotary axes": "deg", "tools": "mm"},
             "frame": "workpiece frame (the machine frame with every axis at zero)",
             "axes": [a.name for a in axes],
             "axis_units": [a.unit for a in axes],
             "periodic": [bool(p) for p in per],
             "interpolation": "multilinear between nodes, held at the ends; periodic axes "
-                             "modulo 360 deg",
+            "modulo 360 deg",
             "tool_offsets_mm": tools.tolist(),
             "tool_frame": "tool offsets in the tool frame (reflector / tool point relative to "
-                          "the spindle reference point)",
+            "the spindle reference point)",
             "reference_position": {a.name: float(a.to_file(a.reference)) for a in axes},
-            "model": fld.spec.name, "model_fingerprint": fld.spec.fingerprint(),
+            "model": fld.spec.name,
+            "model_fingerprint": fld.spec.fingerprint(),
             "tolerance_um": ctx.tolerance_um,
             "spacing": {a.name: float(a.to_file(sp.h[j])) for j, a in enumerate(axes)},
-            "interpolation_bound_um": grid_bound, "interpolation_max_um": measured,
+            "interpolation_bound_um": grid_bound,
+            "interpolation_max_um": measured,
             "header": head,
         }
         buf = io.BytesIO()
         arrays = {f"nodes_{a.name}": a.to_file(nodes[j]) for j, a in enumerate(axes)}
-        np.savez(buf, tools=tools, values=vals * sgn * 1e3 + 0.0,
-                 metadata=np.array(json.dumps(meta)), **arrays)
+        np.savez(
+            buf,
+            tools=tools,
+            values=vals * sgn * 1e3 + 0.0,
+            metadata=np.array(json.dumps(meta)),
+            **arrays,
+        )
         out["volumetric_grid.npz"] = buf.getvalue()
         return out
 
-    tables = [{"table": f"errors_{ax}.csv", "input": ax,
-               "columns": " ".join(tabs.columns[ax]), "points": len(tabs.nodes[ax])}
-              for ax in tabs.axes]
-    tables.append({"table": "volumetric_grid", "input": " ".join(a.name for a in axes),
-                   "columns": f"{tag}_x/y/z x {len(tools)} tool offset(s)",
-                   "points": int(np.prod([len(n) for n in nodes]))})
+    tables = [
+        {
+            "table": f"errors_{ax}.csv",
+            "input": ax,
+            "columns": " ".join(tabs.columns[ax]),
+            "points": len(tabs.nodes[ax]),
+        }
+        for ax in tabs.axes
+    ]
+    tables.append(
+        {
+            "table": "volumetric_grid",
+            "input": " ".join(a.name for a in axes),
+            "columns": f"{tag}_x/y/z x {len(tools)} tool offset(s)",
+            "points": int(np.prod([len(n) for n in nodes])),
+        }
+    )
     not_carried: list[str] = []
-    spacing = ", ".join(f"{ax} {fld.axis(ax).to_file(tabs.spacing.h[i]):.4g} "
-                        f"{fld.axis(ax).unit}" for i, ax in enumerate(tabs.axes))
-    notes = [f"per-axis tables: spacing {spacing}, "
-             f"interpolation error {tabs.interp_max_um:.3g} um (bound "
-             f"{tabs.spacing.bound_um:.3g} um); the grid spacing is the one reported",
-             "the volumetric grid exists at its tool offsets only; at others use the per-axis "
-             "tables with the kinematic chain"]
-    limits = {"grid points": f"{int(np.prod([len(n) for n in nodes])) * len(tools)} of "
-                             f"{max_points}"}
-    return Built(residual, render, values, {a.name: sp.h[j] for j, a in enumerate(axes)},
-                 grid_bound, measured, not_carried, tables, limits, notes)
+    spacing = ", ".join(
+        f"{ax} {fld.axis(ax).to_file(tabs.spacing.h[i]):.4g} {fld.axis(ax).unit}"
+        for i, ax in enumerate(tabs.axes)
+    )
+    notes = [
+        f"per-axis tables: spacing {spacing}, "
+        f"interpolation error {tabs.interp_max_um:.3g} um (bound "
+        f"{tabs.spacing.bound_um:.3g} um); the grid spacing is the one reported",
+        "the volumetric grid exists at its tool offsets only; at others use the per-axis "
+        "tables with the kinematic chain",
+    ]
+    limits = {
+        "grid points": f"{int(np.prod([len(n) for n in nodes])) * len(tools)} of {max_points}"
+    }
+    return Built(
+        residual,
+        render,
+        values,
+        {a.name: sp.h[j] for j, a in enumerate(axes)},
+        grid_bound,
+        measured,
+        not_carried,
+        tables,
+        limits,
+        notes,
+    )

@@ -18,6 +18,7 @@ equal).  :func:`interp1` and :func:`multilinear` implement exactly that.
 **Limits.**  :func:`check_limit` raises :class:`LimitError` naming the controller limit
 (points per table, number of tables, ...) and the option that changes it.
 """
+
 from __future__ import annotations
 
 import math
@@ -28,9 +29,20 @@ import numpy as np
 
 from volcal.base.exceptions import InputError
 
-__all__ = ["LimitError", "check_limit", "halton", "workspace_sample", "curvature_1d",
-           "curvature_nd", "choose_spacing", "uniform_nodes", "interp1", "hat_matrix",
-           "multilinear", "Spacing"]
+__all__ = [
+    "LimitError",
+    "check_limit",
+    "halton",
+    "workspace_sample",
+    "curvature_1d",
+    "curvature_nd",
+    "choose_spacing",
+    "uniform_nodes",
+    "interp1",
+    "hat_matrix",
+    "multilinear",
+    "Spacing",
+]
 
 _PRIMES = (2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37)
 
@@ -60,8 +72,9 @@ def halton(n: int, d: int, skip: int = 1) -> np.ndarray:
     return out
 
 
-def workspace_sample(lo: np.ndarray, hi: np.ndarray, n: int, *, skip: int = 1,
-                     corners: bool = True) -> np.ndarray:
+def workspace_sample(
+    lo: np.ndarray, hi: np.ndarray, n: int, *, skip: int = 1, corners: bool = True
+) -> np.ndarray:
     """n Halton poses in the box [lo, hi] (internal units), plus its corners (up to 64)."""
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     d = len(lo)
@@ -72,8 +85,7 @@ def workspace_sample(lo: np.ndarray, hi: np.ndarray, n: int, *, skip: int = 1,
     return pts
 
 
-def curvature_1d(fun, lo: float, hi: float, *, periodic: bool = False,
-                 n: int = 2049) -> np.ndarray:
+def curvature_1d(fun, lo: float, hi: float, *, periodic: bool = False, n: int = 2049) -> np.ndarray:
     """max |f''| of each column of ``fun(x)`` (x an (n,) array of positions in [lo, hi],
     returning (n,) or (n, m)) from second differences on n points."""
     x = np.linspace(lo, hi, n)
@@ -82,14 +94,15 @@ def curvature_1d(fun, lo: float, hi: float, *, periodic: bool = False,
     h = x[1] - x[0]
     if periodic:  # the last point repeats the first: close the loop
         yy = np.vstack([y[-2:-1], y, y[1:2]])
-        d2 = (yy[2:] - 2 * yy[1:-1] + yy[:-2]) / h ** 2
+        d2 = (yy[2:] - 2 * yy[1:-1] + yy[:-2]) / h**2
     else:
-        d2 = (y[2:] - 2 * y[1:-1] + y[:-2]) / h ** 2
+        d2 = (y[2:] - 2 * y[1:-1] + y[:-2]) / h**2
     return np.max(np.abs(d2), axis=0) if len(d2) else np.zeros(y.shape[1])
 
 
-def curvature_nd(fun, lo: np.ndarray, hi: np.ndarray, *, n: int = 400,
-                 steps: int = 48) -> np.ndarray:
+def curvature_nd(
+    fun, lo: np.ndarray, hi: np.ndarray, *, n: int = 400, steps: int = 48
+) -> np.ndarray:
     """max over a sample of |d^2 f / d q_j^2| for each axis j (the largest over f's
     columns, which ``fun(q)`` returns as (N, m) for poses q (N, d)), from second
     differences with step (hi - lo) / ``steps``."""
@@ -117,9 +130,13 @@ class Spacing:
     bound_um: float
 
 
-def choose_spacing(lengths: Sequence[float], curvatures_um: Sequence[float] | np.ndarray,
-                   tolerance_um: float, *, min_intervals: Sequence[int] | None = None
-                   ) -> Spacing:
+def choose_spacing(
+    lengths: Sequence[float],
+    curvatures_um: Sequence[float] | np.ndarray,
+    tolerance_um: float,
+    *,
+    min_intervals: Sequence[int] | None = None,
+) -> Spacing:
     """Spacings h_j meeting ``sum_j h_j^2 S_j / 8 <= tolerance`` with the fewest nodes
     (minimise sum_j L_j / h_j: h_j = c (L_j / S_j)^(1/3)); S_j in um per unit^2.  An axis
     with S_j = 0 gets its whole length (or ``min_intervals``)."""
@@ -127,18 +144,17 @@ def choose_spacing(lengths: Sequence[float], curvatures_um: Sequence[float] | np
     S = np.asarray(curvatures_um, float)
     mi = np.ones(len(L), int) if min_intervals is None else np.asarray(min_intervals, int)
     if tolerance_um <= 0 or not math.isfinite(tolerance_um):
-        raise InputError(f"expected a tolerance > 0 um, got {tolerance_um!r}",
-                         source="tolerance")
+        raise InputError(f"expected a tolerance > 0 um, got {tolerance_um!r}", source="tolerance")
     h = L / mi
     pos = S > 0
     if pos.any():
         w = (L[pos] / S[pos]) ** (1 / 3)
-        c2 = 8 * tolerance_um / np.sum(w ** 2 * S[pos])
+        c2 = 8 * tolerance_um / np.sum(w**2 * S[pos])
         h[pos] = np.minimum(np.sqrt(c2) * w, L[pos] / mi[pos])
     # whole intervals: the uniform grid's real spacing
     n_int = np.maximum(mi, np.ceil(L / h - 1e-9).astype(int))
     h = L / n_int
-    return Spacing(h, float(np.sum(h ** 2 * S) / 8))
+    return Spacing(h, float(np.sum(h**2 * S) / 8))
 
 
 def uniform_nodes(lo: float, hi: float, h: float) -> np.ndarray:
@@ -162,8 +178,9 @@ def _locate(nodes: np.ndarray, x: np.ndarray, periodic: bool) -> tuple[np.ndarra
     return i, s - i
 
 
-def interp1(nodes: np.ndarray, values: np.ndarray, x: np.ndarray, *,
-            periodic: bool = False) -> np.ndarray:
+def interp1(
+    nodes: np.ndarray, values: np.ndarray, x: np.ndarray, *, periodic: bool = False
+) -> np.ndarray:
     """Linear interpolation on uniform nodes (values (n,) or (n, m)), held at the ends or
     periodic."""
     values = np.asarray(values, float)
@@ -188,8 +205,9 @@ def hat_matrix(nodes: np.ndarray, x: np.ndarray, *, periodic: bool = False):
     return sparse.csr_matrix((np.r_[1 - w, w], (rows, np.r_[i, j2])), shape=(len(i), m))
 
 
-def multilinear(nodes: Sequence[np.ndarray], values: np.ndarray, x: np.ndarray,
-                periodic: Sequence[bool]) -> np.ndarray:
+def multilinear(
+    nodes: Sequence[np.ndarray], values: np.ndarray, x: np.ndarray, periodic: Sequence[bool]
+) -> np.ndarray:
     """Multilinear interpolation of ``values`` (n_1, ..., n_d, m) on uniform nodes at
     points x (N, d)."""
     d = len(nodes)
@@ -199,7 +217,7 @@ def multilinear(nodes: Sequence[np.ndarray], values: np.ndarray, x: np.ndarray,
         idx.append(i)
         wts.append(w)
     out = np.zeros((len(x), values.shape[-1]))
-    for corner in range(2 ** d):
+    for corner in range(2**d):
         bits = [(corner >> j) & 1 for j in range(d)]
         w = np.ones(len(x))
         ii = []
@@ -249,8 +267,9 @@ class ComponentTables:
             e[:, pos[n]] = v
         for ax in self.axes:
             a = field.axis(ax)
-            vals = interp1(self.nodes[ax], self.values[ax], q[:, a.index],
-                           periodic=self.periodic[ax])
+            vals = interp1(
+                self.nodes[ax], self.values[ax], q[:, a.index], periodic=self.periodic[ax]
+            )
             for j, n in enumerate(self.columns[ax]):
                 e[:, pos[n]] = vals[:, j]
         return e
@@ -289,8 +308,15 @@ def tool_fold(field, x: np.ndarray) -> tuple[str | None, np.ndarray]:
     return a.name, np.hstack([R @ (d0 + np.cross(phi, c)), R @ phi])
 
 
-def component_tables(field, tools: np.ndarray, tolerance_um: float, *, fold_tool: bool,
-                     sample: int = 400, max_iter: int = 5) -> ComponentTables:
+def component_tables(
+    field,
+    tools: np.ndarray,
+    tolerance_um: float,
+    *,
+    fold_tool: bool,
+    sample: int = 400,
+    max_iter: int = 5,
+) -> ComponentTables:
     """Tabulate every component error motion of the model on uniform nodes per axis,
     spaced from the curvature of the motions times their lever arm at the tool point (the
     largest first-order effect of a unit error over the workspace and ``tools``) so that
@@ -308,21 +334,27 @@ def component_tables(field, tools: np.ndarray, tolerance_um: float, *, fold_tool
     if fold_tool and any(abs(consts[n]) > 0 for n in tool_names):
         fold_axis, _ = tool_fold(field, np.zeros(1))
         if fold_axis is None:
-            not_carried.append("the tool's zero position and orientation errors "
-                               f"({', '.join(tool_names)}): no tool-side axis carries them")
+            not_carried.append(
+                "the tool's zero position and orientation errors "
+                f"({', '.join(tool_names)}): no tool-side axis carries them"
+            )
         else:
             folded = [n for n in tool_names]
     if fold_tool:
         for n in tool_names:
             consts.pop(n)
-    comp = {a.name: [k for k, s in enumerate(errs) if s.kind == "component" and s.axis == a.name]
-            for a in field.axes}
+    comp = {
+        a.name: [k for k, s in enumerate(errs) if s.kind == "component" and s.axis == a.name]
+        for a in field.axes
+    }
     columns = {ax: [names[k] for k in ks] for ax, ks in comp.items()}
     if fold_axis is not None:
         missing = [f"E{c}{fold_axis}" for c in "XYZABC" if f"E{c}{fold_axis}" not in names]
         if missing:
-            not_carried.append(f"the part of the tool's zero position and orientation that "
-                               f"{', '.join(missing)} would carry (not in the model)")
+            not_carried.append(
+                f"the part of the tool's zero position and orientation that "
+                f"{', '.join(missing)} would carry (not in the model)"
+            )
 
     def fun(ax: str, x: np.ndarray) -> np.ndarray:
         v = field.axis_errors(ax, x)[:, comp[ax]]
@@ -349,8 +381,12 @@ def component_tables(field, tools: np.ndarray, tolerance_um: float, *, fold_tool
     exact = {a.name: fun(a.name, q[:, a.index]) for a in axes}
     scale, measured = 1.0, np.inf
     for _ in range(max_iter):
-        sp = choose_spacing([a.length for a in axes], S * scale, tolerance_um,
-                            min_intervals=[8 if a.full_turn else 1 for a in axes])
+        sp = choose_spacing(
+            [a.length for a in axes],
+            S * scale,
+            tolerance_um,
+            min_intervals=[8 if a.full_turn else 1 for a in axes],
+        )
         nodes, values = {}, {}
         diff = np.zeros((len(q), len(names)))
         for i, a in enumerate(axes):
@@ -358,19 +394,33 @@ def component_tables(field, tools: np.ndarray, tolerance_um: float, *, fold_tool
             values[a.name] = fun(a.name, nodes[a.name])
             if a.full_turn:
                 values[a.name][-1] = values[a.name][0]
-            diff[:, comp[a.name]] = interp1(nodes[a.name], values[a.name], q[:, a.index],
-                                            periodic=a.full_turn) - exact[a.name]
+            diff[:, comp[a.name]] = (
+                interp1(nodes[a.name], values[a.name], q[:, a.index], periodic=a.full_turn)
+                - exact[a.name]
+            )
         dd = np.einsum("nik,nk->ni", J, np.repeat(diff, len(tools), axis=0))
         measured = float(np.max(np.linalg.norm(dd, axis=1))) * 1e3 if len(dd) else 0.0
         if measured <= tolerance_um:
             break
         scale *= max(1.2, 1.1 * measured / tolerance_um)
     if measured > tolerance_um:
-        raise InputError(f"could not meet the interpolation tolerance of {tolerance_um:g} um "
-                         f"(measured {measured:.3g} um); raise --tolerance")
-    return ComponentTables([a.name for a in axes], nodes, {a.name: columns[a.name] for a in axes},
-                           values, {a.name: a.full_turn for a in axes}, consts, folded,
-                           fold_axis, sp, measured, not_carried)
+        raise InputError(
+            f"could not meet the interpolation tolerance of {tolerance_um:g} um "
+            f"(measured {measured:.3g} um); raise --tolerance"
+        )
+    return ComponentTables(
+        [a.name for a in axes],
+        nodes,
+        {a.name: columns[a.name] for a in axes},
+        values,
+        {a.name: a.full_turn for a in axes},
+        consts,
+        folded,
+        fold_axis,
+        sp,
+        measured,
+        not_carried,
+    )
 
 
 # ======================================================================================
@@ -456,9 +506,11 @@ def correction_targets(field, tool: np.ndarray) -> CorrectionTargets:
     the linear axes must span the three directions."""
     lin = [a.name for a in field.axes if not a.rotary]
     if sorted(field.axis(n).dir_index for n in lin) != [0, 1, 2]:
-        raise InputError(f"1-D compensation tables correct the tool point with three linear "
-                         f"axes along x, y and z; model {field.spec.name} has "
-                         f"{', '.join(lin) or 'none'}")
+        raise InputError(
+            f"1-D compensation tables correct the tool point with three linear "
+            f"axes along x, y and z; model {field.spec.name} has "
+            f"{', '.join(lin) or 'none'}"
+        )
     names = [s.name for s in field.errors_list]
     own: dict[str, tuple[str, float]] = {}
     q = workspace_sample(field.lower, field.upper, 64, skip=7)
@@ -478,8 +530,14 @@ def correction_targets(field, tool: np.ndarray) -> CorrectionTargets:
     return CorrectionTargets(own, lin, np.asarray(tool, float))
 
 
-def fit_tables(field, tables: list[AxisTable], q: np.ndarray, target: np.ndarray,
-               outputs: list[str], fixed: Sequence[int] = ()) -> None:
+def fit_tables(
+    field,
+    tables: list[AxisTable],
+    q: np.ndarray,
+    target: np.ndarray,
+    outputs: list[str],
+    fixed: Sequence[int] = (),
+) -> None:
     """Least-squares values of ``tables`` (in place) so that their sum per output axis
     matches ``target`` (N, len(outputs)) at poses q; tables listed in ``fixed`` keep
     their values (their contribution is taken from the target first).  A carrier's
@@ -511,17 +569,17 @@ def fit_tables(field, tables: list[AxisTable], q: np.ndarray, target: np.ndarray
         N = (A.T @ A).toarray()
         d = np.diag(N).copy()
         D = 1.0 / np.sqrt(np.where(d > 0, d, 1.0))  # unit columns, then a tiny ridge
-        x = D * np.linalg.solve(D[:, None] * N * D[None, :] + 1e-9 * np.eye(len(N)),
-                                D * (A.T @ y))
+        x = D * np.linalg.solve(D[:, None] * N * D[None, :] + 1e-9 * np.eye(len(N)), D * (A.T @ y))
         k = 0
         for i, m in owners:
-            v = x[k:k + m]
+            v = x[k : k + m]
             k += m
             tables[i].values = np.r_[v, v[0]] if tables[i].periodic else v
 
 
-def correction_spacing(field, targets: CorrectionTargets, tolerance_um: float,
-                       inputs: list[str]) -> tuple[Spacing, np.ndarray]:
+def correction_spacing(
+    field, targets: CorrectionTargets, tolerance_um: float, inputs: list[str]
+) -> tuple[Spacing, np.ndarray]:
     """Node spacing of the tables over each axis in ``inputs`` from the curvature of the
     corrections along it (linear axes: the linear-axis corrections, in um at the tool
     point; a rotary axis also its own correction times its lever arm).  Returns the
@@ -537,10 +595,15 @@ def correction_spacing(field, targets: CorrectionTargets, tolerance_um: float,
             if n in targets.own:
                 a = field.axis(n)
                 lever = float(np.max(np.linalg.norm(M[:, :, a.index], axis=1)))
-                c1 = curvature_1d(lambda x, n=n: targets.own_value(field, n, x), a.lo, a.hi,
-                                  periodic=a.full_turn)[0]
+                c1 = curvature_1d(
+                    lambda x, n=n: targets.own_value(field, n, x), a.lo, a.hi, periodic=a.full_turn
+                )[0]
                 S[j] += c1 * lever * 1e3
     axes = [field.axis(n) for n in inputs]
-    sp = choose_spacing([a.length for a in axes], S, tolerance_um,
-                        min_intervals=[8 if a.full_turn else 1 for a in axes])
+    sp = choose_spacing(
+        [a.length for a in axes],
+        S,
+        tolerance_um,
+        min_intervals=[8 if a.full_turn else 1 for a in axes],
+    )
     return sp, S

@@ -29,6 +29,7 @@ residuals are reported.
 Limits: ``max_points`` compensation points per table (default 256), ``max_tables`` tables
 (default 8).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -64,30 +65,43 @@ def build(ctx: Context) -> Built:
     lin = targets.linear
     tables: list[AxisTable] = []
     for r in targets.own:
-        tables.append(AxisTable(r, r, nodes[r], targets.own_value(fld, r, nodes[r]), per[r],
-                                "own"))
+        tables.append(AxisTable(r, r, nodes[r], targets.own_value(fld, r, nodes[r]), per[r], "own"))
     for J in inputs:
         for o in lin:
             tables.append(AxisTable(J, o, nodes[J], np.zeros(len(nodes[J])), per[J]))
     n_fit = int(min(40000, max(6000, 40 * max(len(v) for v in nodes.values()))))
     Q = workspace_sample(fld.lower, fld.upper, n_fit, skip=3)
-    fit_tables(fld, tables, Q, targets.linear_values(fld, Q), lin,
-               [i for i, t in enumerate(tables) if t.kind == "own"])
+    fit_tables(
+        fld,
+        tables,
+        Q,
+        targets.linear_values(fld, Q),
+        lin,
+        [i for i, t in enumerate(tables) if t.kind == "own"],
+    )
     for t in tables:
         t.values = np.round(t.values, DECIMALS)
     by_input = {J: [t for t in tables if t.input == J] for J in inputs}
     by_input = {J: ts for J, ts in by_input.items() if ts}
-    check_limit(len(by_input), max_tables, "compensation value tables (*.COM)",
-                f"{max_tables} tables (--max-tables)", "raise --max-tables")
+    check_limit(
+        len(by_input),
+        max_tables,
+        "compensation value tables (*.COM)",
+        f"{max_tables} tables (--max-tables)",
+        "raise --max-tables",
+    )
     for J in by_input:
-        check_limit(len(nodes[J]), max_points, f"compensation points of {J}.COM",
-                    f"{max_points} points per table (--max-points)",
-                    "raise --tolerance or --max-points")
+        check_limit(
+            len(nodes[J]),
+            max_points,
+            f"compensation points of {J}.COM",
+            f"{max_points} points per table (--max-points)",
+            "raise --tolerance or --max-points",
+        )
     keys = dict(ctx.options.get("axis_names") or {})
     unknown = sorted(set(keys) - set(inputs))
     if unknown:
-        raise InputError(f"unknown axis name(s) {unknown}; the model has {inputs}",
-                         source="--axis")
+        raise InputError(f"unknown axis name(s) {unknown}; the model has {inputs}", source="--axis")
     key = {a: str(keys.get(a, a)) for a in inputs}
     sgn = -1.0 if ctx.sign == "error" else 1.0
 
@@ -99,18 +113,23 @@ def build(ctx: Context) -> Built:
         "products of an axis position and a function of another axis (an angular error "
         "times its lever arm) and couplings of rotary axes: the tables add functions of one "
         "axis each; with the interpolation this leaves "
-        f"{at_table:.3g} um RMS at the tables' tool offset"]
+        f"{at_table:.3g} um RMS at the tables' tool offset"
+    ]
     if others:
         worst, wt = max(others, key=lambda x: x[0])
         not_carried.append(
             "the tool-length-dependent part of the angular errors (the tables know no tool "
             f"offset): up to {worst:.3g} um RMS at tool offset ("
-            + ", ".join(f"{v:g}" for v in wt) + ") mm")
-    values = ("corrections (= -error) added to the column's axis, mm on linear axes, deg on "
-              "rotary axes, at AXISPOS of the table's axis (mm / deg)"
-              if ctx.sign == "correction" else
-              "errors (actual - nominal; the correction is their negative), mm on linear "
-              "axes, deg on rotary axes, at AXISPOS of the table's axis (mm / deg)")
+            + ", ".join(f"{v:g}" for v in wt)
+            + ") mm"
+        )
+    values = (
+        "corrections (= -error) added to the column's axis, mm on linear axes, deg on "
+        "rotary axes, at AXISPOS of the table's axis (mm / deg)"
+        if ctx.sign == "correction"
+        else "errors (actual - nominal; the correction is their negative), mm on linear "
+        "axes, deg on rotary axes, at AXISPOS of the table's axis (mm / deg)"
+    )
 
     def render(comp) -> dict[str, str]:
         head = comp.header()
@@ -128,20 +147,47 @@ def build(ctx: Context) -> Built:
                     cells.append(f"{v + 0.0:+.{DECIMALS}f}")
                 rows.append((n, f"{a.to_file(x) + 0.0:+.4f}", cells))
             out[f"{J}.COM"] = render_template(
-                "heidenhain.com.j2", name=f"{J}.COM", unit="MM", columns=cols, rows=rows,
-                header=head + [f"table {J}.COM: {', '.join(cols)} = F({key[J]}); AXISPOS in "
-                               f"{a.unit}" + ("; one full turn, repeats modulo 360 deg"
-                                              if a.full_turn else "")])
+                "heidenhain.com.j2",
+                name=f"{J}.COM",
+                unit="MM",
+                columns=cols,
+                rows=rows,
+                header=head
+                + [
+                    f"table {J}.COM: {', '.join(cols)} = F({key[J]}); AXISPOS in "
+                    f"{a.unit}" + ("; one full turn, repeats modulo 360 deg" if a.full_turn else "")
+                ],
+            )
         out["CONFIG.CMA"] = render_template(
-            "heidenhain.cma.j2", header=head, columns=[key[J] for J in by_input],
-            files=[f"{J}.COM" for J in by_input])
+            "heidenhain.cma.j2",
+            header=head,
+            columns=[key[J] for J in by_input],
+            files=[f"{J}.COM" for J in by_input],
+        )
         return out
 
-    summary = [{"table": f"{J}.COM", "input": J,
-                "columns": " ".join(t.output for t in ts), "points": len(nodes[J])}
-               for J, ts in by_input.items()]
-    limits = {"tables": f"{len(by_input)} of {max_tables}",
-              "points per table": f"{max(len(nodes[J]) for J in by_input)} of {max_points}"}
-    return Built(residual, render, values, {a: sp.h[i] for i, a in enumerate(inputs)},
-                 sp.bound_um, None, not_carried, summary, limits,
-                 table_tool=np.asarray(ctx.table_tool, float))
+    summary = [
+        {
+            "table": f"{J}.COM",
+            "input": J,
+            "columns": " ".join(t.output for t in ts),
+            "points": len(nodes[J]),
+        }
+        for J, ts in by_input.items()
+    ]
+    limits = {
+        "tables": f"{len(by_input)} of {max_tables}",
+        "points per table": f"{max(len(nodes[J]) for J in by_input)} of {max_points}",
+    }
+    return Built(
+        residual,
+        render,
+        values,
+        {a: sp.h[i] for i, a in enumerate(inputs)},
+        sp.bound_um,
+        None,
+        not_carried,
+        summary,
+        limits,
+        table_tool=np.asarray(ctx.table_tool, float),
+    )

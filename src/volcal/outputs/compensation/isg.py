@@ -27,6 +27,7 @@ about x, y, z, all in the positive sense (ISG's axis roles); anything else raise
 :class:`~volcal.base.exceptions.InputError`.  Limits: at most 10 parameter files per
 compensation; ``max_points`` bounds the number of data records (``max_records``).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -49,23 +50,28 @@ def _check_topology(field) -> None:
         letters = ROTARY if a.rotary else LINEAR
         if a.name not in letters or letters.index(a.name) != a.dir_index or a.dir_sign != 1:
             kind = "rotary" if a.rotary else "linear"
-            bad.append(f"{a.name} ({kind}, direction {'+-'[a.dir_sign < 0]}"
-                       f"{'xyz'[a.dir_index]})")
+            bad.append(f"{a.name} ({kind}, direction {'+-'[a.dir_sign < 0]}{'xyz'[a.dir_index]})")
     if bad or len(lin) != 3 or len(rot) > 3:
-        raise InputError("the ISG volumetric compensation needs exactly three linear axes X, "
-                         "Y, Z along +x, +y, +z and at most three rotary axes A, B, C about "
-                         f"+x, +y, +z; model {field.spec.name} has "
-                         + (f"axes that do not fit: {', '.join(bad)}" if bad else
-                            f"{len(lin)} linear and {len(rot)} rotary axes"),
-                         source="--format isg")
+        raise InputError(
+            "the ISG volumetric compensation needs exactly three linear axes X, "
+            "Y, Z along +x, +y, +z and at most three rotary axes A, B, C about "
+            f"+x, +y, +z; model {field.spec.name} has "
+            + (
+                f"axes that do not fit: {', '.join(bad)}"
+                if bad
+                else f"{len(lin)} linear and {len(rot)} rotary axes"
+            ),
+            source="--format isg",
+        )
 
 
 def _direction(text: str) -> np.ndarray:
     t = str(text).strip().lower()
     table = {"+x": 0, "x": 0, "-x": 0, "+y": 1, "y": 1, "-y": 1, "+z": 2, "z": 2, "-z": 2}
     if t not in table:
-        raise InputError(f"expected one of +x -x +y -y +z -z, got {text!r}",
-                         source="--tool-direction")
+        raise InputError(
+            f"expected one of +x -x +y -y +z -z, got {text!r}", source="--tool-direction"
+        )
     v = np.zeros(3)
     v[table[t]] = -1.0 if t.startswith("-") else 1.0
     return v
@@ -92,17 +98,28 @@ def build(ctx: Context) -> Built:
     tabs = component_tables(fld, tools, ctx.tolerance_um, fold_tool=True)
     names = {s.name: s for s in fld.errors_list}
     files = [f"component_{ax}.csv" for ax in tabs.axes] + ["position_errors.csv"]
-    check_limit(len(files), MAX_FILES, "parameter files", "TF5280: at most 10 parameter "
-                "files per compensation", "no option changes it")
+    check_limit(
+        len(files),
+        MAX_FILES,
+        "parameter files",
+        "TF5280: at most 10 parameter files per compensation",
+        "no option changes it",
+    )
     records = sum(len(tabs.nodes[ax]) for ax in tabs.axes) + 1
-    check_limit(records, ctx.options.get("max_points"), "data records",
-                "--max-points, the control's vol_comp[].max_records",
-                "raise --tolerance or the limit")
+    check_limit(
+        records,
+        ctx.options.get("max_points"),
+        "data records",
+        "--max-points, the control's vol_comp[].max_records",
+        "raise --tolerance or the limit",
+    )
     axis_ids = dict(ctx.options.get("axis_names") or {})
     unknown = sorted(set(axis_ids) - {a.name for a in fld.axes})
     if unknown:
-        raise InputError(f"unknown axis name(s) {unknown}; the model has "
-                         f"{[a.name for a in fld.axes]}", source="--axis")
+        raise InputError(
+            f"unknown axis name(s) {unknown}; the model has {[a.name for a in fld.axes]}",
+            source="--axis",
+        )
     numbers, k = {}, 4
     for a in fld.axes:
         if a.name in axis_ids:
@@ -117,17 +134,23 @@ def build(ctx: Context) -> Built:
     def residual(q, t):
         return fld.volumetric(q, t) - fld.volumetric_from_errors(q, t, tabs.errors_at(fld, q))
 
-    values = ("errors (actual - nominal, ISO 230-1; component errors in mm and rad at axis "
-              "positions in mm or deg); the control computes the correction (-error) from its "
-              "kinematic model (negate 0)")
+    values = (
+        "errors (actual - nominal, ISO 230-1; component errors in mm and rad at axis "
+        "positions in mm or deg); the control computes the correction (-error) from its "
+        "kinematic model (negate 0)"
+    )
     not_carried = list(tabs.not_carried)
     notes = []
     if tabs.folded:
-        notes.append(f"the tool's zero position and orientation errors "
-                     f"({', '.join(tabs.folded)}) are folded into the component errors of "
-                     f"{tabs.fold_axis}, the last tool-side axis (exact to first order)")
-    notes.append("ISG applies the tool length along N0; the model's error at lateral "
-                 "reflector offsets is reproduced by the same parameters")
+        notes.append(
+            f"the tool's zero position and orientation errors "
+            f"({', '.join(tabs.folded)}) are folded into the component errors of "
+            f"{tabs.fold_axis}, the last tool-side axis (exact to first order)"
+        )
+    notes.append(
+        "ISG applies the tool length along N0; the model's error at lateral "
+        "reflector offsets is reproduced by the same parameters"
+    )
 
     def render(comp) -> dict[str, str]:
         head = comp.header() + notes
@@ -138,12 +161,14 @@ def build(ctx: Context) -> Built:
             units = [a.unit] + [names[c].unit for c in tabs.columns[ax]]
             rows = []
             for x, v in zip(tabs.nodes[ax], tabs.values[ax]):
-                rows.append([f"{a.to_file(x):.6f}"] + [_fmt(val, u) for val, u in
-                                                       zip(v, units[1:])])
-            h = head + [f"component errors of axis {ax} (argument {ax} in {a.unit}; "
-                        "translations in mm, rotations in rad)"
-                        + ("; full turn: the table repeats modulo 360 deg"
-                           if a.full_turn else "")]
+                rows.append(
+                    [f"{a.to_file(x):.6f}"] + [_fmt(val, u) for val, u in zip(v, units[1:])]
+                )
+            h = head + [
+                f"component errors of axis {ax} (argument {ax} in {a.unit}; "
+                "translations in mm, rotations in rad)"
+                + ("; full turn: the table repeats modulo 360 deg" if a.full_turn else "")
+            ]
             out[f"component_{ax}.csv"] = _csv(h, cols, rows)
         cols, row = [], []
         for n, v in tabs.constants.items():
@@ -161,25 +186,51 @@ def build(ctx: Context) -> Built:
             cols.append(f"N0{c}")
             row.append(f"{n0[j]:.6f}")
         out["position_errors.csv"] = _csv(
-            head + ["position errors (mm, rad), centres of rotation P<c><axis> (mm), tool "
-                    "zero position P0 (mm) and orientation N0 (unit vector) at all axes zero"],
-            cols, [row])
+            head
+            + [
+                "position errors (mm, rad), centres of rotation P<c><axis> (mm), tool "
+                "zero position P0 (mm) and orientation N0 (unit vector) at all axes zero"
+            ],
+            cols,
+            [row],
+        )
         out["volcomp.lis"] = render_template(
-            "isg_volcomp.lis.j2", header=head, files=files,
+            "isg_volcomp.lis.j2",
+            header=head,
+            files=files,
             axes=[(a.name, numbers[a.name]) for a in fld.axes],
             chain="".join(a.name for a in fld.axes),
             workpiece_axes=sum(a.branch == "workpiece" for a in fld.axes),
-            records=records)
+            records=records,
+        )
         return out
 
-    tables = [{"table": f"component_{ax}.csv", "input": ax,
-               "columns": " ".join(tabs.columns[ax]), "points": len(tabs.nodes[ax])}
-              for ax in tabs.axes]
-    return Built(residual, render, values,
-                 {ax: tabs.spacing.h[i] for i, ax in enumerate(tabs.axes)},
-                 tabs.spacing.bound_um, tabs.interp_max_um, not_carried, tables,
-                 {"parameter files": f"{len(files)} of {MAX_FILES}",
-                  "data records": f"{records}" + (
-                      f" of {ctx.options['max_points']}" if ctx.options.get("max_points")
-                      else " (no limit given)")},
-                 notes)
+    tables = [
+        {
+            "table": f"component_{ax}.csv",
+            "input": ax,
+            "columns": " ".join(tabs.columns[ax]),
+            "points": len(tabs.nodes[ax]),
+        }
+        for ax in tabs.axes
+    ]
+    return Built(
+        residual,
+        render,
+        values,
+        {ax: tabs.spacing.h[i] for i, ax in enumerate(tabs.axes)},
+        tabs.spacing.bound_um,
+        tabs.interp_max_um,
+        not_carried,
+        tables,
+        {
+            "parameter files": f"{len(files)} of {MAX_FILES}",
+            "data records": f"{records}"
+            + (
+                f" of {ctx.options['max_points']}"
+                if ctx.options.get("max_points")
+                else " (no limit given)"
+            ),
+        },
+        notes,
+    )

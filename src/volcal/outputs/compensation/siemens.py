@@ -45,6 +45,7 @@ $MN_MM_CEC_MAX_POINTS), LEC 5000 points per axis (MD38000 $MA_MM_ENC_COMP_MAX_PO
 ``828d`` 8 CEC tables of 200 points ("sag compensation, multi-dimensional").
 ``max_tables`` / ``max_points`` override them.
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -66,10 +67,13 @@ from .grid import (
 )
 
 TARGETS = {
-    "840d": {"max_tables": 62, "max_points": 2000, "max_lec_points": 5000,
-             "name": "SINUMERIK 840D sl"},
-    "828d": {"max_tables": 8, "max_points": 200, "max_lec_points": 5000,
-             "name": "SINUMERIK 828D"},
+    "840d": {
+        "max_tables": 62,
+        "max_points": 2000,
+        "max_lec_points": 5000,
+        "name": "SINUMERIK 840D sl",
+    },
+    "828d": {"max_tables": 8, "max_points": 200, "max_lec_points": 5000, "name": "SINUMERIK 828D"},
 }
 DECIMALS = 10
 #: ridge of the scaled normal equations (splits constants shared by several tables)
@@ -79,8 +83,9 @@ RIDGE = 1e-9
 def _limits(ctx: Context) -> dict:
     target = (ctx.options.get("target") or "840d").lower()
     if target not in TARGETS:
-        raise InputError(f"unknown target {target!r}; expected one of {sorted(TARGETS)}",
-                         source="--target")
+        raise InputError(
+            f"unknown target {target!r}; expected one of {sorted(TARGETS)}", source="--target"
+        )
     lim = dict(TARGETS[target])
     if ctx.options.get("max_tables") is not None:
         lim["max_tables"] = int(ctx.options["max_tables"])
@@ -109,13 +114,29 @@ def _reindex(tables: list[AxisTable], keep: list[int]) -> list[AxisTable]:
     out = []
     for i in keep:
         t = tables[i]
-        out.append(AxisTable(t.input, t.output, t.nodes, t.values.copy(), t.periodic, t.kind,
-                             None if t.multiplier is None else new[t.multiplier], t.label))
+        out.append(
+            AxisTable(
+                t.input,
+                t.output,
+                t.nodes,
+                t.values.copy(),
+                t.periodic,
+                t.kind,
+                None if t.multiplier is None else new[t.multiplier],
+                t.label,
+            )
+        )
     return out
 
 
-def _prune(fld, tables: list[AxisTable], Q: np.ndarray, target: np.ndarray, lin: list[str],
-           budget_um: float) -> list[AxisTable]:
+def _prune(
+    fld,
+    tables: list[AxisTable],
+    Q: np.ndarray,
+    target: np.ndarray,
+    lin: list[str],
+    budget_um: float,
+) -> list[AxisTable]:
     """Backward elimination, per output axis: leave out a CEC table (base or carrier,
     least significant first) when the refit without it moves the largest residual at the
     fit sample by no more than what is left of ``budget_um`` (split over the outputs);
@@ -161,14 +182,18 @@ def _prune(fld, tables: list[AxisTable], Q: np.ndarray, target: np.ndarray, lin:
             t = tables[i]
             if t.kind not in ("base", "carrier"):
                 continue
-            g = hat_matrix(t.nodes, Q[:, fld.axis(t.input).index],
-                           periodic=t.periodic) @ (D[blocks[i]] * x[blocks[i]])
+            g = hat_matrix(t.nodes, Q[:, fld.axis(t.input).index], periodic=t.periodic) @ (
+                D[blocks[i]] * x[blocks[i]]
+            )
             if t.kind == "carrier":
                 assert t.multiplier is not None  # a carrier always names its multiplier
                 a = fld.axis(tables[t.multiplier].input)
                 # a lever arm about the middle of the travel; a rotary factor as it is
-                v = g * (Q[:, a.index] - 0.5 * (a.lo + a.hi) if not a.rotary
-                         else 1.0 + fixed_vals[t.multiplier])
+                v = g * (
+                    Q[:, a.index] - 0.5 * (a.lo + a.hi)
+                    if not a.rotary
+                    else 1.0 + fixed_vals[t.multiplier]
+                )
             else:
                 v = g - 0.5 * (g.max() + g.min())
             sig.append((float(np.max(np.abs(v))), i))
@@ -184,10 +209,17 @@ def _prune(fld, tables: list[AxisTable], Q: np.ndarray, target: np.ndarray, lin:
                 x, act = x_new, act[K]
                 drop.add(i)
     used = {t.multiplier for i, t in enumerate(tables) if t.kind == "carrier" and i not in drop}
-    out = _reindex(tables, [i for i, t in enumerate(tables)
-                            if i not in drop and (t.kind != "multiplier" or i in used)])
-    fit_tables(fld, out, Q, target, lin,
-               [i for i, t in enumerate(out) if t.kind in ("own", "multiplier")])
+    out = _reindex(
+        tables,
+        [
+            i
+            for i, t in enumerate(tables)
+            if i not in drop and (t.kind != "multiplier" or i in used)
+        ],
+    )
+    fit_tables(
+        fld, out, Q, target, lin, [i for i, t in enumerate(out) if t.kind in ("own", "multiplier")]
+    )
     return out
 
 
@@ -204,27 +236,34 @@ def build(ctx: Context) -> Built:
     for o in lin:  # LEC: own position
         tables.append(AxisTable(o, o, nodes[o], np.zeros(len(nodes[o])), False, "lec"))
     for r in targets.own:
-        tables.append(AxisTable(r, r, nodes[r], targets.own_value(fld, r, nodes[r]), per[r],
-                                "own"))
+        tables.append(AxisTable(r, r, nodes[r], targets.own_value(fld, r, nodes[r]), per[r], "own"))
     mult: dict[Any, int] = {}
     for L in lin:
         mult[L] = len(tables)
-        tables.append(AxisTable(L, L, nodes[L], nodes[L] - 1.0, False, "multiplier",
-                                label=f"position of {L}"))
+        tables.append(
+            AxisTable(L, L, nodes[L], nodes[L] - 1.0, False, "multiplier", label=f"position of {L}")
+        )
     for r in [a.name for a in fld.axes if a.rotary]:
         for fn, h in (("cos", np.cos), ("sin", np.sin)):
             mult[(r, fn)] = len(tables)
-            tables.append(AxisTable(r, lin[0], nodes[r], h(nodes[r]) - 1.0, per[r],
-                                    "multiplier", label=f"{fn}({r})"))
+            tables.append(
+                AxisTable(
+                    r, lin[0], nodes[r], h(nodes[r]) - 1.0, per[r], "multiplier", label=f"{fn}({r})"
+                )
+            )
     for o in lin:
         for J in inputs:
             if J != o:
                 tables.append(AxisTable(J, o, nodes[J], np.zeros(len(nodes[J])), per[J]))
             for L in mult:
                 if (L if isinstance(L, str) else L[0]) != J and (
-                        isinstance(L, str) or fld.axis(J).rotary):
-                    tables.append(AxisTable(J, o, nodes[J], np.zeros(len(nodes[J])), per[J],
-                                            "carrier", mult[L]))
+                    isinstance(L, str) or fld.axis(J).rotary
+                ):
+                    tables.append(
+                        AxisTable(
+                            J, o, nodes[J], np.zeros(len(nodes[J])), per[J], "carrier", mult[L]
+                        )
+                    )
     n_fit = int(min(40000, max(6000, 40 * max(len(v) for v in nodes.values()))))
     Q = workspace_sample(fld.lower, fld.upper, n_fit, skip=3)
     target = targets.linear_values(fld, Q)
@@ -238,24 +277,34 @@ def build(ctx: Context) -> Built:
         t.values = np.round(t.values, DECIMALS)
     cec = [t for t in tables if t.kind not in ("lec", "own")]
     lec = [t for t in tables if t.kind in ("lec", "own")]
-    check_limit(len(cec), lim["max_tables"], "CEC tables needed",
-                f"{TARGETS[lim['target']]['name']}: {lim['max_tables']} tables (--max-tables; "
-                "MD18342 $MN_MM_CEC_MAX_POINTS[t] per table)",
-                "raise --tolerance, choose --target 840d or raise --max-tables")
+    check_limit(
+        len(cec),
+        lim["max_tables"],
+        "CEC tables needed",
+        f"{TARGETS[lim['target']]['name']}: {lim['max_tables']} tables (--max-tables; "
+        "MD18342 $MN_MM_CEC_MAX_POINTS[t] per table)",
+        "raise --tolerance, choose --target 840d or raise --max-tables",
+    )
     for t in cec:
-        check_limit(len(t.nodes), lim["max_points"],
-                    f"points of the CEC table {t.input} -> {t.output}",
-                    f"{lim['max_points']} points per table (--max-points; MD18342 "
-                    "$MN_MM_CEC_MAX_POINTS)", "raise --tolerance or --max-points")
+        check_limit(
+            len(t.nodes),
+            lim["max_points"],
+            f"points of the CEC table {t.input} -> {t.output}",
+            f"{lim['max_points']} points per table (--max-points; MD18342 $MN_MM_CEC_MAX_POINTS)",
+            "raise --tolerance or --max-points",
+        )
     for t in lec:
-        check_limit(len(t.nodes), lim["max_lec_points"], f"points of the LEC table of {t.input}",
-                    f"{lim['max_lec_points']} (MD38000 $MA_MM_ENC_COMP_MAX_POINTS)",
-                    "raise --tolerance")
+        check_limit(
+            len(t.nodes),
+            lim["max_lec_points"],
+            f"points of the LEC table of {t.input}",
+            f"{lim['max_lec_points']} (MD38000 $MA_MM_ENC_COMP_MAX_POINTS)",
+            "raise --tolerance",
+        )
     names = dict(ctx.options.get("axis_names") or {})
     unknown = sorted(set(names) - set(inputs))
     if unknown:
-        raise InputError(f"unknown axis name(s) {unknown}; the model has {inputs}",
-                         source="--axis")
+        raise InputError(f"unknown axis name(s) {unknown}; the model has {inputs}", source="--axis")
     mach = {a: str(names.get(a, f"{a}1")) for a in inputs}
     sgn = -1.0 if ctx.sign == "error" else 1.0
 
@@ -266,17 +315,22 @@ def build(ctx: Context) -> Built:
     not_carried = [
         f"what 1-D tables and products of two tables cannot represent (errors coupling more "
         f"than two axes, or two axes other than through a lever arm) and the interpolation: "
-        f"{at_table:.3g} um RMS left at the tables' tool offset"]
+        f"{at_table:.3g} um RMS left at the tables' tool offset"
+    ]
     if others:
         worst, wt = max(others, key=lambda x: x[0])
         not_carried.append(
             "the tool-length-dependent part of the angular errors (the tables know no tool "
-            "offset): up to " f"{worst:.3g} um RMS at tool offset ("
-            + ", ".join(f"{v:g}" for v in wt) + ") mm")
-    values = ("corrections (= -error) added to the output axis position, mm on linear axes, "
-              "deg on rotary axes (input positions mm / deg)" if ctx.sign == "correction"
-              else "errors (actual - nominal; the correction is their negative), mm on linear "
-                   "axes, deg on rotary axes (input positions mm / deg)")
+            "offset): up to "
+            f"{worst:.3g} um RMS at tool offset (" + ", ".join(f"{v:g}" for v in wt) + ") mm"
+        )
+    values = (
+        "corrections (= -error) added to the output axis position, mm on linear axes, "
+        "deg on rotary axes (input positions mm / deg)"
+        if ctx.sign == "correction"
+        else "errors (actual - nominal; the correction is their negative), mm on linear "
+        "axes, deg on rotary axes (input positions mm / deg)"
+    )
 
     def axis_val(name, x):
         return fld.axis(name).to_file(x)
@@ -295,22 +349,36 @@ def build(ctx: Context) -> Built:
             if t.kind == "carrier":
                 assert t.multiplier is not None
                 m = tables[t.multiplier]
-                desc = (f"{t.output} = F({t.input}) x (table {idx[id(m)] + 1}: {m.label} minus "
-                        "1, the product added to this table's own value)")
+                desc = (
+                    f"{t.output} = F({t.input}) x (table {idx[id(m)] + 1}: {m.label} minus "
+                    "1, the product added to this table's own value)"
+                )
             elif t.kind == "multiplier":
-                where = (f"the LEC table of {t.output}" if t.input == t.output
-                         else f"the table {t.output} = F({t.input})")
-                desc = (f"{t.label} minus 1 (factor of products; its own value on {t.output} "
-                        f"is taken out by {where})")
+                where = (
+                    f"the LEC table of {t.output}"
+                    if t.input == t.output
+                    else f"the table {t.output} = F({t.input})"
+                )
+                desc = (
+                    f"{t.label} minus 1 (factor of products; its own value on {t.output} "
+                    f"is taken out by {where})"
+                )
             else:
                 desc = f"{t.output} = F({t.input})"
-            ctab.append(dict(
-                index=k, desc=desc, values=[f"{v:.{DECIMALS}f}" for v in vals + 0.0],
-                input=mach[t.input], output=mach[t.output],
-                step=f"{(xs[-1] - xs[0]) / (len(xs) - 1):.9f}", min=f"{xs[0]:.6f}",
-                max=f"{xs[-1]:.6f}", modulo=int(t.periodic),
-                mult=(idx[id(tables[t.multiplier])] + 1 if t.multiplier is not None
-                      else None)))
+            ctab.append(
+                dict(
+                    index=k,
+                    desc=desc,
+                    values=[f"{v:.{DECIMALS}f}" for v in vals + 0.0],
+                    input=mach[t.input],
+                    output=mach[t.output],
+                    step=f"{(xs[-1] - xs[0]) / (len(xs) - 1):.9f}",
+                    min=f"{xs[0]:.6f}",
+                    max=f"{xs[-1]:.6f}",
+                    modulo=int(t.periodic),
+                    mult=(idx[id(tables[t.multiplier])] + 1 if t.multiplier is not None else None),
+                )
+            )
         ltab = []
         mult_of = {m.input: m for m in cec if m.kind == "multiplier"}
         for t in lec:
@@ -323,27 +391,64 @@ def build(ctx: Context) -> Built:
             if a.rotary:
                 vals = np.rad2deg(vals)
             xs = axis_val(t.input, t.nodes)
-            ltab.append(dict(axis=mach[t.input], values=[f"{v:.{DECIMALS}f}" for v in vals + 0.0],
-                             step=f"{(xs[-1] - xs[0]) / (len(xs) - 1):.9f}",
-                             min=f"{xs[0]:.6f}", max=f"{xs[-1]:.6f}",
-                             modulo=int(t.periodic), unit=a.unit,
-                             what=("own angular positioning error" if t.kind == "own"
-                                   else "own position")))
-        return {"NC_CEC.INI": render_template("siemens_cec.ini.j2", header=head, tables=ctab,
-                                              target=TARGETS[lim["target"]]["name"]),
-                "AX_EEC.INI": render_template("siemens_lec.ini.j2", header=head,
-                                              tables=ltab)}
+            ltab.append(
+                dict(
+                    axis=mach[t.input],
+                    values=[f"{v:.{DECIMALS}f}" for v in vals + 0.0],
+                    step=f"{(xs[-1] - xs[0]) / (len(xs) - 1):.9f}",
+                    min=f"{xs[0]:.6f}",
+                    max=f"{xs[-1]:.6f}",
+                    modulo=int(t.periodic),
+                    unit=a.unit,
+                    what=("own angular positioning error" if t.kind == "own" else "own position"),
+                )
+            )
+        return {
+            "NC_CEC.INI": render_template(
+                "siemens_cec.ini.j2",
+                header=head,
+                tables=ctab,
+                target=TARGETS[lim["target"]]["name"],
+            ),
+            "AX_EEC.INI": render_template("siemens_lec.ini.j2", header=head, tables=ltab),
+        }
 
-    summary = ([{"table": f"CEC {k + 1}", "kind": t.kind, "input": t.input,
-                 "output": t.output, "points": len(t.nodes)} for k, t in enumerate(cec)]
-               + [{"table": f"LEC {t.input}", "kind": t.kind, "input": t.input,
-                   "output": t.output, "points": len(t.nodes)} for t in lec])
-    limits = {"target": TARGETS[lim["target"]]["name"],
-              "CEC tables": f"{len(cec)} of {lim['max_tables']}",
-              "CEC points per table": f"{max((len(t.nodes) for t in cec), default=0)} of "
-                                      f"{lim['max_points']}",
-              "LEC points per axis": f"{max((len(t.nodes) for t in lec), default=0)} of "
-                                     f"{lim['max_lec_points']}"}
-    return Built(residual, render, values, {a: sp.h[i] for i, a in enumerate(inputs)},
-                 sp.bound_um, None, not_carried, summary, limits,
-                 table_tool=np.asarray(ctx.table_tool, float))
+    summary = [
+        {
+            "table": f"CEC {k + 1}",
+            "kind": t.kind,
+            "input": t.input,
+            "output": t.output,
+            "points": len(t.nodes),
+        }
+        for k, t in enumerate(cec)
+    ] + [
+        {
+            "table": f"LEC {t.input}",
+            "kind": t.kind,
+            "input": t.input,
+            "output": t.output,
+            "points": len(t.nodes),
+        }
+        for t in lec
+    ]
+    limits = {
+        "target": TARGETS[lim["target"]]["name"],
+        "CEC tables": f"{len(cec)} of {lim['max_tables']}",
+        "CEC points per table": f"{max((len(t.nodes) for t in cec), default=0)} of "
+        f"{lim['max_points']}",
+        "LEC points per axis": f"{max((len(t.nodes) for t in lec), default=0)} of "
+        f"{lim['max_lec_points']}",
+    }
+    return Built(
+        residual,
+        render,
+        values,
+        {a: sp.h[i] for i, a in enumerate(inputs)},
+        sp.bound_um,
+        None,
+        not_carried,
+        summary,
+        limits,
+        table_tool=np.asarray(ctx.table_tool, float),
+    )
