@@ -62,19 +62,32 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .data import LINEAR, ROTARY, AxisReadings, AxisUnits, load_readings
-from .evaluate import AxisResult, Iso230Result, evaluate, mpe_to_standard_uncertainty
-from .model import PolynomialModel, fit_axis_model, fit_polynomial, gls, type_a_uncertainty
-from .parameters import IsoParameters, iso230_2_parameters
-from .plane import (
-    PlaneModel,
-    PlaneResult,
-    evaluate_plane,
-    fit_plane,
-    load_plane,
-    write_plane_report,
-)
-from .report import OUTPUT_FILES, markdown_report, plot, write_report
+import importlib
+from typing import Any
+
+# names exported lazily from their submodules (PEP 562): importing the package (as the
+# command line does for `volcal --help`) must not import pandas, scipy and matplotlib
+_LAZY = {
+    "data": ("LINEAR", "ROTARY", "AxisReadings", "AxisUnits", "load_readings"),
+    "evaluate": ("AxisResult", "Iso230Result", "evaluate", "mpe_to_standard_uncertainty"),
+    "model": ("PolynomialModel", "fit_axis_model", "fit_polynomial", "gls",
+              "type_a_uncertainty"),
+    "parameters": ("IsoParameters", "iso230_2_parameters"),
+    "plane": ("PlaneModel", "PlaneResult", "evaluate_plane", "fit_plane", "load_plane",
+              "write_plane_report"),
+    "report": ("OUTPUT_FILES", "markdown_report", "plot", "write_report"),
+}
+_WHERE = {name: mod for mod, names in _LAZY.items() for name in names}
+
+
+def __getattr__(name: str) -> Any:
+    mod = _WHERE.get(name)
+    if mod is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{mod}"), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = [
     "evaluate",
