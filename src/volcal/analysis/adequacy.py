@@ -171,8 +171,10 @@ def chi2_interval(dof: int, confidence: float = CONFIDENCE) -> tuple[float, floa
 
     a = (1.0 - confidence) / 2.0
     dof = max(int(dof), 1)
-    return (float(2.0 * gammaincinv(dof / 2.0, a) / dof),
-            float(2.0 * gammaincinv(dof / 2.0, 1.0 - a) / dof))
+    return (
+        float(2.0 * gammaincinv(dof / 2.0, a) / dof),
+        float(2.0 * gammaincinv(dof / 2.0, 1.0 - a) / dof),
+    )
 
 
 def _codes(values: np.ndarray, max_bins: int = MAX_BINS) -> tuple[np.ndarray, np.ndarray]:

@@ -60,9 +60,8 @@ its formula gives it: actual minus target.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import importlib
+from pathlib import Path
 from typing import Any
 
 # names exported lazily from their submodules (PEP 562): importing the package (as the
@@ -70,11 +69,16 @@ from typing import Any
 _LAZY = {
     "data": ("LINEAR", "ROTARY", "AxisReadings", "AxisUnits", "load_readings"),
     "evaluate": ("AxisResult", "Iso230Result", "evaluate", "mpe_to_standard_uncertainty"),
-    "model": ("PolynomialModel", "fit_axis_model", "fit_polynomial", "gls",
-              "type_a_uncertainty"),
+    "model": ("PolynomialModel", "fit_axis_model", "fit_polynomial", "gls", "type_a_uncertainty"),
     "parameters": ("IsoParameters", "iso230_2_parameters"),
-    "plane": ("PlaneModel", "PlaneResult", "evaluate_plane", "fit_plane", "load_plane",
-              "write_plane_report"),
+    "plane": (
+        "PlaneModel",
+        "PlaneResult",
+        "evaluate_plane",
+        "fit_plane",
+        "load_plane",
+        "write_plane_report",
+    ),
     "report": ("OUTPUT_FILES", "markdown_report", "plot", "write_report"),
 }
 _WHERE = {name: mod for mod, names in _LAZY.items() for name in names}
