@@ -4,18 +4,27 @@ when the tool offset varies."""
 from __future__ import annotations
 
 import importlib.util
+import re
+import sys
 from pathlib import Path
 
 import pytest
 
+ROOT = Path(__file__).resolve().parents[1]
+STUDY = ROOT / "studies" / "datum"
+sys.path.insert(0, str(ROOT / "studies"))
+import readme_tables as rt  # noqa: E402
 
-def test_datum_study_smoke(tmp_path):
-    path = Path(__file__).resolve().parents[1] / "studies" / "datum" / "run.py"
-    spec = importlib.util.spec_from_file_location("datum_study", path)
+
+def test_datum_study_smoke(capsys):
+    spec = importlib.util.spec_from_file_location("datum_study", STUDY / "run.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    df = mod.main(["--smoke", "--out", str(tmp_path / "r.csv")])
-    assert (tmp_path / "r.csv").is_file()
+    before = rt.folder_state(STUDY)
+    df = mod.main(["--smoke"])
+    out = Path(re.search(r"results in (\S+)", capsys.readouterr().out).group(1))
+    assert rt.folder_state(STUDY) == before           # nothing written into the repository
+    assert out.is_file() and ROOT not in out.resolve().parents
     mini = df[df["mode"] == "minimal"]
     # every option of the minimal datum gives the reference fit's field and residuals
     for _, r in mini.iterrows():

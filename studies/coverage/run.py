@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -30,8 +31,15 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=2023)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--smoke", action="store_true", help="4 experiments, 200 trials")
-    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="results folder (default results/ here; --smoke: a temporary folder)")
     args = ap.parse_args(argv)
+    here = Path(__file__).resolve().parent
+    sys.path.insert(0, str(here.parent))
+    from readme_tables import output_folder
+
+    # a smoke run without --out writes into a new temporary folder, never into the repository
+    args.out = output_folder(args.out, args.smoke, here / "results", "coverage")
     if args.smoke:
         args.n, args.mc_trials = 4, 200
 
@@ -55,6 +63,7 @@ def main(argv=None) -> int:
                         u_linear=np.array([r["u_linear"] for r in res]),
                         u_mc=np.array([r["u_mc"] for r in res]))
     print(json.dumps(summ, indent=2))
+    print(f"results in {args.out}")
     return 0
 
 

@@ -85,8 +85,15 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="one seed (for the tests)")
     ap.add_argument("--seeds", type=int, default=5, help="number of seeds (default 5)")
-    ap.add_argument("--out", type=Path, default=HERE / "results.csv")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="CSV to write (default results.csv here; --smoke: a temporary folder)")
     a = ap.parse_args(argv)
+    sys.path.insert(0, str(HERE.parent))
+    from readme_tables import output_folder
+
+    if a.out is None:   # a smoke run never writes into the repository
+        a.out = (output_folder(None, True, HERE, "datum") / "results.csv" if a.smoke
+                 else HERE / "results.csv")
     seeds = [1] if a.smoke else list(range(1, a.seeds + 1))
     rows = [r for s in seeds for n in (1, 4) for r in one(s, n)]
     df = pd.DataFrame(rows)
@@ -97,6 +104,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     tmp = a.out.with_suffix(".tmp")
     df.to_csv(tmp, index=False)
     tmp.replace(a.out)
+    print(f"results in {a.out}")
     return df
 
 

@@ -101,7 +101,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--smoke", action="store_true", help="a few hundred trials")
-    ap.add_argument("--out", type=Path, default=None, help="results folder")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="results folder (default results/; --smoke: a temporary folder)")
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--no-plots", action="store_true")
     args = ap.parse_args(argv)
@@ -122,7 +123,11 @@ def main(argv=None) -> int:
     trials = S["smoke_trials"] if args.smoke else S["trials"]
     ctrials = S["smoke_contribution_trials"] if args.smoke else S["contribution_trials"]
     workers = args.workers if args.workers is not None else S["workers"]
-    out = args.out or (HERE / ("results_smoke" if args.smoke else "results"))
+    sys.path.insert(0, str(HERE.parent))
+    from readme_tables import output_folder
+
+    # a smoke run without --out writes into a new temporary folder, never into the repository
+    out = output_folder(args.out, args.smoke, HERE / "results", "paper002")
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
 

@@ -1,0 +1,97 @@
+"""studies/paper001 in its smoke mode: the README's tables are the ones run.py prints (same
+headers and row keys), the figures carry standard errors, the damping sweep is a table, a
+smoke run writes nothing into the repository, and a run resumes from its chunks (tested
+on a cheap stand-in job)."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+STUDY = ROOT / "studies" / "paper001"
+sys.path.insert(0, str(ROOT / "studies"))
+import readme_tables as rt  # noqa: E402
+
+
+def _run(*args):
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    p = subprocess.run([sys.executable, str(STUDY / "run.py"), "--no-progress", *args],
+                       capture_output=True, text=True, env=env, timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    return p
+
+
+def test_paper001_smoke_readme():
+    # (the chunks of a full run that may be running in the background are left out; the
+    # smoke run's own chunks go under its output folder, checked to be outside the repo)
+    ignore = ("results/chunks/",)
+    before = rt.folder_state(STUDY, ignore)
+    p = _run("--smoke")
+    out = Path(re.search(r"results in (\S+)", p.stderr).group(1))
+    assert rt.folder_state(STUDY, ignore) == before   # nothing written into the repository
+    assert ROOT not in out.resolve().parents and (out / "chunks").is_dir()
+    tables = json.loads((out / "tables.json").read_text())
+    assert rt.check_readme_against(STUDY / "README.md", tables) == []
+    assert "± " in tables["table1_paper"] and "± " in tables["cases_paper"]
+    assert len(tables["damping"].splitlines()) > 2 + 6   # several damping values, not one
+
+
+def _load():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("paper001_run", STUDY / "run.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+class _Job:
+    """A cheap stand-in for a scenario: deterministic 'errors' per trial index."""
+
+    def __init__(self, name="fake", fp="a"):
+        self.name, self.labels, self._fp, self.calls = name, ["c1", "c2"], fp, []
+
+    def fingerprint(self):
+        return self._fp
+
+    def run(self, indices):
+        import numpy as np
+
+        self.calls.append(list(indices))
+        E = np.array([[[k + 1.0, 2.0 * k + c] for c in range(2)] for k in indices])
+        E = np.repeat(E[:, :, :1], 5, axis=2) + np.arange(5)
+        res = {"errors_um": E, "success": np.ones(E.shape[:2], bool),
+               "iterations": np.ones(E.shape[:2], int),
+               "geometry_mm": np.zeros(E.shape[:2] + (3,))}
+        return _RUN.trial_stats(res, np.zeros(3))
+
+
+_RUN = None
+
+
+def test_paper001_chunks_resume_and_refuse_another_config(tmp_path):
+    import numpy as np
+    import pytest
+
+    global _RUN
+    _RUN = _load()
+    job = _Job()
+    first = _RUN.run_jobs([job], {"fake": 7}, tmp_path, 3, progress=False)["fake"][0]
+    assert job.calls == [[0, 1, 2], [3, 4, 5], [6]]
+    again = _Job()                                   # a new process: everything from disk
+    second = _RUN.run_jobs([again], {"fake": 7}, tmp_path, 3, progress=False)["fake"][0]
+    assert again.calls == []
+    for k in first:
+        np.testing.assert_array_equal(first[k], second[k])
+    assert _RUN.available_trials(tmp_path, again) == 7
+    more = _Job()                                    # more trials: only the new chunks run
+    _RUN.run_jobs([more], {"fake": 10}, tmp_path, 3, progress=False)
+    assert more.calls == [[6, 7, 8], [9]]
+    with pytest.raises(SystemExit):                  # chunks of another configuration
+        _RUN.run_jobs([_Job(fp="b")], {"fake": 7}, tmp_path, 3, progress=False)
+    rows = _RUN.summarize(second, ["c1", "c2"], bootstrap=0)
+    assert rows[0]["trials"] == 7 and rows[0]["mean_se_um"] > 0
