@@ -71,7 +71,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="Monte Carlo uncertainty of an identification (GUM Supplement 1)",
         description="Monte Carlo uncertainty per GUM Supplement 1: sample the budget's "
         "sources, re-solve with the solver built once, report estimates, "
-        "standard and expanded uncertainties, 95 %% coverage intervals, source "
+        "standard and expanded uncertainties, 95 % coverage intervals, source "
         "contributions and the comparison with the linearised covariance.  "
         "Local worker processes by default, a Dask cluster with --scheduler; "
         "resumable from --out.",
