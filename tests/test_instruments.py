@@ -132,3 +132,16 @@ def _design(machine, em, q, t):
     G (N, 3, n) = d point / d theta."""
     p0, dp, Je = machine.evaluate(q, t, np.zeros(machine.n_errors))
     return p0, dp, np.matmul(Je, em.basis(q))
+
+
+def test_multilaser_model_on_tracker_data_reaches_the_tracker_minimum():
+    """The multi-laser head's reading is the tracker's with an exact frame rotation and the
+    lasers in the head's own frame: on tracker data (stations as lasers) it must reach the
+    same minimum, from its own start values (ICRS stations and the matching frame)."""
+    from test_identify import simulated
+
+    machine, em, _, sim = simulated("mcv754_wxyzt", grid=3)
+    a = identify(machine, sim.measurements, error_model=em)
+    b = identify(machine, sim.measurements, error_model=em, instrument="multilaser")
+    assert a.success and b.success
+    assert abs(b.conditions["chi2_per_dof"] / a.conditions["chi2_per_dof"] - 1) < 1e-6

@@ -502,13 +502,14 @@ class Identifier:
             fixed = held.copy()
             if ph.pivots:
                 ident = self.analyse(x, p, held)
-                # hold one variable per null direction (the pivot), at zero unless it is a
-                # station; the others involved stay free and are reported as not
-                # individually identifiable
+                # hold one variable per null direction (the pivot): an error parameter at
+                # zero, a station or frame parameter at its start value (an instrument's
+                # own frame need not start at zero); the others involved stay free and are
+                # reported as not individually identifiable
                 pivot = np.zeros(n, bool)
                 pivot[list(ident.pivots)] = True
                 fixed |= pivot
-                x = np.where(pivot & ~held & ~self.is_station, 0.0, x)
+                x = np.where(pivot & ~held & self.is_theta, 0.0, x)
             out = step(x, fixed)
             outcomes.append(out)
             x = out.x
@@ -560,7 +561,18 @@ def reading_sigma(
         p1, _, _ = machine.evaluate(q + dq, t, np.zeros(machine.n_errors))
         dpdq = (p1 - p0) / h
         var = var + (np.einsum("ni,ni->n", grad, dpdq) * sig) ** 2
-    return np.sqrt(var)
+    sigma = np.sqrt(var)
+    bad = ~np.isfinite(sigma)
+    if bad.any():
+        r = int(np.flatnonzero(bad)[0])
+        raise InputError(
+            f"the reading uncertainty of row {int(meas.rows[r])} (station "
+            f"{meas.station_ids[meas.station_index[r]]}) is not defined: the {ins.name} "
+            "instrument's reading has no derivative there (the nominal point coincides with "
+            "the station's start position?); check the instrument and the stations",
+            source="measurements",
+        )
+    return sigma
 
 
 def initial_stations(
@@ -783,7 +795,14 @@ def _identify(
     )
     pr = ider.problem
     weights = 1.0 / sigma
-    x0 = pr.pack_x(np.zeros(em.n_params), st0)
+    glob0 = None
+    if st_table is None and ins.n_global_params:
+        # start values of the instrument's own frame, consistent with st0
+        p_nom, _, _ = machine.evaluate(meas.q_internal, meas.tool, np.zeros(machine.n_errors))
+        glob0 = ins.global_start_values(
+            list(meas.station_ids), meas.station_index, p_nom, meas.length
+        )
+    x0 = pr.pack_x(np.zeros(em.n_params), st0, glob0)
     user_fixed = ider.station_fixed(st_fixed)
     if isinstance(strat, PhasedStrategy) and strat.hold_stations and not st_fixed.all():
         user_fixed[ider.is_station] = True

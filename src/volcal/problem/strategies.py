@@ -90,7 +90,7 @@ TWO_PHASE = PhasedStrategy(
     (
         Phase(
             hold=frozenset({"errors", "frame"}),
-            zero=frozenset({"errors", "frame"}),
+            zero=frozenset({"errors"}),
             datum=False,
             pivots=False,
             report="phase1",

@@ -114,6 +114,17 @@ class Instrument(ABC):
         (N, 3) mm of its readings and the readings (N,) mm.  Raises
         :class:`volcal.base.exceptions.SolverError` when a station cannot be located."""
 
+    def global_start_values(
+        self,
+        station_ids: list[str],
+        station_index: np.ndarray,
+        points: np.ndarray,
+        readings: np.ndarray,
+    ) -> np.ndarray:
+        """Start values of the global parameters consistent with :meth:`start_values`
+        (zeros unless the instrument's stations are expressed in a frame of its own)."""
+        return np.zeros(self.n_global_params)
+
     def held_station_params(self, station_id: str) -> tuple[str, ...]:
         """Station parameters this instrument's own convention holds at their start value
         (none by default)."""

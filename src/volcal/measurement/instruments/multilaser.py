@@ -66,19 +66,45 @@ class MultiLaserInstrument(Instrument):
     def held_station_params(self, station_id: str) -> tuple[str, ...]:
         return self.icrs_fixed().get(station_id, ())
 
-    def start_values(self, station_ids, station_index, points, readings) -> np.ndarray:
-        """Laser origins in the ICRS from a tracker-style station calibration of each laser
-        on the nominal points, expressed in the frame the three origins span (laser 1 at
-        the origin, laser 2 on x, laser 3 in the xy plane); offsets from that fit."""
+    @staticmethod
+    def _frame(Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(R, t) with the ICRS of three laser origins Q (machine frame, (>= 3, 3)):
+        laser 1 at the origin, laser 2 on x, laser 3 in the xy plane; P_I = R P_M + t."""
+        ex = Q[1] - Q[0]
+        ex /= np.linalg.norm(ex)
+        ez = np.cross(ex, Q[2] - Q[0])
+        ez /= np.linalg.norm(ez)
+        R = np.vstack([ex, np.cross(ez, ex), ez])
+        return R, -R @ Q[0]
+
+    def _machine_start(self, station_ids, station_index, points, readings) -> np.ndarray:
         from volcal.measurement.instruments.tracker import SequentialMultilateration
 
-        est = SequentialMultilateration().start_values(station_ids, station_index, points, readings)
-        Q = est[:, :3]
-        if len(Q) >= 3:
-            ex = Q[1] - Q[0]
-            ex /= np.linalg.norm(ex)
-            ez = np.cross(ex, Q[2] - Q[0])
-            ez /= np.linalg.norm(ez)
-            R = np.vstack([ex, np.cross(ez, ex), ez])  # machine -> ICRS rotation
-            est[:, :3] = (Q - Q[0]) @ R.T
+        return SequentialMultilateration().start_values(
+            station_ids, station_index, points, readings
+        )
+
+    def start_values(self, station_ids, station_index, points, readings) -> np.ndarray:
+        """Laser origins in the ICRS from a tracker-style calibration of each laser on the
+        nominal points, expressed in the frame the first three origins span (laser 1 at
+        the origin, laser 2 on x, laser 3 in the xy plane); offsets from that fit.  The
+        matching frame motion is :meth:`global_start_values`."""
+        est = self._machine_start(station_ids, station_index, points, readings)
+        if len(est) >= 3:
+            R, t = self._frame(est[:, :3])
+            est[:, :3] = est[:, :3] @ R.T + t
         return est
+
+    def global_start_values(self, station_ids, station_index, points, readings) -> np.ndarray:
+        """The machine-to-ICRS motion (tx, ty, tz mm; rx, ry, rz rad, R = Rz Ry Rx) of the
+        start values."""
+        est = self._machine_start(station_ids, station_index, points, readings)
+        if len(est) < 3:
+            return np.zeros(6)
+        R, t = self._frame(est[:, :3])
+        # R = Rz(rz) Ry(ry) Rx(rx): ry = -asin(R[2, 0]), rx = atan2(R[2, 1], R[2, 2]),
+        # rz = atan2(R[1, 0], R[0, 0])
+        ry = -np.arcsin(np.clip(R[2, 0], -1.0, 1.0))
+        rx = np.arctan2(R[2, 1], R[2, 2])
+        rz = np.arctan2(R[1, 0], R[0, 0])
+        return np.array([t[0], t[1], t[2], rx, ry, rz])
