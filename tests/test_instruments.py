@@ -145,3 +145,26 @@ def test_multilaser_model_on_tracker_data_reaches_the_tracker_minimum():
     b = identify(machine, sim.measurements, error_model=em, instrument="multilaser")
     assert a.success and b.success
     assert abs(b.conditions["chi2_per_dof"] / a.conditions["chi2_per_dof"] - 1) < 1e-6
+
+
+def test_stations_csv_of_another_instrument_is_read_with_its_columns(tmp_path):
+    """A stations CSV for a non-tracker instrument is read with that instrument's station
+    parameters as columns, and a defect names the file, row and column."""
+    from volcal.base.exceptions import InputError
+    from volcal.measurement.instruments import get_instrument
+    from volcal.measurement.tables import load_instrument_stations
+
+    names = get_instrument("multilaser").station_param_names
+    good = tmp_path / "lasers.csv"
+    good.write_text("station,x_mm,y_mm,z_mm,offset_mm\nlaser1,0,0,0,1\nlaser2,100,0,0,2\n")
+    df = load_instrument_stations(good, names)
+    assert list(df.columns) == ["station", *names, "fixed"]
+    assert df["offset_mm"].tolist() == [1.0, 2.0]
+    bad = tmp_path / "bad.csv"
+    bad.write_text("station,x_mm,y_mm,z_mm,offset_mm\nlaser1,0,0,0,1\nlaser2,100,0,0,x\n")
+    with pytest.raises(InputError, match=r"bad.csv, row 3, column 'offset_mm'"):
+        load_instrument_stations(bad, names)
+    with pytest.raises(InputError, match="offset_mm"):
+        load_instrument_stations(bad.with_name("nocol.csv"), names) if (
+            bad.with_name("nocol.csv").write_text("station,x_mm,y_mm,z_mm\nlaser1,0,0,0\n")
+        ) else None

@@ -138,8 +138,7 @@ def scaled_constrained_svd(
     """The factorisation behind :func:`analyse_jacobian` (see :class:`ScaledSVD`)."""
     J = np.asarray(J, float)
     m, n = J.shape
-    free, d, A = scale_columns(J, fixed)
-    norms = np.where(d == 1.0, np.linalg.norm(J[:, free], axis=0), 1.0 / d)
+    free, norms, d, A = scale_columns(J, fixed)
     Cf = np.zeros((0, len(free))) if C is None or len(C) == 0 else np.asarray(C, float)[:, free]
     Cs = Cf * d
     Cs = Cs[np.linalg.norm(Cs, axis=1) > 0] if Cs.shape[0] else Cs

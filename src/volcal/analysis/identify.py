@@ -44,7 +44,12 @@ from volcal.base.exceptions import InputError, SolverError
 from volcal.base.units import report_factors, report_unit
 from volcal.measurement.budget import Budget, load_budget
 from volcal.measurement.instruments import Instrument, get_instrument
-from volcal.measurement.tables import Measurements, load_measurements, load_stations
+from volcal.measurement.tables import (
+    Measurements,
+    load_instrument_stations,
+    load_measurements,
+    load_stations,
+)
 from volcal.model.datum import condition_table, null_space, select_conditions
 from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.model.machine import Machine
@@ -583,10 +588,24 @@ def initial_stations(
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Start values of the stations: (K, n_station_params) in the order of
     ``meas.station_ids`` (for the tracker x, y, z, dead length in mm), the mask of stations
-    held fixed (K,), and notes.  From the stations table where given (its columns are the
-    instrument's station parameter names), else the instrument's own start values from the
-    nominal points."""
+    held fixed (K,), and notes (:func:`initial_instrument` without the globals)."""
+    est, _, fixed, notes = initial_instrument(machine, meas, stations, instrument)
+    return est, fixed, notes
+
+
+def initial_instrument(
+    machine: Machine,
+    meas: Measurements,
+    stations: pd.DataFrame | None,
+    instrument: str | Instrument | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """Start values of the instrument: stations (K, n_station_params) in the order of
+    ``meas.station_ids``, global parameters, the mask of stations held fixed (K,), and
+    notes.  From the stations table where given (its columns are the instrument's station
+    parameter names), else the instrument's own start values from the nominal points (with
+    its matching globals when no station comes from the table)."""
     ins = get_instrument(instrument)
+    glob = np.zeros(ins.n_global_params)
     notes = []
     K = len(meas.station_ids)
     est = np.full((K, ins.n_station_params), np.nan)
@@ -626,9 +645,11 @@ def initial_stations(
         ids = [meas.station_ids[k] for k in np.flatnonzero(missing)]
         local = {k: i for i, k in enumerate(np.flatnonzero(missing))}
         idx = np.array([local[k] for k in meas.station_index[sel]], int)
-        est[missing] = ins.start_values(ids, idx, p0[sel], meas.length[sel])
+        est[missing], glob_start = ins.start(ids, idx, p0[sel], meas.length[sel])
+        if missing.all():  # globals only match stations that all come from the instrument
+            glob = glob_start
         notes.append(ins.start_note())
-    return est, fixed, notes
+    return est, glob, fixed, notes
 
 
 def build_error_model(
@@ -733,10 +754,13 @@ def _identify(
     if stations is not None:
         # the tracker's stations table is validated by its reader; another instrument's
         # table is a DataFrame whose columns are its station parameters
-        given = isinstance(stations, pd.DataFrame) and (
-            ins.name != "tracker" or ("x_mm" in stations and "dead_length_given" in stations)
-        )
-        st_table = stations if given else load_stations(stations)
+        if ins.name == "tracker":
+            given = isinstance(stations, pd.DataFrame) and (
+                "x_mm" in stations and "dead_length_given" in stations
+            )
+            st_table = stations if given else load_stations(stations)
+        else:
+            st_table = load_instrument_stations(stations, ins.station_param_names)
     meas = (
         data
         if isinstance(data, Measurements)
@@ -749,7 +773,7 @@ def _identify(
     strat = get_strategy(strategy, station_method=station_method, point_method=point_method)
     strategy = strat.name
 
-    st0, st_fixed, notes = initial_stations(machine, meas, st_table, ins)
+    st0, glob0, st_fixed, notes = initial_instrument(machine, meas, st_table, ins)
     sigma = meas.sigma.copy()
     no_sigma = ~np.isfinite(sigma)
     if no_sigma.any():  # the budget only where the table gives no sigma
@@ -795,13 +819,6 @@ def _identify(
     )
     pr = ider.problem
     weights = 1.0 / sigma
-    glob0 = None
-    if st_table is None and ins.n_global_params:
-        # start values of the instrument's own frame, consistent with st0
-        p_nom, _, _ = machine.evaluate(meas.q_internal, meas.tool, np.zeros(machine.n_errors))
-        glob0 = ins.global_start_values(
-            list(meas.station_ids), meas.station_index, p_nom, meas.length
-        )
     x0 = pr.pack_x(np.zeros(em.n_params), st0, glob0)
     user_fixed = ider.station_fixed(st_fixed)
     if isinstance(strat, PhasedStrategy) and strat.hold_stations and not st_fixed.all():

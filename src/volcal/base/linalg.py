@@ -7,8 +7,9 @@ import numpy as np
 
 def scale_columns(
     J: np.ndarray, fixed: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The free columns of J scaled to unit norm: (free indices, d, J[:, free] * d).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The free columns of J scaled to unit norm: (free indices, their norms, d = 1 / norm,
+    J[:, free] * d).
 
     Rank and null-space decisions are taken on the scaled matrix so that they do not depend
     on the units of the variables; a zero column keeps d = 1."""
@@ -18,4 +19,4 @@ def scale_columns(
     Jf = J[:, free]
     norms = np.linalg.norm(Jf, axis=0)
     d = 1.0 / np.where(norms == 0, 1.0, norms)
-    return free, d, Jf * d
+    return free, norms, d, Jf * d

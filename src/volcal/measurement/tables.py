@@ -68,7 +68,7 @@ from __future__ import annotations
 import difflib
 import re
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -84,6 +84,7 @@ __all__ = [
     "Measurements",
     "load_measurements",
     "load_stations",
+    "load_instrument_stations",
     "MAX_LENGTH_MM",
     "TRAVEL_TOLERANCE",
     "MIN_READINGS_PER_STATION",
@@ -658,6 +659,41 @@ def load_stations(source: str | Path | pd.DataFrame, *, name: str | None = None)
             first[s] = int(rows[k])
     problems.raise_if_any()
     df = pd.DataFrame(out, columns=list(STATION_COLUMNS))
+    df["station"] = df["station"].astype(object)
+    return df
+
+
+def load_instrument_stations(
+    source: str | Path | pd.DataFrame,
+    param_names: Sequence[str],
+    *,
+    name: str | None = None,
+) -> pd.DataFrame:
+    """Load a stations table of any instrument: ``station`` (id), one numeric column per
+    station parameter in ``param_names`` (units as the names' suffixes) and optional
+    ``fixed`` (bool).  Returns a new DataFrame in that column order; raises
+    :class:`InputError` naming the source, row and column of every defect."""
+    raw = _read_raw(source, name, "stations table")
+    problems = _Problems(raw.name)
+    schema = [_Col("station", (), True, "id")]
+    schema += [
+        _Col(p, (), True, "float", p.rsplit("_", 1)[-1] if "_" in p else "") for p in param_names
+    ]
+    schema.append(_Col("fixed", (), False, "bool"))
+    pos = _resolve_columns(raw, schema, problems)
+    body, rows = raw.body, raw.rows
+    out: dict[str, Any] = {"station": _parse_ids(body[pos["station"]], rows, "station", problems)}
+    for p in param_names:
+        if p in pos:
+            unit = p.rsplit("_", 1)[-1] if "_" in p else ""
+            out[p] = _parse_float(body[pos[p]], rows, raw.header[pos[p]], unit, False, problems)
+    out["fixed"] = (
+        _parse_bool(body[pos["fixed"]], rows, "fixed", problems)
+        if "fixed" in pos
+        else np.zeros(len(rows), dtype=bool)
+    )
+    problems.raise_if_any()
+    df = pd.DataFrame(out, columns=["station", *param_names, "fixed"])
     df["station"] = df["station"].astype(object)
     return df
 

@@ -133,7 +133,7 @@ def null_space(
     Returns (free indices, d, N): a null direction in the free variables is ``d * N[:, j]``
     (N orthonormal, (n_free, k)).  Rank tolerance max(m, n) eps s_max (DESIGN.md)."""
     m, n = np.shape(J)
-    free, d, A = scale_columns(J, fixed)
+    free, _, d, A = scale_columns(J, fixed)
     # one QR of the tall matrix, then the SVD of its small R factor
     R = sla.qr(A, mode="r", check_finite=False)[0][: len(free)] if m > len(free) else A
     _, s, Vt = np.linalg.svd(R, full_matrices=True)

@@ -230,7 +230,6 @@ class IdentificationProblem:
             ["r"],
             {"cse": True},
         )
-        self.pose_function, self.reading_function = f_pose, f_read
 
         # all readings in MX (x is the scaled variable vector)
         xs = ca.MX.sym("x", self.n_x)

@@ -23,7 +23,7 @@ with :func:`register`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 
 from volcal.base.exceptions import InputError
 
@@ -132,8 +132,6 @@ def get_strategy(strategy: str | Strategy, **options) -> Strategy:
             f"unknown strategy {strategy!r}; expected one of {', '.join(_REGISTRY)}"
         ) from None
     if isinstance(s, ClassicPipeline) and options:
-        from dataclasses import replace
-
         s = replace(s, **{k: v for k, v in options.items() if v is not None})
     return s
 
@@ -151,5 +149,4 @@ __all__ = [
     "strategies",
     "get_strategy",
     "GROUPS",
-    "field",
 ]

@@ -11,9 +11,9 @@ reports.  It declares
 * ``start_values``: start values of the station parameters from nominal points and
   readings (no guess needed from the user), and which station parameters are held by the
   instrument's own convention (e.g. the frame of a multi-laser head);
-* the data columns it reads (``columns``): every instrument reads the standard measurement
-  table (axis positions, tool offset, ``station``, ``length_mm`` = the reading in mm,
-  optional ``sigma_mm``); ``length_mm`` is the reading whatever it measures.
+* the data it reads: every instrument reads the standard measurement table (axis
+  positions, tool offset, ``station``, ``length_mm`` = the reading in mm, optional
+  ``sigma_mm``); ``length_mm`` is the reading whatever it measures.
 
 A new instrument is one class in one file (see ``tests/coordinate_probe.py`` for a probe
 that reads 3-D coordinates), registered with :func:`volcal.measurement.instruments.register`;
@@ -38,8 +38,6 @@ class Instrument(ABC):
     station_param_names: tuple[str, ...] = ()
     #: global parameter names
     global_param_names: tuple[str, ...] = ()
-    #: the measurement table columns beyond the axis positions and tool offset
-    columns: tuple[str, ...] = ("station", "length_mm")
     #: readings are distances (positive); False for signed readings (coordinates, ...)
     positive_readings: bool = True
 
@@ -114,16 +112,20 @@ class Instrument(ABC):
         (N, 3) mm of its readings and the readings (N,) mm.  Raises
         :class:`volcal.base.exceptions.SolverError` when a station cannot be located."""
 
-    def global_start_values(
+    def start(
         self,
         station_ids: list[str],
         station_index: np.ndarray,
         points: np.ndarray,
         readings: np.ndarray,
-    ) -> np.ndarray:
-        """Start values of the global parameters consistent with :meth:`start_values`
-        (zeros unless the instrument's stations are expressed in a frame of its own)."""
-        return np.zeros(self.n_global_params)
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(station start values as :meth:`start_values`, global start values consistent
+        with them).  The globals are zero unless the instrument expresses its stations in
+        a frame of its own (then it overrides this method)."""
+        return (
+            self.start_values(station_ids, station_index, points, readings),
+            np.zeros(self.n_global_params),
+        )
 
     def held_station_params(self, station_id: str) -> tuple[str, ...]:
         """Station parameters this instrument's own convention holds at their start value

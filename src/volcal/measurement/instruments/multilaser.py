@@ -77,34 +77,26 @@ class MultiLaserInstrument(Instrument):
         R = np.vstack([ex, np.cross(ez, ex), ez])
         return R, -R @ Q[0]
 
-    def _machine_start(self, station_ids, station_index, points, readings) -> np.ndarray:
-        from volcal.measurement.instruments.tracker import SequentialMultilateration
-
-        return SequentialMultilateration().start_values(
-            station_ids, station_index, points, readings
-        )
-
-    def start_values(self, station_ids, station_index, points, readings) -> np.ndarray:
+    def start(self, station_ids, station_index, points, readings):
         """Laser origins in the ICRS from a tracker-style calibration of each laser on the
         nominal points, expressed in the frame the first three origins span (laser 1 at
-        the origin, laser 2 on x, laser 3 in the xy plane); offsets from that fit.  The
-        matching frame motion is :meth:`global_start_values`."""
-        est = self._machine_start(station_ids, station_index, points, readings)
-        if len(est) >= 3:
-            R, t = self._frame(est[:, :3])
-            est[:, :3] = est[:, :3] @ R.T + t
-        return est
+        the origin, laser 2 on x, laser 3 in the xy plane), offsets from that fit; and the
+        machine-to-ICRS frame motion (tx, ty, tz mm; rx, ry, rz rad, R = Rz Ry Rx) that
+        goes with them."""
+        from volcal.measurement.instruments.tracker import SequentialMultilateration
 
-    def global_start_values(self, station_ids, station_index, points, readings) -> np.ndarray:
-        """The machine-to-ICRS motion (tx, ty, tz mm; rx, ry, rz rad, R = Rz Ry Rx) of the
-        start values."""
-        est = self._machine_start(station_ids, station_index, points, readings)
+        est = SequentialMultilateration().start_values(station_ids, station_index, points, readings)
         if len(est) < 3:
-            return np.zeros(6)
+            return est, np.zeros(6)
         R, t = self._frame(est[:, :3])
+        est[:, :3] = est[:, :3] @ R.T + t
         # R = Rz(rz) Ry(ry) Rx(rx): ry = -asin(R[2, 0]), rx = atan2(R[2, 1], R[2, 2]),
         # rz = atan2(R[1, 0], R[0, 0])
         ry = -np.arcsin(np.clip(R[2, 0], -1.0, 1.0))
         rx = np.arctan2(R[2, 1], R[2, 2])
         rz = np.arctan2(R[1, 0], R[0, 0])
-        return np.array([t[0], t[1], t[2], rx, ry, rz])
+        return est, np.array([t[0], t[1], t[2], rx, ry, rz])
+
+    def start_values(self, station_ids, station_index, points, readings) -> np.ndarray:
+        """The laser origins of :meth:`start` (ICRS, mm) and their offsets (mm)."""
+        return self.start(station_ids, station_index, points, readings)[0]
