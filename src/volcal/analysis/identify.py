@@ -120,6 +120,14 @@ class IdentificationResult:
     null_space: FieldNullSpace | None = None
     #: the solver state (unknowns, held set, weights, datum, fingerprint)
     state: SolverState | None = None
+    #: the :class:`Identifier` that solved it (problem and solvers), for analyses of the
+    #: same data that would otherwise build it again (Monte Carlo); not pickled
+    identifier: Identifier | None = field(default=None, repr=False, compare=False)
+
+    def __getstate__(self):
+        d = dict(self.__dict__)
+        d["identifier"] = None
+        return d
 
     @property
     def success(self) -> bool:
@@ -535,6 +543,41 @@ class Identifier:
 # ---------------------------------------------------------------------------------------
 
 
+def axis_sensitivity(
+    machine: Machine, q: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(nominal points (N, 3) mm, d(point)/d(axis) (n_axes, N, 3) in mm per mm or per rad)
+    at poses q (N, n_axes; mm, rad) and tool offsets t (N, 3) mm, by forward differences
+    of the nominal chain (step 1e-6 mm or rad)."""
+    p0, _, _ = machine.evaluate(q, t, np.zeros(machine.n_errors))
+    out = np.zeros((machine.n_axes,) + p0.shape)
+    h = 1e-6
+    for k in range(machine.n_axes):
+        dq = np.zeros_like(q)
+        dq[:, k] = h
+        p1, _, _ = machine.evaluate(q + dq, t, np.zeros(machine.n_errors))
+        out[k] = (p1 - p0) / h
+    return p0, out
+
+
+def combined_variance(
+    machine: Machine,
+    budget: Budget,
+    length: np.ndarray,
+    grad: np.ndarray,
+    dpdq: np.ndarray,
+) -> np.ndarray:
+    """Variance (mm^2) of each reading: the budget's length part at ``length`` (N,) mm plus
+    every axis' repeatability carried through d(point)/d(axis) ``dpdq`` (n_axes, N, 3) and
+    d(reading)/d(point) ``grad`` (N, 3)."""
+    var = budget.length_sigma(length) ** 2
+    for k, a in enumerate(machine.spec.axes):
+        sig = budget.axis_sigma(a.name)
+        if sig:
+            var = var + (np.einsum("ni,ni->n", grad, dpdq[k]) * sig) ** 2
+    return var
+
+
 def reading_sigma(
     machine: Machine,
     budget: Budget,
@@ -549,23 +592,12 @@ def reading_sigma(
     stations: the station parameters (K, n_station_params) (for the tracker (K, 3)
     positions suffice: the gradient does not depend on the dead length)."""
     ins = get_instrument(instrument)
-    q, t = meas.q_internal, meas.tool
-    p0, _, _ = machine.evaluate(q, t, np.zeros(machine.n_errors))
+    p0, dpdq = axis_sensitivity(machine, meas.q_internal, meas.tool)
     S = np.zeros((len(stations), ins.n_station_params))
     given = np.asarray(stations, float)
     S[:, : given.shape[1]] = given
     _, grad = ins.evaluate(p0, S[meas.station_index])  # (N, 3) d reading / d point
-    var = budget.length_sigma(meas.length) ** 2
-    h = 1e-6
-    for k, a in enumerate(machine.spec.axes):
-        sig = budget.axis_sigma(a.name)
-        if not sig:
-            continue
-        dq = np.zeros_like(q)
-        dq[:, k] = h
-        p1, _, _ = machine.evaluate(q + dq, t, np.zeros(machine.n_errors))
-        dpdq = (p1 - p0) / h
-        var = var + (np.einsum("ni,ni->n", grad, dpdq) * sig) ** 2
+    var = combined_variance(machine, budget, meas.length, grad, dpdq)
     sigma = np.sqrt(var)
     bad = ~np.isfinite(sigma)
     if bad.any():
@@ -953,4 +985,5 @@ def _identify(
         datum_table,
         null_field,
         state,
+        identifier=ider,
     )

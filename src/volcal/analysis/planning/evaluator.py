@@ -1,0 +1,442 @@
+"""The predicted uncertainty of a plan, from the identification's own Jacobian.
+
+A :class:`PlanEvaluator` is built once for a machine, an error model, a set of *candidate*
+poses, the tool offsets and the number of stations.  Its layout is the full sequential
+experiment: every station reads every (candidate pose, tool offset).  A plan is then
+
+* the station positions (K, 3) mm, and
+* the selection of candidate poses actually measured (a boolean mask): the readings of
+  unselected poses get weight 0, so the same CasADi Jacobian serves every subset.
+
+The Jacobian is :attr:`volcal.problem.residuals.IdentificationProblem.jacobian`, the one the
+identification solves with, evaluated at zero errors and the nominal lengths, weighted by
+the budget's reading uncertainties.  The datum and the held pivots are chosen once at a
+reference design (:meth:`PlanEvaluator.freeze`) as ``identify`` chooses them, so that every
+candidate is judged in the same parameterisation.
+
+Criteria (all from the covariance Z (Z^T J^T J Z)^-1 Z^T of the free variables under the
+datum, in the solver's scaled units: um for lengths, urad for angles):
+
+* ``"I"`` (default): RMS over the evaluation poses of the total standard uncertainty of the
+  volumetric error, um, modulo the rigid motion between stations and machine that no
+  multilateration sees (I-optimality: the prediction variance integrated over the
+  workspace; independent of the datum);
+* ``"A"``: RMS standard uncertainty of the error parameters (scaled units);
+* ``"D"``: geometric mean of the standard deviations of the free parameters along the
+  principal directions, exp(-log det(M) / (2 r));
+* ``"E"``: the standard deviation along the worst-determined direction, 1/sqrt(lambda_min).
+
+A design that loses rank (a direction the reference design determined becomes invisible)
+scores ``inf``.  :meth:`PlanEvaluator.symbolic_criterion` gives the same criterion as a
+CasADi Function of the station coordinates for gradient-based placement.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import scipy.linalg as sla
+
+from volcal.analysis.identifiability import rigid_columns
+from volcal.analysis.identify import (
+    Identifier,
+    axis_sensitivity,
+    combined_variance,
+    declared_poses,
+    field_jacobian,
+)
+from volcal.measurement.budget import Budget, load_budget
+from volcal.measurement.instruments import get_instrument
+from volcal.model.errors import ErrorModel
+from volcal.model.machine import Machine
+from volcal.problem.residuals import Layout, NumpyCall
+
+__all__ = ["PlanEvaluator", "Scorer", "CRITERIA", "Frozen"]
+
+#: criterion names (see the module docstring)
+CRITERIA = ("I", "A", "D", "E")
+
+
+@dataclass
+class Frozen:
+    """The parameterisation every candidate is judged in: the held variables (user-fixed
+    and the reference design's pivots), the datum in force, the orthonormal basis Z of the
+    free directions it leaves, and the reference rank."""
+
+    fixed: np.ndarray
+    free: np.ndarray
+    Z: np.ndarray
+    rank: int
+    datum_active: np.ndarray
+    unidentifiable: list[str]
+
+
+class PlanEvaluator:
+    """Criteria of plans over a candidate pose set (see the module docstring).
+
+    machine, error_model: the model; poses: candidate poses (Np, n_axes) in internal units
+    (mm, rad); tools: tool offsets (T, 3) mm; n_stations: K; budget: reading uncertainties;
+    eval_poses (internal units) and eval_tools (mm): where the volumetric uncertainty is
+    predicted (default: a Halton sample of the travel at every planned tool offset);
+    dead_length_mm: the stations' dead length used for the nominal readings."""
+
+    def __init__(
+        self,
+        machine: Machine,
+        error_model: ErrorModel,
+        poses: np.ndarray,
+        tools: np.ndarray,
+        n_stations: int,
+        budget: Budget | str = "paper002",
+        *,
+        eval_poses: np.ndarray | None = None,
+        eval_tools: np.ndarray | None = None,
+        dead_length_mm: float = 0.0,
+    ):
+        self.machine, self.error_model = machine, error_model
+        self.poses = np.atleast_2d(np.asarray(poses, float))
+        self.tools = np.atleast_2d(np.asarray(tools, float))
+        self.n_stations = K = int(n_stations)
+        self.budget = budget if isinstance(budget, Budget) else load_budget(budget)
+        self.dead_length_mm = float(dead_length_mm)
+        Np, T = len(self.poses), len(self.tools)
+        # reading order: station-major, then tool, then pose (the order they are measured)
+        st = np.repeat(np.arange(K), T * Np)
+        ti = np.tile(np.repeat(np.arange(T), Np), K)
+        pi = np.tile(np.arange(Np), T * K)
+        self.station_of, self.tool_of, self.pose_of = st, ti, pi
+        self.q = self.poses[pi]
+        self.t = self.tools[ti]
+        ids = tuple(f"S{k + 1}" for k in range(K))
+        self.layout = Layout(st, K, ids, ti * Np + pi)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            self.identifier = Identifier(machine, error_model, self.layout, solver="gauss-newton")
+        self.problem = pr = self.identifier.problem
+        self.instrument = get_instrument("tracker")
+        # geometry that does not depend on the stations: nominal points, d(point)/d(axis)
+        # for the reading uncertainties, and the reflector axis turned with the tool
+        self.points, self.dpdq = axis_sensitivity(machine, self.q, self.t)
+        # the volumetric error's derivative at the evaluation poses, in scaled variables
+        if eval_poses is None:
+            eval_poses = declared_poses(machine.spec, 128)
+        if eval_tools is None:
+            eval_tools = np.unique(self.tools, axis=0)
+        eq = np.repeat(np.asarray(eval_poses, float), len(eval_tools), axis=0)
+        et = np.tile(np.asarray(eval_tools, float), (len(eval_poses), 1))
+        self.eval_q, self.eval_t = eq, et
+        p_eval, _, G = field_jacobian(machine, error_model, np.zeros(error_model.n_params), eq, et)
+        self.eval_points = p_eval  # nominal points (n_eval, 3) mm
+        self.G_eval = G  # (n_eval, 3, n_theta) mm per mm or rad
+        Gs = np.zeros((3 * len(eq), pr.n_x))
+        Gs[:, : pr.n_theta] = G.reshape(-1, pr.n_theta) * pr.scale[None, : pr.n_theta]
+        self._G_scaled = Gs * 1e3  # um per scaled unit
+        self.n_eval = len(eq)
+        self.frozen: Frozen | None = None
+        self.scorer: Scorer | None = None
+
+    # ---- the data vector (the scorer's, so both sides compute them one way) -----------
+    def x(self, stations: np.ndarray) -> np.ndarray:
+        """Physical unknowns at zero errors with the stations (K, 3) mm."""
+        S = np.column_stack(
+            [
+                np.asarray(stations, float).reshape(-1, 3),
+                np.full(self.n_stations, self.dead_length_mm),
+            ]
+        )
+        return self.problem.pack_x(np.zeros(self.problem.n_theta), S)
+
+    def p(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
+        """The data vector: nominal readings, weights 1/sigma on selected poses, else 0."""
+        return self._unfrozen_scorer().p(stations, selected)
+
+    def sigma(self, stations: np.ndarray) -> np.ndarray:
+        """Standard uncertainty (mm) of every reading from the budget at these stations."""
+        return self._unfrozen_scorer().sigma(stations)
+
+    def _unfrozen_scorer(self) -> Scorer:
+        if self.scorer is None:
+            # before freeze(): a scorer without a parameterisation serves the data vector
+            sc = Scorer.__new__(Scorer)
+            sc.__dict__.update(
+                dict(
+                    n_stations=self.n_stations,
+                    dead_length_mm=self.dead_length_mm,
+                    points=self.points,
+                    dpdq=self.dpdq,
+                    station_of=self.station_of,
+                    pose_of=self.pose_of,
+                    q=self.q,
+                    t=self.t,
+                    budget=self.budget,
+                    machine_axes=self.machine,
+                )
+            )
+            return sc
+        return self.scorer
+
+    # ---- the parameterisation ----------------------------------------------------------
+    def freeze(self, stations: np.ndarray, selected: np.ndarray | None = None) -> Frozen:
+        """Choose the datum and the held pivots at a reference design, as ``identify`` does
+        (:meth:`volcal.analysis.identify.Identifier.select_datum`, then the pivots of the
+        null directions left); every later evaluation uses them."""
+        ider, pr = self.identifier, self.problem
+        self.scorer = None
+        x, p = self.x(stations), self.p(stations, selected)
+        user_fixed = ider.station_fixed(np.zeros(self.n_stations, bool))
+        ider.select_datum(x, p, user_fixed)
+        ident = ider.analyse(x, p, user_fixed)
+        fixed = user_fixed.copy()
+        fixed[list(ident.pivots)] = True
+        free = np.flatnonzero(~fixed)
+        C = ider._scaled_constraints()[:, free]
+        C = C[np.linalg.norm(C, axis=1) > 0]
+        Z = sla.null_space(C) if len(C) else np.eye(len(free))
+        names = [pr.names[i] for i in np.flatnonzero(ident.unidentifiable)]
+        self.frozen = Frozen(fixed, free, Z, Z.shape[1], pr.datum_active.copy(), names)
+        # the volumetric error is judged modulo the rigid motion no multilateration sees
+        # (project it out at the evaluation points): the criterion is then the same
+        # whatever datum fixes that motion
+        B = self._G_scaled[:, free] @ Z  # (3 n_eval, r)
+        R = rigid_columns(self.eval_points - self.eval_points.mean(0))
+        R = R / np.linalg.norm(R, axis=0)
+        self._B = B - R @ np.linalg.lstsq(R, B, rcond=None)[0]
+        self._theta_rows = np.flatnonzero(free < pr.n_theta)
+        self.scorer = Scorer(self)
+        return self.frozen
+
+    def information(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
+        """Z^T J^T J Z (r, r) of a design, in the frozen parameterisation."""
+        assert self.scorer is not None, "call freeze() first"
+        return self.scorer.information(stations, selected)
+
+    def criterion(
+        self, stations: np.ndarray, selected: np.ndarray | None = None, criterion: str = "I"
+    ) -> float:
+        """The criterion of a design (stations (K, 3) mm, selected poses)."""
+        assert self.scorer is not None, "call freeze() first"
+        return self.scorer.value(self.information(stations, selected), criterion)
+
+    def covariance(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
+        """Covariance of x (physical units; held variables NaN) of a design."""
+        fz = self.frozen
+        assert fz is not None
+        M = self.information(stations, selected)
+        Minv = np.linalg.pinv(M, hermitian=True)
+        cs = fz.Z @ Minv @ fz.Z.T
+        n = self.problem.n_x
+        cov = np.full((n, n), np.nan)
+        cov[np.ix_(fz.free, fz.free)] = cs
+        s = self.problem.scale
+        return cov * s[:, None] * s[None, :]
+
+    def volumetric_u(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
+        """Standard uncertainty (n_eval, 3) um of the volumetric error at the evaluation
+        poses."""
+        fz = self.frozen
+        assert fz is not None
+        M = self.information(stations, selected)
+        L = np.linalg.cholesky(M)
+        X = sla.solve_triangular(L, self._B.T, lower=True)  # (r, 3 n_eval)
+        return np.sqrt(np.sum(X * X, axis=0)).reshape(-1, 3)
+
+    # ---- symbolic (gradient-based placement) ---------------------------------------------
+    def symbolic_criterion(
+        self, criterion: str = "I", selected: np.ndarray | None = None
+    ) -> ca.Function:
+        """``f(s, w) -> criterion^2`` as a CasADi Function of the station coordinates s
+        (3K, mm) and the weights w of the selected readings (1/mm), for gradient-based
+        placement.
+
+        Only the stations move, so only the instrument's derivatives change: each row of
+        the Jacobian is w d(reading)/d(point) G(pose) for the error parameters and
+        w d(reading)/d(station) for the station's own columns, with G = d(point)/d(theta)
+        of the machine at zero errors (numeric, from the same chain as the problem's) and
+        the instrument's derivatives from its one reading expression (AD).  The rows are
+        those of the problem's Jacobian (a test checks them against it), on the selected
+        readings only, so the derivatives wrt s stay cheap."""
+        fz = self.frozen
+        assert fz is not None, "call freeze() first"
+        pr, ins = self.problem, self.instrument
+        K, nt = self.n_stations, pr.n_theta
+        keep = np.ones(len(self.pose_of), bool)
+        if selected is not None:
+            keep = np.asarray(selected, bool)[self.pose_of]
+        rows = np.flatnonzero(keep)
+        N = len(rows)
+        if not hasattr(self, "_G_read"):
+            _, _, G = field_jacobian(self.machine, self.error_model, np.zeros(nt), self.q, self.t)
+            self._G_read = G * pr.scale[None, None, :nt]  # (N_all, 3, nt) per scaled unit
+        G = self._G_read[rows]
+        # d(reading)/d(point), d(reading)/d(station) of the instrument, mapped over readings
+        ps, ss = ca.SX.sym("p", 3), ca.SX.sym("s", ins.n_station_params)
+        gs = ca.SX.sym("g", ins.n_global_params)
+        v = ins.reading(ps, ss, gs)
+        f_d = ca.Function("d_reading", [ps, ss, gs], [ca.jacobian(v, ps), ca.jacobian(v, ss)])
+        s = ca.MX.sym("s", 3 * K)
+        w = ca.MX.sym("w", N)
+        S = ca.reshape(s, 3, K)
+        St = ca.vertcat(S, ca.DM(np.full((1, K), self.dead_length_mm)))  # (n_ps, K)
+        st = self.station_of[rows]
+        sel = ca.DM(ca.Sparsity.triplet(K, N, st.tolist(), list(range(N))), 1.0)
+        dp, ds = f_d.map(N)(ca.DM(self.points[rows].T), ca.mtimes(St, sel), 0)
+        # the map lays the (1, 3) and (1, n_ps) row Jacobians side by side
+        dp, ds = ca.reshape(dp, 3, N), ca.reshape(ds, ins.n_station_params, N)
+        # theta columns: w * (dp_x G_x + dp_y G_y + dp_z G_z)
+        J_th: ca.MX = ca.MX(N, nt)
+        for c in range(3):
+            J_th = J_th + ca.repmat((w * dp[c, :].T), 1, nt) * ca.DM(G[:, c, :])
+        # station columns (scaled: station unit 1e-3 mm) and zero globals
+        nps = ins.n_station_params
+        blocks = []
+        for k in range(K):
+            mask = ca.DM((st == k).astype(float))
+            sc = ca.DM(np.tile(pr.scale[nt : nt + nps], (N, 1)))
+            blocks.append(ca.repmat(w * mask, 1, nps) * ds.T * sc)
+        n_g = pr.n_x - nt - nps * K
+        J = ca.horzcat(J_th, *blocks, ca.MX(N, n_g))
+        Sel = np.zeros((pr.n_x, len(fz.free)))
+        Sel[fz.free, np.arange(len(fz.free))] = 1.0
+        A = ca.mtimes(J, ca.DM(Sel @ fz.Z))
+        M = ca.mtimes(A.T, A)
+        if criterion == "I":
+            X = ca.solve(M, ca.DM(self._B.T))
+            f = ca.sum1(ca.sum2(ca.DM(self._B.T) * X)) / self.n_eval
+        elif criterion == "A":
+            Zt = ca.DM(fz.Z[self._theta_rows].T)
+            X = ca.solve(M, Zt)
+            f = ca.sum1(ca.sum2(Zt * X)) / max(len(self._theta_rows), 1)
+        elif criterion == "D":
+            f = ca.exp(-ca.log(ca.det(M)) / M.shape[0])
+        else:
+            raise ValueError(f"criterion {criterion!r} has no smooth form; use I, A or D")
+        self._sym_rows = rows
+        return ca.Function("plan_criterion", [s, w], [f], ["s", "w"], ["f"])
+
+    def weights(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
+        """1/sigma (1/mm) of the selected readings (the ``w`` of :meth:`symbolic_criterion`)."""
+        w = 1.0 / self.sigma(stations)
+        if selected is not None:
+            w = w[np.asarray(selected, bool)[self.pose_of]]
+        return w
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "candidate_poses": len(self.poses),
+            "tools": len(self.tools),
+            "stations": self.n_stations,
+            "readings_if_all_selected": self.layout.n_readings,
+            "evaluation_points": self.n_eval,
+        }
+
+
+class Scorer:
+    """The numeric core of :class:`PlanEvaluator` once frozen: everything a criterion
+    evaluation needs and nothing else, picklable (the Jacobian Function travels in
+    CasADi's serialised form), so worker processes and Dask workers evaluate candidates
+    with exactly the code of this process.  ``run_chunk((start, designs))`` scores a list
+    of designs (stations (K, 3) mm, selected mask or None)."""
+
+    def __init__(self, ev: PlanEvaluator, criterion: str = "I"):
+        fz = ev.frozen
+        assert fz is not None, "call freeze() first"
+        pr = ev.problem
+        self.criterion_name = criterion
+        self.jac = pr.jacobian
+        self.scale = pr.scale.copy()
+        self.n_theta, self.n_x = pr.n_theta, pr.n_x
+        self.n_stations, self.dead_length_mm = ev.n_stations, ev.dead_length_mm
+        self.n_station_params = ev.instrument.n_station_params
+        self.n_global = pr.n_x - pr.n_theta - self.n_station_params * ev.n_stations
+        self.points, self.dpdq = ev.points, ev.dpdq
+        self.station_of, self.pose_of = ev.station_of, ev.pose_of
+        self.q, self.t = ev.q, ev.t
+        self.budget, self.machine_axes = ev.budget, ev.machine
+        self.free, self.Z, self.B, self.theta_rows = fz.free, fz.Z, ev._B, ev._theta_rows
+        self.n_eval = ev.n_eval
+        self._call: NumpyCall | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        d = dict(self.__dict__)
+        d["jac"] = self.jac.serialize()
+        d["_call"] = None
+        return d
+
+    def __setstate__(self, d: dict[str, Any]) -> None:
+        d["jac"] = ca.Function.deserialize(d["jac"])
+        self.__dict__.update(d)
+
+    def x_scaled(self, stations: np.ndarray) -> np.ndarray:
+        S = np.column_stack(
+            [
+                np.asarray(stations, float).reshape(-1, 3),
+                np.full(self.n_stations, self.dead_length_mm),
+            ]
+        )
+        x = np.concatenate([np.zeros(self.n_theta), S.ravel(), np.zeros(self.n_global)])
+        return x / self.scale
+
+    def lengths(self, stations: np.ndarray) -> np.ndarray:
+        S = np.asarray(stations, float).reshape(-1, 3)[self.station_of]
+        return np.linalg.norm(self.points - S, axis=1) + self.dead_length_mm
+
+    def sigma(self, stations: np.ndarray) -> np.ndarray:
+        """Standard uncertainty (mm) of every reading from the budget at these stations."""
+        S = np.asarray(stations, float).reshape(-1, 3)[self.station_of]
+        d = self.points - S
+        grad = d / np.linalg.norm(d, axis=1, keepdims=True)
+        var = combined_variance(
+            self.machine_axes, self.budget, self.lengths(stations), grad, self.dpdq
+        )
+        return np.sqrt(var)
+
+    def p(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
+        """The data vector (the layout of ``IdentificationProblem.pack_data``): poses, tool
+        offsets, nominal readings, weights 1/sigma on selected poses and 0 elsewhere."""
+        w = 1.0 / self.sigma(stations)
+        if selected is not None:
+            w = w * np.asarray(selected, bool)[self.pose_of]
+        return np.concatenate([self.q.ravel(), self.t.ravel(), self.lengths(stations), w])
+
+    def jacobian(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
+        if self._call is None:
+            self._call = NumpyCall(self.jac)
+        return self._call(self.x_scaled(stations), self.p(stations, selected))[1]
+
+    def information(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
+        A = self.jacobian(stations, selected)[:, self.free] @ self.Z
+        return A.T @ A
+
+    def value(self, M: np.ndarray, criterion: str | None = None) -> float:
+        """The criterion of an information matrix M (r, r) (module docstring)."""
+        criterion = criterion or self.criterion_name
+        try:
+            L = np.linalg.cholesky(M)
+        except np.linalg.LinAlgError:
+            return float("inf")
+        d = np.diag(L)
+        # a direction the reference design determined is (numerically) lost: no design
+        if d.min() <= 1e-7 * d.max():
+            return float("inf")
+        if criterion == "I":
+            X = sla.solve_triangular(L, self.B.T, lower=True)
+            return float(np.sqrt(np.sum(X * X) / self.n_eval))
+        if criterion == "A":
+            X = sla.solve_triangular(L, self.Z[self.theta_rows].T, lower=True)
+            return float(np.sqrt(np.sum(X * X) / max(len(self.theta_rows), 1)))
+        if criterion == "D":
+            return float(np.exp(-np.sum(np.log(d)) / len(d)))
+        if criterion == "E":
+            return float(1.0 / np.sqrt(np.linalg.eigvalsh(M)[0]))
+        raise ValueError(f"unknown criterion {criterion!r}; expected one of {CRITERIA}")
+
+    def score(self, stations: np.ndarray, selected: np.ndarray | None = None) -> float:
+        return self.value(self.information(stations, selected))
+
+    def run_chunk(self, chunk: tuple[int, list]) -> list[float]:
+        _, designs = chunk
+        return [self.score(S, sel) for S, sel in designs]

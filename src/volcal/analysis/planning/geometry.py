@@ -1,0 +1,472 @@
+"""Where a tracker may stand and what it can see: regions, obstacles, the reflector.
+
+All coordinates are in the machine's workpiece frame, in mm; angles in degrees in the
+declarations, radians inside.
+
+* :class:`Region`: a convex polygon in the plane normal to ``up`` (the floor or the table)
+  with height limits along ``up``; a box is a four-corner polygon.  Several regions give
+  a union; each station stands in one of them.
+* :class:`Obstacle`: an axis-aligned box or a cylinder that the beam must not cross; fixed
+  in the machine frame, or moving with the tool point (a spindle head: its coordinates are
+  then relative to the nominal tool point of the reading).  Cylinders are checked as
+  capsules (round end caps), which can only be stricter than the cylinder.
+* :class:`Reflector`: the acceptance half-angle of the reflector about its mounting axis.
+  The axis is fixed in the tool frame (turned with the rotary axes), or, as in paper 004,
+  re-aimed at every station set-up: then it points from the workspace centre to the
+  station and every beam of that station must lie within the half-angle of it.
+* :class:`Constraints`: all of the above plus the minimum station-to-point distance and the
+  tracker's maximum range.
+
+:func:`reading_violations` lists every reading that breaks a constraint (the check every
+plan passes before it is written), :func:`station_feasible` says whether a station
+position is allowed at all.  Both are plain numpy, independent of the optimisers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from volcal.base.exceptions import InputError
+
+__all__ = [
+    "Region",
+    "Obstacle",
+    "Reflector",
+    "Constraints",
+    "reading_violations",
+    "station_feasible",
+    "beam_blocked",
+    "stations_ok",
+    "aim_axes",
+    "constraints_from_dict",
+]
+
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def _plane_axes(up: str) -> tuple[int, int, int]:
+    u = _AXES[up]
+    a, b = [i for i in range(3) if i != u]
+    return a, b, u
+
+
+@dataclass(frozen=True)
+class Region:
+    """A convex polygon (vertices (n, 2) mm, in the two coordinates other than ``up``, in
+    their natural order: for up = z, (x, y)) extruded between heights ``low`` and
+    ``high`` (mm along ``up``)."""
+
+    vertices: np.ndarray
+    low: float
+    high: float
+    up: str = "z"
+    name: str = "region"
+
+    def __post_init__(self) -> None:
+        v = np.asarray(self.vertices, float)
+        if v.ndim != 2 or v.shape[1] != 2 or len(v) < 3:
+            raise InputError(f"region {self.name!r}: expected at least 3 vertices (x, y) in mm")
+        if self.up not in _AXES:
+            raise InputError(f"region {self.name!r}: 'up' must be x, y or z, got {self.up!r}")
+        if not self.high >= self.low:
+            raise InputError(f"region {self.name!r}: height limits {self.low} > {self.high}")
+        # counter-clockwise, and convex (the optimisers use its edges as linear constraints)
+        area2 = float(np.sum(v[:, 0] * np.roll(v[:, 1], -1) - np.roll(v[:, 0], -1) * v[:, 1]))
+        if area2 < 0:
+            v = v[::-1]
+        e = np.roll(v, -1, axis=0) - v
+        cross = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
+        if area2 == 0 or (cross < -1e-9 * np.abs(area2)).any():
+            raise InputError(
+                f"region {self.name!r}: the polygon must be convex with a non-zero area "
+                "(split a concave region into several convex ones)"
+            )
+        object.__setattr__(self, "vertices", v)
+
+    @classmethod
+    def box(cls, lo: Sequence[float], hi: Sequence[float], name: str = "box") -> Region:
+        """An axis-aligned box from corners lo, hi (x, y, z mm), up = z."""
+        a, b = np.asarray(lo, float), np.asarray(hi, float)
+        v = np.array([[a[0], a[1]], [b[0], a[1]], [b[0], b[1]], [a[0], b[1]]])
+        return cls(v, float(a[2]), float(b[2]), "z", name)
+
+    def halfspaces(self) -> tuple[np.ndarray, np.ndarray]:
+        """(A (m, 3), b (m,)) with A s <= b exactly inside (edges and height limits)."""
+        a, b_, u = _plane_axes(self.up)
+        v = self.vertices
+        e = np.roll(v, -1, axis=0) - v
+        n2 = np.column_stack([e[:, 1], -e[:, 0]])  # outward normals of a CCW polygon
+        A = np.zeros((len(v) + 2, 3))
+        A[: len(v), a], A[: len(v), b_] = n2[:, 0], n2[:, 1]
+        bb = np.empty(len(v) + 2)
+        bb[: len(v)] = np.sum(n2 * v, axis=1)
+        A[len(v), u], bb[len(v)] = 1.0, self.high
+        A[len(v) + 1, u], bb[len(v) + 1] = -1.0, -self.low
+        return A, bb
+
+    def contains(self, s: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+        A, b = self.halfspaces()
+        s = np.atleast_2d(np.asarray(s, float))
+        return np.all(s @ A.T <= b + tol, axis=1)
+
+    def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """n uniform points inside (rejection from the bounding box)."""
+        a, b_, u = _plane_axes(self.up)
+        lo, hi = self.vertices.min(0), self.vertices.max(0)
+        out = np.empty((0, 3))
+        while len(out) < n:
+            m = max(2 * (n - len(out)), 8)
+            s = np.empty((m, 3))
+            s[:, a] = rng.uniform(lo[0], hi[0], m)
+            s[:, b_] = rng.uniform(lo[1], hi[1], m)
+            s[:, u] = rng.uniform(self.low, self.high, m)
+            out = np.vstack([out, s[self.contains(s)]])
+        return out[:n]
+
+    @property
+    def volume(self) -> float:
+        v = self.vertices
+        area = 0.5 * abs(np.sum(v[:, 0] * np.roll(v[:, 1], -1) - np.roll(v[:, 0], -1) * v[:, 1]))
+        return float(area * max(self.high - self.low, 1e-9))
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A box (``lo``, ``hi`` corners) or a cylinder (axis from ``p0`` to ``p1``, ``radius``),
+    mm; ``moves_with`` "frame" (fixed) or "tool" (coordinates relative to the nominal tool
+    point of each reading)."""
+
+    kind: str
+    lo: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    hi: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    p0: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    p1: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    radius: float = 0.0
+    moves_with: str = "frame"
+    name: str = "obstacle"
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("box", "cylinder"):
+            raise InputError(f"obstacle {self.name!r}: kind must be box or cylinder")
+        if self.moves_with not in ("frame", "tool"):
+            raise InputError(f"obstacle {self.name!r}: moves_with must be frame or tool")
+        if self.kind == "box" and not np.all(np.asarray(self.hi) >= np.asarray(self.lo)):
+            raise InputError(f"obstacle {self.name!r}: every 'hi' must be >= 'lo'")
+        if self.kind == "cylinder" and not self.radius > 0:
+            raise InputError(f"obstacle {self.name!r}: the radius must be > 0 mm")
+
+
+@dataclass(frozen=True)
+class Reflector:
+    """Acceptance half-angle (deg) about the mounting axis; ``axis`` a unit vector in the
+    tool frame, or None: re-aimed at every station (paper 004)."""
+
+    half_angle_deg: float = 180.0
+    axis: tuple[float, float, float] | None = None
+
+    @property
+    def limited(self) -> bool:
+        return self.half_angle_deg < 180.0
+
+
+@dataclass(frozen=True)
+class Constraints:
+    """Everything that restricts a station position or a reading (see the module doc)."""
+
+    regions: tuple[Region, ...] = ()
+    obstacles: tuple[Obstacle, ...] = ()
+    reflector: Reflector = field(default_factory=Reflector)
+    min_distance_mm: float = 0.0
+    max_range_mm: float = np.inf
+
+
+def _segment_box(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Whether segments a[i] -> b[i] (N, 3) cross the open box (lo, hi) (slab method)."""
+    d = b - a
+    t0, t1 = np.zeros(len(a)), np.ones(len(a))
+    for k in range(3):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta = (lo[..., k] - a[:, k]) / d[:, k]
+            tb = (hi[..., k] - a[:, k]) / d[:, k]
+        par = np.abs(d[:, k]) < 1e-300
+        inside = (a[:, k] > lo[..., k]) & (a[:, k] < hi[..., k])
+        lo_t = np.where(par, np.where(inside, -np.inf, np.inf), np.minimum(ta, tb))
+        hi_t = np.where(par, np.where(inside, np.inf, -np.inf), np.maximum(ta, tb))
+        t0, t1 = np.maximum(t0, lo_t), np.minimum(t1, hi_t)
+    return t0 < t1 - 1e-12
+
+
+def _segment_segment_distance(
+    a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray
+) -> np.ndarray:
+    """Distance between segments a0->a1 (N, 3) and b0->b1 (N, 3) or (3,)."""
+    u, v, w = a1 - a0, b1 - b0, a0 - b0
+    a = np.sum(u * u, -1)
+    b = np.sum(u * v, -1)
+    c = np.sum(v * v, -1)
+    d = np.sum(u * w, -1)
+    e = np.sum(v * w, -1)
+    den = a * c - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(den > 1e-12 * a * c, np.clip((b * e - c * d) / den, 0, 1), 0.0)
+        t = np.where(c > 0, (b * s + e) / c, 0.0)
+    t = np.clip(t, 0, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(a > 0, np.clip((b * t - d) / a, 0, 1), 0.0)
+    diff = w + s[:, None] * u - t[:, None] * v
+    return np.linalg.norm(diff, axis=-1)
+
+
+def beam_blocked(points: np.ndarray, stations: np.ndarray, obstacles: Sequence[Obstacle]):
+    """(N,) bool: the beam from points[i] to stations[i] (mm) crosses an obstacle."""
+    points, stations = np.asarray(points, float), np.asarray(stations, float)
+    out = np.zeros(len(points), bool)
+    for ob in obstacles:
+        shift = points if ob.moves_with == "tool" else np.zeros((1, 3))
+        if ob.kind == "box":
+            lo, hi = np.asarray(ob.lo) + shift, np.asarray(ob.hi) + shift
+            lo, hi = np.broadcast_to(lo, points.shape), np.broadcast_to(hi, points.shape)
+            out |= _segment_box(points, stations, lo, hi)
+        else:
+            p0 = np.broadcast_to(np.asarray(ob.p0) + shift, points.shape)
+            p1 = np.broadcast_to(np.asarray(ob.p1) + shift, points.shape)
+            out |= _segment_segment_distance(points, stations, p0, p1) < ob.radius
+    return out
+
+
+def aim_axes(
+    points: np.ndarray,
+    tool_axes: np.ndarray,
+    stations: np.ndarray,
+    reflector: Reflector,
+    centre: np.ndarray,
+) -> np.ndarray:
+    """The reflector's mounting axis (N, 3) for every reading: turned with the tool
+    (``tool_axes``, the tool-frame axis in the machine frame per reading) or re-aimed from
+    the workspace ``centre`` at the reading's station."""
+    if reflector.axis is not None:
+        return np.asarray(tool_axes, float)
+    d = np.asarray(stations, float) - np.asarray(centre, float)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def reading_violations(
+    points: np.ndarray,
+    tool_axes: np.ndarray,
+    station_of: np.ndarray,
+    stations: np.ndarray,
+    constraints: Constraints,
+    centre: np.ndarray,
+) -> pd.DataFrame:
+    """Every (reading, constraint) broken: points (N, 3) mm the reflector positions,
+    tool_axes (N, 3) the reflector axis turned with the tool (unit, machine frame),
+    station_of (N,) the station index of each reading, stations (K, 3) mm.  Columns:
+    ``reading``, ``station``, ``constraint`` (region, distance, range, angle, sight),
+    ``value`` (mm or deg) and ``limit``."""
+    S = np.asarray(stations, float)[np.asarray(station_of, int)]
+    P = np.asarray(points, float)
+    rows: list[dict[str, Any]] = []
+
+    def add(mask, kind, value, limit):
+        for i in np.flatnonzero(mask):
+            rows.append(
+                {
+                    "reading": int(i),
+                    "station": int(station_of[i]),
+                    "constraint": kind,
+                    "value": float(value[i]),
+                    "limit": float(limit),
+                }
+            )
+
+    if constraints.regions:
+        ok = station_feasible(np.asarray(stations, float), constraints, check_sight=False)
+        add(~ok[station_of], "region", np.zeros(len(P)), 0.0)
+    dist = np.linalg.norm(S - P, axis=1)
+    add(dist < constraints.min_distance_mm, "distance", dist, constraints.min_distance_mm)
+    add(dist > constraints.max_range_mm, "range", dist, constraints.max_range_mm)
+    ref = constraints.reflector
+    if ref.limited:
+        ax = aim_axes(P, tool_axes, S, ref, centre)
+        beam = (S - P) / dist[:, None]
+        ang = np.degrees(np.arccos(np.clip(np.sum(beam * ax, axis=1), -1, 1)))
+        add(ang > ref.half_angle_deg + 1e-9, "angle", ang, ref.half_angle_deg)
+    if constraints.obstacles:
+        add(beam_blocked(P, S, constraints.obstacles), "sight", np.ones(len(P)), 0.0)
+    return pd.DataFrame(rows, columns=["reading", "station", "constraint", "value", "limit"])
+
+
+def station_feasible(
+    stations: np.ndarray, constraints: Constraints, *, check_sight: bool = False
+) -> np.ndarray:
+    """(K,) bool: the station positions (K, 3) mm lie in a region (any, when regions are
+    declared) and outside every fixed obstacle."""
+    s = np.atleast_2d(np.asarray(stations, float))
+    ok = np.ones(len(s), bool)
+    if constraints.regions:
+        ok &= np.any([r.contains(s) for r in constraints.regions], axis=0)
+    for ob in constraints.obstacles:
+        if ob.moves_with != "frame":
+            continue
+        if ob.kind == "box":
+            ok &= ~np.all((s > np.asarray(ob.lo)) & (s < np.asarray(ob.hi)), axis=1)
+        else:
+            p0 = np.broadcast_to(np.asarray(ob.p0, float), s.shape)
+            p1 = np.broadcast_to(np.asarray(ob.p1, float), s.shape)
+            ok &= _segment_segment_distance(s, s, p0, p1) >= ob.radius
+    return ok
+
+
+# ---- declarations (TOML tables / dicts: data, never code) ---------------------------------
+
+
+def _vec(d: Mapping[str, Any], key: str, where: str, n: int = 3) -> tuple[float, ...]:
+    v = d.get(key)
+    try:
+        out = tuple(float(a) for a in v)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: '{key}' must be a list of {n} numbers (mm)") from None
+    if len(out) != n or not np.all(np.isfinite(out)):
+        raise InputError(f"{where}: '{key}' must be a list of {n} finite numbers (mm)")
+    return out
+
+
+def _num(d: Mapping[str, Any], key: str, where: str, default: float | None = None) -> float:
+    if key not in d:
+        if default is None:
+            raise InputError(f"{where}: missing '{key}'")
+        return default
+    try:
+        v = float(d[key])
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: '{key}' must be a number, got {d[key]!r}") from None
+    return v
+
+
+def constraints_from_dict(doc: Mapping[str, Any], where: str = "constraints") -> Constraints:
+    """Constraints from a mapping (a TOML table)::
+
+    min_distance_mm = 150
+    max_range_mm = 10000
+    [reflector]
+    half_angle_deg = 60        # acceptance about the mounting axis
+    axis = [0, 0, -1]          # in the tool frame; omit: re-aimed at each station
+    [[region]]
+    name = "left"
+    box = [[-500, -200, -700], [-100, 800, -300]]   # or: polygon = [[x, y], ...],
+    #                                                 low = .., high = .., up = "z"
+    [[obstacle]]
+    name = "spindle head"
+    cylinder = [[0, 0, 50], [0, 0, 600]]           # axis end points
+    radius = 120
+    moves_with = "tool"
+    [[obstacle]]
+    box = [[..], [..]]
+    """
+    known = {"min_distance_mm", "max_range_mm", "reflector", "region", "obstacle"}
+    unknown = sorted(set(doc) - known)
+    if unknown:
+        raise InputError(f"{where}: unknown key(s) {', '.join(unknown)}; expected {sorted(known)}")
+    regions = []
+    for k, r in enumerate(doc.get("region", []) or []):
+        w = f"{where}.region[{k}]"
+        name = str(r.get("name", f"region{k + 1}"))
+        if "box" in r:
+            lo, hi = r["box"]
+            regions.append(Region.box(_vec({"v": lo}, "v", w), _vec({"v": hi}, "v", w), name=name))
+        elif "polygon" in r:
+            v = np.asarray(r["polygon"], float)
+            regions.append(
+                Region(v, _num(r, "low", w), _num(r, "high", w), str(r.get("up", "z")), name)
+            )
+        else:
+            raise InputError(f"{w}: expected 'box' or 'polygon'")
+    obstacles = []
+    for k, o in enumerate(doc.get("obstacle", []) or []):
+        w = f"{where}.obstacle[{k}]"
+        name = str(o.get("name", f"obstacle{k + 1}"))
+        mw = str(o.get("moves_with", "frame"))
+        if "box" in o:
+            lo, hi = o["box"]
+            obstacles.append(
+                Obstacle(
+                    "box",
+                    lo=_vec({"v": lo}, "v", w),  # type: ignore[arg-type]
+                    hi=_vec({"v": hi}, "v", w),  # type: ignore[arg-type]
+                    moves_with=mw,
+                    name=name,
+                )
+            )
+        elif "cylinder" in o:
+            a, b = o["cylinder"]
+            obstacles.append(
+                Obstacle(
+                    "cylinder",
+                    p0=_vec({"v": a}, "v", w),  # type: ignore[arg-type]
+                    p1=_vec({"v": b}, "v", w),  # type: ignore[arg-type]
+                    radius=_num(o, "radius", w),
+                    moves_with=mw,
+                    name=name,
+                )
+            )
+        else:
+            raise InputError(f"{w}: expected 'box' or 'cylinder'")
+    rd = doc.get("reflector", {}) or {}
+    axis = None
+    if "axis" in rd:
+        a = np.asarray(_vec(rd, "axis", f"{where}.reflector"))
+        if np.linalg.norm(a) == 0:
+            raise InputError(f"{where}.reflector: 'axis' must not be zero")
+        axis = tuple(float(v) for v in a / np.linalg.norm(a))
+    ref = Reflector(_num(rd, "half_angle_deg", f"{where}.reflector", 180.0), axis)  # type: ignore[arg-type]
+    return Constraints(
+        tuple(regions),
+        tuple(obstacles),
+        ref,
+        _num(doc, "min_distance_mm", where, 0.0),
+        _num(doc, "max_range_mm", where, float("inf")),
+    )
+
+
+def stations_ok(
+    candidates: np.ndarray,
+    points: np.ndarray,
+    tool_axes: np.ndarray,
+    constraints: Constraints,
+    centre: np.ndarray,
+) -> np.ndarray:
+    """(M,) bool: each candidate station position (M, 3) mm may read every point (n, 3)
+    (the reflector axis turned with the tool ``tool_axes`` (n, 3)): it lies in a region,
+    outside fixed obstacles, and every beam keeps the distance, range, acceptance-angle and
+    line-of-sight constraints.  Stations are independent of each other, so a plan is
+    feasible exactly when each of its stations is."""
+    C = np.atleast_2d(np.asarray(candidates, float))
+    P = np.asarray(points, float)
+    ok = station_feasible(C, constraints)
+    if not len(P):
+        return ok
+    D = C[:, None, :] - P[None, :, :]  # (M, n, 3) beam point -> station
+    dist = np.linalg.norm(D, axis=2)
+    ok &= np.all(dist >= constraints.min_distance_mm, axis=1)
+    ok &= np.all(dist <= constraints.max_range_mm, axis=1)
+    ref = constraints.reflector
+    if ref.limited:
+        if ref.axis is not None:
+            ax = np.broadcast_to(np.asarray(tool_axes, float)[None], D.shape)
+        else:
+            a = C - np.asarray(centre, float)
+            ax = np.broadcast_to(
+                (a / np.linalg.norm(a, axis=1, keepdims=True))[:, None, :], D.shape
+            )
+        cosang = np.sum(D * ax, axis=2) / dist
+        ok &= np.all(cosang >= np.cos(np.radians(ref.half_angle_deg)) - 1e-12, axis=1)
+    if constraints.obstacles:
+        for m in np.flatnonzero(ok):
+            if beam_blocked(P, np.broadcast_to(C[m], P.shape), constraints.obstacles).any():
+                ok[m] = False
+    return ok

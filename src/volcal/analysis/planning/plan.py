@@ -1,0 +1,558 @@
+"""``volcal.plan``: where to put the tracker and which poses to measure.
+
+:func:`plan` puts the pieces together:
+
+1. candidate poses: a grid over the travel to cover (a sub-range per axis if given), every
+   pose measured with every available tool offset from every station;
+2. the readings budget (a number, or minutes at seconds per reading) fixes how many poses
+   the plan holds: readings / (stations x tool offsets);
+3. a start: the given stations or feasible random ones, and an even spread of poses
+   (farthest-point sampling over the normalised axis positions);
+4. station placement (``"gradient"``, ``"ga"`` or ``"none"``), then a pose exchange
+   (``poses="exchange"``) among the poses every station can read, then placement again;
+5. the result: every reading checked against every constraint (a plan that breaks one is
+   never returned), the predicted uncertainties (error motions, volumetric error over the
+   workspace, error parameters) and what would stay unidentifiable.
+
+Units: mm and degrees at the interface (poses in file units as in
+:mod:`volcal.measurement.plans`), mm and rad inside.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from volcal.analysis.planning.evaluator import CRITERIA, PlanEvaluator
+from volcal.analysis.planning.geometry import (
+    Constraints,
+    constraints_from_dict,
+    reading_violations,
+)
+from volcal.analysis.planning.search import (
+    SearchResult,
+    StationSampler,
+    exchange_poses,
+    genetic_placement,
+    gradient_placement,
+)
+from volcal.base.exceptions import InputError
+from volcal.measurement.budget import Budget, load_budget
+from volcal.measurement.plans import grid_plan
+from volcal.model.errors import ErrorForm, ErrorModel
+from volcal.model.machine import Machine
+
+__all__ = ["plan", "PlanResult", "OPTIMIZERS", "candidate_poses", "spread_poses"]
+
+#: station placement methods
+OPTIMIZERS = ("gradient", "ga", "none")
+
+
+def candidate_poses(
+    machine: Machine, n: int, travel: Mapping[str, Sequence[float]] | None = None
+) -> pd.DataFrame:
+    """A grid of ``n`` positions per linear axis (the rotary default of
+    :func:`volcal.measurement.plans.grid_plan` on rotary axes) over the travel, or over
+    ``travel`` ({axis: (lo, hi)} in mm / deg, inside the axis travel) where given."""
+    spec = machine.spec
+    g = grid_plan(spec, n)
+    for a in spec.axes:
+        if travel and a.name in travel:
+            lo, hi = (float(v) for v in travel[a.name])
+            t0, t1 = a.travel
+            if not (t0 - 1e-9 <= lo < hi <= t1 + 1e-9):
+                raise InputError(
+                    f"travel to cover on {a.name}: {lo:g} .. {hi:g} must lie inside the "
+                    f"axis travel {t0:g} .. {t1:g} with lo < hi"
+                )
+            g[a.name] = lo + (g[a.name] - t0) * (hi - lo) / (t1 - t0)
+    return g.drop_duplicates().reset_index(drop=True)
+
+
+def spread_poses(machine: Machine, poses: pd.DataFrame, n: int) -> np.ndarray:
+    """Mask selecting ``n`` poses spread evenly (greedy farthest-point sampling over the
+    axis positions normalised by their travel, from the pose nearest the centre)."""
+    if n >= len(poses):
+        return np.ones(len(poses), bool)
+    spec = machine.spec
+    span = np.array([max(a.travel[1] - a.travel[0], 1e-9) for a in spec.axes])
+    X = poses[spec.axis_names].to_numpy(float) / span
+    first = int(np.argmin(np.linalg.norm(X - X.mean(0), axis=1)))
+    chosen = [first]
+    d = np.linalg.norm(X - X[first], axis=1)
+    for _ in range(n - 1):
+        k = int(np.argmax(d))
+        chosen.append(k)
+        d = np.minimum(d, np.linalg.norm(X - X[k], axis=1))
+    sel = np.zeros(len(poses), bool)
+    sel[chosen] = True
+    return sel
+
+
+def _tool_axes(machine: Machine, q: np.ndarray, t: np.ndarray, axis) -> np.ndarray:
+    """The reflector axis (tool frame) turned into the machine frame at each reading: the
+    difference of the nominal points at tool offsets t + axis and t (the tool offset is
+    affine in the tool frame)."""
+    if axis is None:
+        return np.zeros_like(t)
+    z = np.zeros(machine.n_errors)
+    p1, _, _ = machine.evaluate(q, t + np.asarray(axis, float), z)
+    p0, _, _ = machine.evaluate(q, t, z)
+    d = p1 - p0
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+@dataclass
+class PlanResult:
+    """A measurement plan and its prediction (see :func:`plan`)."""
+
+    machine: Machine
+    error_model: ErrorModel
+    evaluator: PlanEvaluator
+    stations_mm: np.ndarray
+    selected: np.ndarray
+    criterion: str
+    value: float
+    start_value: float
+    searches: list[SearchResult]
+    constraints: Constraints
+    settings: dict[str, Any]
+    seconds: float
+    notes: list[str] = field(default_factory=list)
+
+    # ---- tables ----------------------------------------------------------------------
+    @property
+    def stations(self) -> pd.DataFrame:
+        """station, x_mm, y_mm, z_mm (the tracker set-ups, in measuring order)."""
+        ids = [f"S{k + 1}" for k in range(len(self.stations_mm))]
+        df = pd.DataFrame(self.stations_mm, columns=["x_mm", "y_mm", "z_mm"])
+        df.insert(0, "station", ids)
+        return df
+
+    @property
+    def poses(self) -> pd.DataFrame:
+        """The selected poses, one column per axis (mm / deg), in measuring order."""
+        m = self.machine
+        q = self.evaluator.poses[self.selected]
+        out = q.copy()
+        for k, a in enumerate(m.spec.axes):
+            if a.is_rotary:
+                out[:, k] = np.rad2deg(out[:, k])
+        return pd.DataFrame(out, columns=m.axis_names)
+
+    @property
+    def tools(self) -> np.ndarray:
+        return self.evaluator.tools
+
+    def measurement_plan(self) -> pd.DataFrame:
+        """Every planned reading in measuring order (station, then tool offset, then pose)
+        in the columns ``identify`` reads: ``station, point, <axes>, tool_x_mm, tool_y_mm,
+        tool_z_mm`` and an empty ``length_mm`` to fill with the readings; plus ``order``
+        and ``tool`` (the tool offset's index)."""
+        ev, m = self.evaluator, self.machine
+        keep = self.selected[ev.pose_of]
+        q = ev.q[keep].copy()
+        for k, a in enumerate(m.spec.axes):
+            if a.is_rotary:
+                q[:, k] = np.rad2deg(q[:, k])
+        st = ev.station_of[keep]
+        # point ids: one per (pose, tool), the same at every station
+        sel_idx = np.cumsum(self.selected) - 1
+        point = ev.tool_of[keep] * int(self.selected.sum()) + sel_idx[ev.pose_of[keep]] + 1
+        df = pd.DataFrame(
+            {
+                "order": np.arange(1, keep.sum() + 1),
+                "station": [f"S{k + 1}" for k in st],
+                "point": point,
+            }
+        )
+        for k, name in enumerate(m.axis_names):
+            df[name] = q[:, k]
+        df["tool"] = ev.tool_of[keep]
+        df[["tool_x_mm", "tool_y_mm", "tool_z_mm"]] = ev.t[keep]
+        df["length_mm"] = np.nan
+        return df
+
+    def violations(self) -> pd.DataFrame:
+        """Every planned reading that breaks a constraint (empty for a returned plan)."""
+        ev = self.evaluator
+        keep = self.selected[ev.pose_of]
+        axes = _tool_axes(self.machine, ev.q[keep], ev.t[keep], self.constraints.reflector.axis)
+        return reading_violations(
+            ev.points[keep],
+            axes,
+            ev.station_of[keep],
+            self.stations_mm,
+            self.constraints,
+            ev.points.mean(0),
+        )
+
+    # ---- prediction --------------------------------------------------------------------
+    def covariance(self) -> np.ndarray:
+        """Linearised covariance of the unknowns (mm, rad; held variables NaN)."""
+        return self.evaluator.covariance(self.stations_mm, self.selected)
+
+    def parameter_uncertainty(self) -> pd.DataFrame:
+        """parameter, unit, u (standard uncertainty, um or urad; NaN where held)."""
+        pr = self.evaluator.problem
+        cov = self.covariance()
+        u = np.sqrt(np.clip(np.diag(cov), 0, None))
+        factor = np.array([1e3 if un == "mm" else 1e6 if un == "rad" else 1.0 for un in pr.units])
+        unit = ["um" if un == "mm" else "urad" if un == "rad" else un for un in pr.units]
+        return pd.DataFrame({"parameter": pr.names, "unit": unit, "u": u * factor})
+
+    def error_motion_uncertainty(self, n: int = 21) -> pd.DataFrame:
+        """Standard uncertainty of every error motion along its axis (the other axes at
+        their reference): error, axis, position (mm or deg), u_um or u_urad in
+        ``u_value`` with ``unit``."""
+        m, em = self.machine, self.error_model
+        cov = np.nan_to_num(self.covariance()[: em.n_params, : em.n_params])
+        rows = []
+        ref = np.array([a.reference for a in m.spec.axes], float)
+        ref = m.axis_to_internal(ref[None])[0]
+        for k, s in enumerate(em.errors):
+            if s.kind == "component":
+                a = m.spec.axis(s.axis)
+                j = m.axis_names.index(s.axis)
+                pos = np.linspace(a.travel[0], a.travel[1], n)
+                q = np.repeat(ref[None], n, axis=0)
+                q[:, j] = np.deg2rad(pos) if a.is_rotary else pos
+            else:
+                pos, q = np.array([np.nan]), ref[None]
+            b = em.basis(q)[:, k, :]  # (n, n_params)
+            var = np.einsum("np,pq,nq->n", b, cov, b)
+            f, unit = (1e3, "um") if s.quantity == "translation" else (1e6, "urad")
+            for x, v in zip(pos, var):
+                rows.append(
+                    {
+                        "error": s.name,
+                        "axis": s.axis,
+                        "position": x,
+                        "u_value": float(np.sqrt(max(v, 0.0)) * f),
+                        "unit": unit,
+                    }
+                )
+        return pd.DataFrame(rows)
+
+    def volumetric_uncertainty(self) -> pd.DataFrame:
+        """Standard uncertainty of the volumetric error at the evaluation poses: the axes
+        (mm / deg), tool offset (mm), nominal point (mm), u_dx_um, u_dy_um, u_dz_um,
+        u_total_um."""
+        ev, m = self.evaluator, self.machine
+        u = ev.volumetric_u(self.stations_mm, self.selected)
+        q = ev.eval_q.copy()
+        for k, a in enumerate(m.spec.axes):
+            if a.is_rotary:
+                q[:, k] = np.rad2deg(q[:, k])
+        df = pd.DataFrame(q, columns=m.axis_names)
+        df[["tool_x_mm", "tool_y_mm", "tool_z_mm"]] = ev.eval_t
+        p0, _, _ = m.evaluate(ev.eval_q, ev.eval_t, np.zeros(m.n_errors))
+        df[["x_mm", "y_mm", "z_mm"]] = p0
+        df[["u_dx_um", "u_dy_um", "u_dz_um"]] = u
+        df["u_total_um"] = np.linalg.norm(u, axis=1)
+        return df
+
+    def unidentifiable(self) -> list[str]:
+        """Error parameters in a direction the plan's data cannot see (the gauge of the
+        stations and the tracker frame is left out: no data can see it)."""
+        nt = self.error_model.n_params
+        names = set(self.error_model.param_names)
+        return [
+            n
+            for n in (self.evaluator.frozen.unidentifiable if self.evaluator.frozen else [])
+            if n in names
+        ][:nt]
+
+    def field_determined(self) -> np.ndarray:
+        """Per evaluation pose: whether its volumetric error follows from the data (up to
+        the rigid motion no multilateration sees)."""
+        ev = self.evaluator
+        ider = ev.identifier
+        x, p = ev.x(self.stations_mm), ev.p(self.stations_mm, self.selected)
+        user_fixed = ider.station_fixed(np.zeros(ev.n_stations, bool))
+        keep = self.selected[ev.pose_of]
+        fns, _ = ider.field_null_space(x, p, user_fixed, ev.q[keep], ev.t[keep])
+        p0, _, _ = self.machine.evaluate(ev.eval_q, ev.eval_t, np.zeros(self.machine.n_errors))
+        return np.asarray(fns.determined(ev.G_eval, p0), bool)
+
+    def summary(self) -> dict[str, Any]:
+        vol = self.volumetric_uncertainty()
+        return {
+            "model": self.machine.spec.name,
+            "stations": int(len(self.stations_mm)),
+            "tool_offsets": int(len(self.tools)),
+            "poses": int(self.selected.sum()),
+            "readings": int(self.selected.sum() * len(self.tools) * len(self.stations_mm)),
+            "criterion": self.criterion,
+            "criterion_value": self.value,
+            "start_value": self.start_value,
+            "volumetric_u_rms_um": float(np.sqrt(np.mean(vol["u_total_um"] ** 2))),
+            "volumetric_u_max_um": float(vol["u_total_um"].max()),
+            "unidentifiable_error_parameters": self.unidentifiable(),
+            "searches": [
+                {
+                    "method": s.method,
+                    "value": s.value,
+                    "evaluations": s.evaluations,
+                    "seconds": round(s.seconds, 3),
+                }
+                for s in self.searches
+            ],
+            "seconds": round(self.seconds, 3),
+            "notes": self.notes,
+        }
+
+    def __repr__(self) -> str:
+        return (
+            f"PlanResult({self.machine.spec.name}: {len(self.stations_mm)} stations, "
+            f"{int(self.selected.sum())} poses x {len(self.tools)} tools, "
+            f"{self.criterion} = {self.value:.4g} (start {self.start_value:.4g}))"
+        )
+
+
+def _readings_budget(
+    readings: int | None, minutes: float | None, seconds_per_reading: float
+) -> int | None:
+    if readings is not None and minutes is not None:
+        raise InputError("give the budget as readings or as minutes, not both")
+    if minutes is not None:
+        if not minutes > 0 or not seconds_per_reading > 0:
+            raise InputError("minutes and seconds per reading must be > 0")
+        return int(minutes * 60.0 / seconds_per_reading)
+    if readings is not None and readings <= 0:
+        raise InputError(f"the readings budget must be > 0, got {readings}")
+    return readings
+
+
+def plan(
+    model: str | Path | Machine,
+    *,
+    n_stations: int = 4,
+    tools: np.ndarray | Sequence[Sequence[float]] | None = None,
+    readings: int | None = None,
+    minutes: float | None = None,
+    seconds_per_reading: float = 4.0,
+    constraints: Constraints | Mapping[str, Any] | None = None,
+    travel: Mapping[str, Sequence[float]] | None = None,
+    budget: str | Path | Budget = "paper002",
+    degree: int = 3,
+    error_model: ErrorModel | None = None,
+    criterion: str = "I",
+    optimizer: str = "gradient",
+    poses: str = "exchange",
+    stations: np.ndarray | pd.DataFrame | None = None,
+    grid: int = 6,
+    seed: int = 0,
+    starts: int = 6,
+    population: int = 40,
+    generations: int = 30,
+    rounds: int = 2,
+    workers: int | None = 1,
+    scheduler: Any = None,
+    checkpoint_dir: str | Path | None = None,
+    progress: Callable[[str, int, float], None] | None = None,
+) -> PlanResult:
+    """Plan a sequential multilateration measurement (see the module docstring).
+
+    model: bundled name, model file or Machine; n_stations: tracker set-ups; tools: the
+    available tool (reflector) offsets (T, 3) mm, every one measured (default (0, 0, 0));
+    readings / minutes + seconds_per_reading: the time budget (default: every candidate
+    pose once); constraints: :class:`Constraints` or its TOML mapping
+    (:func:`volcal.analysis.planning.geometry.constraints_from_dict`), regions required;
+    travel: {axis: (lo, hi)} mm / deg to cover (default the whole travel); budget: reading
+    uncertainties; criterion: I (default), A, D or E; optimizer: gradient (default), ga
+    or none (keep ``stations``); poses: exchange (default) or spread (keep the even
+    spread); stations: start or given stations (K, 3) mm or a table with x_mm, y_mm,
+    z_mm; grid: candidate positions per linear axis; seed: every random draw;
+    starts / population / generations: search sizes; rounds: placement / exchange
+    alternations; workers / scheduler: where the GA scores (1: this process; None: all
+    cores; a Dask address or Client); checkpoint_dir: searches save there after every
+    generation or start and resume from what they find; progress(stage, step, best)."""
+    t0 = time.perf_counter()
+    if criterion not in CRITERIA:
+        raise InputError(f"unknown criterion {criterion!r}; expected one of {', '.join(CRITERIA)}")
+    if optimizer not in OPTIMIZERS:
+        raise InputError(
+            f"unknown optimizer {optimizer!r}; expected one of {', '.join(OPTIMIZERS)}"
+        )
+    if poses not in ("exchange", "spread"):
+        raise InputError(f"poses must be 'exchange' or 'spread', got {poses!r}")
+    if n_stations < 3:
+        raise InputError(f"multilateration needs at least 3 stations, got {n_stations}")
+    machine = model if isinstance(model, Machine) else Machine.from_model(model)
+    em = error_model or ErrorModel(machine.spec, default=ErrorForm("poly", degree))
+    bud = budget if isinstance(budget, Budget) else load_budget(budget)
+    T = np.zeros((1, 3)) if tools is None else np.atleast_2d(np.asarray(tools, float))
+    if T.shape[1] != 3 or not np.isfinite(T).all():
+        raise InputError("tool offsets must be finite (T, 3) mm")
+    cons = (
+        constraints
+        if isinstance(constraints, Constraints)
+        else constraints_from_dict(constraints or {})
+    )
+    if not cons.regions and (optimizer != "none" or stations is None):
+        raise InputError(
+            "declare at least one region where the tracker may stand ([[constraints.region]] "
+            "with a box or polygon)"
+        )
+    cand = candidate_poses(machine, grid, travel)
+    q_cand = machine.axis_to_internal(cand[machine.axis_names].to_numpy(float))
+    n_total = _readings_budget(readings, minutes, seconds_per_reading)
+    per_pose = n_stations * len(T)
+    n_poses = len(cand) if n_total is None else n_total // per_pose
+    notes: list[str] = []
+    if n_poses > len(cand):
+        notes.append(
+            f"the budget allows {n_poses} poses but the grid has {len(cand)}: all measured "
+            "(raise grid for more candidates)"
+        )
+        n_poses = len(cand)
+    n_min = 4
+    if n_poses < n_min:
+        raise InputError(
+            f"the budget gives {n_poses} pose(s) per station and tool offset "
+            f"({n_total} readings / ({n_stations} stations x {len(T)} tool offsets)); "
+            f"at least {n_min} are needed"
+        )
+    ev = PlanEvaluator(machine, em, q_cand, T, n_stations, bud)
+    rng = np.random.default_rng(seed)
+    sel = spread_poses(machine, cand, n_poses)
+    centre = ev.points.mean(0)
+    ckpt = Path(checkpoint_dir) if checkpoint_dir is not None else None
+    if ckpt is not None:
+        ckpt.mkdir(parents=True, exist_ok=True)
+
+    def sampler_for(selected: np.ndarray) -> StationSampler:
+        use = selected[ev.pose_of] & (ev.station_of == 0)
+        axes = _tool_axes(machine, ev.q[use], ev.t[use], cons.reflector.axis)
+        return StationSampler(cons, ev.points[use], axes, centre)
+
+    sampler = sampler_for(sel)
+    if stations is not None:
+        S0 = (
+            stations[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
+            if isinstance(stations, pd.DataFrame)
+            else np.asarray(stations, float)
+        ).reshape(-1, 3)
+        if len(S0) != n_stations:
+            raise InputError(f"{len(S0)} stations given for n_stations = {n_stations}")
+        bad = ~sampler.ok(S0)
+        if bad.any() and optimizer != "none":
+            notes.append(
+                f"given station(s) {', '.join(f'S{k + 1}' for k in np.flatnonzero(bad))} "
+                "break a constraint; the search starts from feasible draws for them"
+            )
+            S0[bad] = sampler.draw(rng, int(bad.sum()))
+    else:
+        S0 = sampler.draw(rng, n_stations)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ev.freeze(S0, sel)
+    scorer = ev.scorer
+    assert scorer is not None
+    scorer.criterion_name = criterion
+    start_value = scorer.score(S0, sel)
+    S, searches = S0, []
+    for rnd in range(max(1, rounds)):
+
+        def report(step: int, best: float, _r: int = rnd) -> None:
+            if progress is not None:
+                progress(f"{optimizer} round {_r + 1}", step, best)
+
+        if optimizer == "ga":
+            res = genetic_placement(
+                scorer,
+                sampler,
+                n_stations,
+                selected=sel,
+                population=population,
+                generations=generations,
+                seed=seed + rnd,
+                initial=S,
+                workers=workers,
+                scheduler=scheduler,
+                checkpoint=ckpt / f"ga_round{rnd + 1}.npz" if ckpt else None,
+                progress=report,
+            )
+            searches.append(res)
+        elif optimizer == "gradient":
+            res = gradient_placement(
+                ev,
+                sampler,
+                selected=sel,
+                starts=starts,
+                seed=seed + rnd,
+                initial=S,
+                criterion=criterion if criterion in ("I", "A", "D") else "I",
+                checkpoint=ckpt / f"gradient_round{rnd + 1}.npz" if ckpt else None,
+                progress=report,
+            )
+            searches.append(res)
+        if searches and searches[-1].value < scorer.score(S, sel):
+            S = searches[-1].stations
+        if poses == "exchange":
+            allowed = _readable(ev, machine, cons, S, centre)
+            sel, _, swaps = exchange_poses(scorer, S, sel, allowed=allowed)
+            if progress is not None:
+                progress("pose exchange", rnd, scorer.score(S, sel))
+            sampler = sampler_for(sel)
+            if swaps == 0 and rnd > 0:
+                break
+        else:
+            break
+    value = scorer.score(S, sel)
+    result = PlanResult(
+        machine,
+        em,
+        ev,
+        np.asarray(S, float),
+        sel,
+        criterion,
+        value,
+        start_value,
+        searches,
+        cons,
+        {
+            "n_stations": n_stations,
+            "tools_mm": T.tolist(),
+            "readings": n_total,
+            "criterion": criterion,
+            "optimizer": optimizer,
+            "poses": poses,
+            "grid": grid,
+            "seed": seed,
+            "starts": starts,
+            "population": population,
+            "generations": generations,
+            "rounds": rounds,
+            "budget": bud.name,
+            "degree": degree,
+            "travel": {k: list(map(float, v)) for k, v in (travel or {}).items()},
+        },
+        time.perf_counter() - t0,
+        notes,
+    )
+    bad = result.violations()
+    if len(bad):
+        raise RuntimeError(  # never returned: the searches only keep feasible designs
+            f"internal error: the plan breaks {len(bad)} reading constraint(s):\n{bad.head()}"
+        )
+    return result
+
+
+def _readable(
+    ev: PlanEvaluator, machine: Machine, cons: Constraints, S: np.ndarray, centre: np.ndarray
+) -> np.ndarray:
+    """Candidate poses every station can read with every tool offset."""
+    axes = _tool_axes(machine, ev.q, ev.t, cons.reflector.axis)
+    bad = reading_violations(ev.points, axes, ev.station_of, S, cons, centre)
+    ok = np.ones(len(ev.poses), bool)
+    ok[np.unique(ev.pose_of[bad["reading"].to_numpy(int)])] = False
+    return ok

@@ -1,0 +1,487 @@
+"""Searches for a better plan: station placement (genetic algorithm, gradient-based
+multi-start) and pose selection (exchange).
+
+Every search minimises a :class:`~volcal.analysis.planning.evaluator.Scorer` criterion over
+designs that satisfy the constraints (:mod:`volcal.analysis.planning.geometry`).  A station
+may stand where it can read every selected point; stations are independent of each other,
+so feasibility is checked (and repaired) station by station.
+
+* :func:`genetic_placement`: paper 004's algorithm: a population of station sets,
+  tournament selection, crossover at station level and blend, Gaussian mutation, then the
+  constraint check after crossover and mutation (an infeasible station is drawn again
+  inside the regions), elitism.  The population is scored in parallel (local processes or
+  Dask, :func:`volcal.analysis.uncertainty.parallel.run_chunks`); the search saves a
+  checkpoint after every generation and resumes from it.
+* :func:`gradient_placement`: IPOPT on the station coordinates with exact derivatives of the
+  criterion (CasADi through the problem's Jacobian), the regions, distance, range and
+  acceptance-angle constraints written as smooth inequalities, from several feasible
+  starts; line of sight is checked on each result (a start whose optimum a beam of which
+  is blocked is discarded).  Checkpointed after every start.
+* :func:`exchange_poses`: a Fedorov-type exchange of poses between the plan and a candidate
+  grid for the I-criterion, with rank-K updates of the information matrix.
+
+Randomness comes from one seeded numpy Generator per search; the same seed gives the same
+result wherever the scoring runs (scores are exact functions of the design).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from volcal.analysis.planning.evaluator import PlanEvaluator, Scorer
+from volcal.analysis.planning.geometry import Constraints, stations_ok
+from volcal.base.exceptions import InputError
+
+__all__ = [
+    "SearchResult",
+    "StationSampler",
+    "genetic_placement",
+    "gradient_placement",
+    "exchange_poses",
+]
+
+
+@dataclass
+class SearchResult:
+    """Best stations (K, 3) mm, its criterion, the history (one row per generation or
+    start: ``step``, ``best``, ``seconds``), evaluations and wall time (s)."""
+
+    method: str
+    stations: np.ndarray
+    value: float
+    history: list[dict[str, float]] = field(default_factory=list)
+    evaluations: int = 0
+    seconds: float = 0.0
+    notes: list[str] = field(default_factory=list)
+
+
+class StationSampler:
+    """Feasible station positions for the readings of a plan (points (n, 3) mm, reflector
+    axes turned with the tool (n, 3), workspace centre (3,) mm)."""
+
+    def __init__(
+        self,
+        constraints: Constraints,
+        points: np.ndarray,
+        tool_axes: np.ndarray,
+        centre: np.ndarray,
+        *,
+        bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    ):
+        self.constraints, self.points, self.tool_axes = constraints, points, tool_axes
+        self.centre = np.asarray(centre, float)
+        if not constraints.regions:
+            if bounds is None:
+                raise InputError("planning needs at least one region where stations may stand")
+        self.bounds = bounds
+
+    def ok(self, S: np.ndarray) -> np.ndarray:
+        return stations_ok(S, self.points, self.tool_axes, self.constraints, self.centre)
+
+    def draw(self, rng: np.random.Generator, n: int, max_tries: int = 200) -> np.ndarray:
+        """n feasible positions (n, 3) mm, regions chosen in proportion to their volume."""
+        regs = self.constraints.regions
+        out = np.empty((0, 3))
+        for _ in range(max_tries):
+            m = max(4 * (n - len(out)), 16)
+            if regs:
+                vol = np.array([r.volume for r in regs])
+                which = rng.choice(len(regs), size=m, p=vol / vol.sum())
+                cand = np.vstack(
+                    [regs[k].sample(rng, int(np.sum(which == k))) for k in range(len(regs))]
+                )
+            else:
+                lo, hi = self.bounds  # type: ignore[misc]
+                cand = rng.uniform(lo, hi, (m, 3))
+            cand = cand[rng.permutation(len(cand))]
+            out = np.vstack([out, cand[self.ok(cand)]])
+            if len(out) >= n:
+                return out[:n]
+        raise InputError(
+            f"found only {len(out)} of {n} feasible station positions in {max_tries} rounds: "
+            "the regions, distances, acceptance angle or obstacles leave (almost) no room; "
+            "widen a region or relax a constraint"
+        )
+
+
+# ---- scoring in parallel ---------------------------------------------------------------
+
+
+def _score_all(
+    scorer: Scorer,
+    designs: list[tuple[np.ndarray, np.ndarray | None]],
+    workers: int | None,
+    scheduler: Any,
+) -> np.ndarray:
+    from volcal.analysis.uncertainty.parallel import run_chunks
+
+    if workers == 1 and scheduler is None:
+        return np.array([scorer.score(S, sel) for S, sel in designs])
+    n_chunks = min(len(designs), 4 * (workers or 2))
+    bounds = np.linspace(0, len(designs), n_chunks + 1).astype(int)
+    chunks = [(int(a), designs[a:b]) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    out = np.empty(len(designs))
+    for (start, part), vals in run_chunks(scorer, chunks, workers=workers, scheduler=scheduler):
+        out[start : start + len(part)] = vals
+    return out
+
+
+# ---- checkpoints -------------------------------------------------------------------------
+
+
+def _save(path: Path | None, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
+    if path is None:
+        return
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, meta=np.array(json.dumps(meta)), **arrays)  # type: ignore[arg-type]
+    tmp.replace(path)  # atomic: a stopped search never leaves half a checkpoint
+
+
+def _load(path: Path | None, kind: str, key: dict[str, Any]) -> dict[str, Any] | None:
+    if path is None or not Path(path).exists():
+        return None
+    with np.load(path, allow_pickle=False) as z:
+        meta = json.loads(str(z["meta"]))
+        if meta.get("kind") != kind or meta.get("key") != key:
+            raise InputError(
+                f"the checkpoint {path} belongs to another search "
+                f"({meta.get('kind')}, {meta.get('key')}); expected {kind}, {key}",
+                source=str(path),
+            )
+        out = {k: z[k] for k in z.files if k != "meta"}
+    out["meta"] = meta
+    return out
+
+
+# ---- genetic algorithm (paper 004) ------------------------------------------------------
+
+
+def genetic_placement(
+    scorer: Scorer,
+    sampler: StationSampler,
+    n_stations: int,
+    *,
+    selected: np.ndarray | None = None,
+    population: int = 40,
+    generations: int = 30,
+    crossover: float = 0.8,
+    mutation: float = 0.2,
+    elite: int = 2,
+    seed: int = 0,
+    initial: np.ndarray | None = None,
+    workers: int | None = 1,
+    scheduler: Any = None,
+    checkpoint: Path | None = None,
+    progress: Callable[[int, float], None] | None = None,
+) -> SearchResult:
+    """Paper 004's genetic algorithm on the station coordinates (see the module doc).
+    ``initial``: a design (K, 3) put into the first population; ``checkpoint``: a file
+    written after every generation and read at the start when it exists (the search
+    continues from its last generation with the same random stream)."""
+    t0 = time.perf_counter()
+    K = int(n_stations)
+    key = {"K": K, "population": population, "seed": seed, "criterion": scorer.criterion_name}
+    rng = np.random.default_rng(seed)
+    state = _load(checkpoint, "ga", key)
+    extent = _extent(sampler)
+    if state is not None:
+        pop, fit = state["population"], state["fitness"]
+        gen0 = int(state["meta"]["generation"]) + 1
+        rng.bit_generator.state = state["meta"]["rng"]
+        history = state["meta"]["history"]
+        n_eval = int(state["meta"]["evaluations"])
+    else:
+        pop = sampler.draw(rng, population * K).reshape(population, K, 3)
+        if initial is not None:
+            pop[0] = np.asarray(initial, float).reshape(K, 3)
+        fit = _score_all(scorer, [(S, selected) for S in pop], workers, scheduler)
+        gen0, history, n_eval = 0, [], population
+    for gen in range(gen0, generations):
+        order = np.argsort(fit)
+        children = [pop[i].copy() for i in order[:elite]]
+        while len(children) < population:
+            a, b = _tournament(rng, fit), _tournament(rng, fit)
+            c1, c2 = pop[a].copy(), pop[b].copy()
+            if rng.random() < crossover:
+                swap = rng.random(K) < 0.5  # station-level uniform crossover
+                c1[swap], c2[swap] = pop[b][swap], pop[a][swap]
+                lam = rng.random()  # and a blend of one station
+                k = rng.integers(K)
+                c1[k] = lam * pop[a][k] + (1 - lam) * pop[b][k]
+            for c in (c1, c2):
+                mut = rng.random((K, 3)) < mutation
+                c += mut * rng.normal(0.0, 0.1, (K, 3)) * extent
+                bad = ~sampler.ok(c)  # constraints after crossover and mutation
+                if bad.any():
+                    c[bad] = sampler.draw(rng, int(bad.sum()))
+                children.append(c)
+        pop = np.array(children[:population])
+        fit = np.concatenate(
+            [
+                fit[order[:elite]],
+                _score_all(scorer, [(S, selected) for S in pop[elite:]], workers, scheduler),
+            ]
+        )
+        n_eval += population - elite
+        best = float(fit.min())
+        history.append({"step": gen, "best": best, "seconds": time.perf_counter() - t0})
+        _save(
+            checkpoint,
+            {"population": pop, "fitness": fit},
+            {
+                "kind": "ga",
+                "key": key,
+                "generation": gen,
+                "rng": rng.bit_generator.state,
+                "history": history,
+                "evaluations": n_eval,
+            },
+        )
+        if progress is not None:
+            progress(gen, best)
+    i = int(np.argmin(fit))
+    return SearchResult("ga", pop[i], float(fit[i]), history, n_eval, time.perf_counter() - t0)
+
+
+def _tournament(rng: np.random.Generator, fit: np.ndarray, size: int = 3) -> int:
+    idx = rng.choice(len(fit), size=size, replace=False)
+    return int(idx[np.argmin(fit[idx])])
+
+
+def _extent(sampler: StationSampler) -> np.ndarray:
+    if sampler.constraints.regions:
+        pts = np.vstack(
+            [r.sample(np.random.default_rng(0), 64) for r in sampler.constraints.regions]
+        )
+        return np.ptp(pts, axis=0) + 1.0
+    lo, hi = sampler.bounds  # type: ignore[misc]
+    return np.asarray(hi, float) - np.asarray(lo, float)
+
+
+# ---- gradient-based placement -----------------------------------------------------------
+
+
+def _region_of(sampler: StationSampler, s: np.ndarray) -> int:
+    for k, r in enumerate(sampler.constraints.regions):
+        if r.contains(s)[0]:
+            return k
+    return 0
+
+
+def gradient_placement(
+    ev: PlanEvaluator,
+    sampler: StationSampler,
+    *,
+    selected: np.ndarray | None = None,
+    starts: int = 6,
+    seed: int = 0,
+    initial: np.ndarray | None = None,
+    criterion: str = "I",
+    max_iter: int = 60,
+    checkpoint: Path | None = None,
+    progress: Callable[[int, float], None] | None = None,
+) -> SearchResult:
+    """Multi-start IPOPT on the station coordinates (see the module doc).  The reading
+    weights are those of each start's stations (the budget's distance dependence is weak);
+    the result is scored again with its own weights."""
+    t0 = time.perf_counter()
+    assert ev.scorer is not None, "freeze the evaluator first"
+    K = ev.n_stations
+    scorer = ev.scorer
+    cons = sampler.constraints
+    rng = np.random.default_rng(seed)
+    key = {"K": K, "starts": starts, "seed": seed, "criterion": criterion}
+    f_sym = ev.symbolic_criterion(criterion, selected)
+    sel = np.ones(len(ev.poses), bool) if selected is None else np.asarray(selected, bool)
+    use = sel[ev.pose_of] & (ev.station_of == 0)  # the points of one station's readings
+    P = ev.points[use]
+    Ax = sampler.tool_axes
+    s = ca.MX.sym("s", 3 * K)
+    pp = ca.MX.sym("w", f_sym.size1_in(1))
+    f0 = float(scorer.score(initial if initial is not None else sampler.draw(rng, K), selected))
+    fscale = 1.0 / max(f0 * f0, 1e-12)
+    g, lbg, ubg = [], [], []
+    cos_h = np.cos(np.radians(cons.reflector.half_angle_deg))
+    for k in range(K):
+        sk = s[3 * k : 3 * k + 3]
+        D = ca.repmat(sk.T, len(P), 1) - ca.DM(P)  # beams, point -> station
+        d2 = ca.sum2(D * D)
+        if cons.min_distance_mm > 0:
+            g.append(d2 - cons.min_distance_mm**2)
+            lbg.append(np.zeros(len(P)))
+            ubg.append(np.full(len(P), np.inf))
+        if np.isfinite(cons.max_range_mm):
+            g.append(d2 - cons.max_range_mm**2)
+            lbg.append(np.full(len(P), -np.inf))
+            ubg.append(np.zeros(len(P)))
+        if cons.reflector.limited:
+            ax: ca.MX | ca.DM
+            if cons.reflector.axis is not None:
+                ax = ca.DM(Ax)
+            else:
+                a = sk - ca.DM(sampler.centre)
+                ax = ca.repmat((a / ca.norm_2(a)).T, len(P), 1)
+            g.append(ca.sum2(D * ax) / ca.sqrt(d2) - cos_h)
+            lbg.append(np.zeros(len(P)))
+            ubg.append(np.full(len(P), np.inf))
+    g_base = ca.vertcat(*g) if g else ca.MX(0, 1)
+    results, history, n_eval = [], [], 0
+    state = _load(checkpoint, "gradient", key)
+    done_starts: list[np.ndarray] = []
+    if state is not None:
+        done_starts = list(state["stations"])
+        results = [(float(v), S) for v, S in zip(state["values"], state["stations"])]
+        history = state["meta"]["history"]
+        rng.bit_generator.state = state["meta"]["rng"]
+    for j in range(len(done_starts), starts):
+        S0 = (
+            np.asarray(initial, float).reshape(K, 3)
+            if (j == 0 and initial is not None)
+            else sampler.draw(rng, K)
+        )
+        # region of each station: fixed for this start (linear constraints)
+        A_rows, b_rows = [], []
+        for k in range(K):
+            if cons.regions:
+                A, b = cons.regions[_region_of(sampler, S0[k])].halfspaces()
+                Ak = np.zeros((len(A), 3 * K))
+                Ak[:, 3 * k : 3 * k + 3] = A
+                A_rows.append(Ak)
+                b_rows.append(b)
+        gg = [g_base]
+        lb = list(lbg)
+        ub = list(ubg)
+        if A_rows:
+            Aall = np.vstack(A_rows)
+            gg.append(ca.mtimes(ca.DM(Aall), s))
+            lb.append(np.full(len(Aall), -np.inf))
+            ub.append(np.concatenate(b_rows))
+        p0 = ev.weights(S0, selected)
+        nlp = {"x": s, "p": pp, "f": fscale * f_sym(s, pp), "g": ca.vertcat(*gg)}
+        solver = ca.nlpsol(
+            "placement",
+            "ipopt",
+            nlp,
+            {
+                "ipopt.print_level": 0,
+                "print_time": False,
+                "ipopt.hessian_approximation": "limited-memory",
+                "ipopt.max_iter": max_iter,
+                "ipopt.tol": 1e-6,
+                "ipopt.acceptable_tol": 1e-4,
+                "ipopt.sb": "yes",
+            },
+        )
+        sol = solver(
+            x0=S0.ravel(),
+            p=p0,
+            lbg=np.concatenate(lb) if lb else [],
+            ubg=np.concatenate(ub) if ub else [],
+        )
+        n_eval += int(solver.stats().get("iter_count", 0)) + 1
+        S = np.asarray(sol["x"]).reshape(K, 3)
+        value = scorer.score(S, selected) if sampler.ok(S).all() else float("inf")
+        results.append((value, S))
+        history.append(
+            {"step": j, "best": min(v for v, _ in results), "seconds": time.perf_counter() - t0}
+        )
+        _save(
+            checkpoint,
+            {
+                "values": np.array([v for v, _ in results]),
+                "stations": np.array([S for _, S in results]),
+            },
+            {"kind": "gradient", "key": key, "rng": rng.bit_generator.state, "history": history},
+        )
+        if progress is not None:
+            progress(j, history[-1]["best"])
+    best = min(results, key=lambda r: r[0])
+    notes = []
+    n_bad = sum(1 for v, _ in results if not np.isfinite(v))
+    if n_bad:
+        notes.append(f"{n_bad} of {starts} starts ended where a constraint (line of sight) fails")
+    return SearchResult(
+        "gradient",
+        best[1],
+        float(best[0]),
+        history,
+        n_eval,
+        time.perf_counter() - t0,
+        notes,
+    )
+
+
+# ---- pose exchange ---------------------------------------------------------------------
+
+
+def exchange_poses(
+    scorer: Scorer,
+    stations: np.ndarray,
+    selected: np.ndarray,
+    *,
+    max_exchanges: int = 200,
+    allowed: np.ndarray | None = None,
+) -> tuple[np.ndarray, float, int]:
+    """Fedorov-type exchange of poses (the I-criterion, or the scorer's criterion when it
+    is not I) with the stations fixed: repeatedly swap the selected pose whose removal
+    costs least for the candidate whose addition gains most (rank-K updates of M and of
+    the criterion), keeping the swap when the exact criterion improves.  Returns
+    (selected mask, criterion, swaps made).  ``allowed``: candidates that may be added
+    (e.g. those every station can read)."""
+    sel = np.asarray(selected, bool).copy()
+    allowed = np.ones(len(sel), bool) if allowed is None else np.asarray(allowed, bool)
+    J = scorer.jacobian(stations, np.ones(len(sel), bool))
+    A = J[:, scorer.free] @ scorer.Z  # (N, r) every reading of every candidate
+    pose = scorer.pose_of
+    blocks = [np.flatnonzero(pose == c) for c in range(len(sel))]
+    M = A[sel[pose]].T @ A[sel[pose]]
+    best = scorer.value(M)
+    swaps = 0
+    W = scorer.B.T @ scorer.B  # (r, r): the I-criterion is trace(W M^-1) / n_eval
+    tried: set[tuple[int, int]] = set()
+    for _ in range(max_exchanges):
+        Minv = np.linalg.inv(M)
+        MWM = Minv @ W @ Minv
+        gain = np.full(len(sel), -np.inf)
+        loss = np.full(len(sel), np.inf)
+        for c, rows in enumerate(blocks):
+            Ac = A[rows]
+            V = Ac @ Minv @ Ac.T
+            U = Ac @ MWM @ Ac.T
+            k = len(rows)
+            if sel[c]:
+                try:  # removing: trace increases by tr((I - V)^-1 U)
+                    loss[c] = np.trace(np.linalg.solve(np.eye(k) - V, U))
+                except np.linalg.LinAlgError:
+                    loss[c] = np.inf
+            elif allowed[c]:
+                gain[c] = np.trace(np.linalg.solve(np.eye(k) + V, U))
+        improved = False
+        for add in np.argsort(-gain)[:5]:
+            if not np.isfinite(gain[add]):
+                break
+            for rem in np.argsort(loss)[:5]:
+                if not sel[rem] or (add, rem) in tried:
+                    continue
+                tried.add((int(add), int(rem)))
+                M2 = M + A[blocks[add]].T @ A[blocks[add]] - A[blocks[rem]].T @ A[blocks[rem]]
+                v = scorer.value(M2)
+                if v < best * (1 - 1e-9):
+                    sel[add], sel[rem] = True, False
+                    M, best, swaps, improved = M2, v, swaps + 1, True
+                    break
+            if improved:
+                break
+        if not improved:
+            break
+    return sel, float(best), swaps
