@@ -547,9 +547,11 @@ class Simulation:
 
 def simulate(geom: Geometry, truth: Truth, poses_file: np.ndarray, tools: np.ndarray,
              rng: np.random.Generator, *, n_stations: int = 6, noise: Noise | None = Noise(),
-             axis_repeatability: bool = True, start_jitter_mm: float = 2.0) -> Simulation:
+             axis_repeatability: bool = True, start_jitter_mm: float = 2.0,
+             stations: np.ndarray | None = None) -> Simulation:
     """Sequential multilateration: every station measures every (pose, tool); each
-    reading is its own visit of the pose (own repeatability draw)."""
+    reading is its own visit of the pose (own repeatability draw).  ``stations``: their
+    true positions (K, 3) mm; default drawn around the points."""
     poses_file = np.atleast_2d(np.asarray(poses_file, float))
     tools = np.atleast_2d(np.asarray(tools, float))
     P, K = len(poses_file), len(tools)
@@ -558,7 +560,11 @@ def simulate(geom: Geometry, truth: Truth, poses_file: np.ndarray, tools: np.nda
     pi = np.tile(np.arange(P), K)
     ti = np.repeat(np.arange(K), P)
     nominal = tool_points(geom, q_cmd[pi], tools[ti])
-    S = place_stations(nominal, n_stations, rng)
+    if stations is None:
+        S = place_stations(nominal, n_stations, rng)
+    else:  # given positions (mm), e.g. a plan's
+        S = np.asarray(stations, float).reshape(-1, 3)
+        n_stations = len(S)
     dead = rng.uniform(-2.0, 2.0, n_stations)
     n_pt = P * K
     si = np.repeat(np.arange(n_stations), n_pt)  # station-major readings

@@ -24,7 +24,9 @@ datum, in the solver's scaled units: um for lengths, urad for angles):
 * ``"A"``: RMS standard uncertainty of the error parameters (scaled units);
 * ``"D"``: geometric mean of the standard deviations of the free parameters along the
   principal directions, exp(-log det(M) / (2 r));
-* ``"E"``: the standard deviation along the worst-determined direction, 1/sqrt(lambda_min).
+* ``"E"``: the standard deviation along the worst-determined direction, 1/sqrt(lambda_min);
+* ``"MC"``: paper 004's fitness, the RMS error of the identified volumetric error over
+  simulated measurements of the design (:meth:`Scorer.monte_carlo_rmse`).
 
 A design that loses rank (a direction the reference design determined becomes invisible)
 scores ``inf``.  :meth:`PlanEvaluator.symbolic_criterion` gives the same criterion as a
@@ -53,12 +55,12 @@ from volcal.measurement.budget import Budget, load_budget
 from volcal.measurement.instruments import get_instrument
 from volcal.model.errors import ErrorModel
 from volcal.model.machine import Machine
-from volcal.problem.residuals import Layout, NumpyCall
+from volcal.problem.residuals import Layout, NumpyCall, dense_mtimes
 
 __all__ = ["PlanEvaluator", "Scorer", "CRITERIA", "Frozen"]
 
 #: criterion names (see the module docstring)
-CRITERIA = ("I", "A", "D", "E")
+CRITERIA = ("I", "A", "D", "E", "MC")
 
 
 @dataclass
@@ -286,30 +288,33 @@ class PlanEvaluator:
         dp, ds = f_d.map(N)(ca.DM(self.points[rows].T), ca.mtimes(St, sel), 0)
         # the map lays the (1, 3) and (1, n_ps) row Jacobians side by side
         dp, ds = ca.reshape(dp, 3, N), ca.reshape(ds, ins.n_station_params, N)
-        # theta columns: w * (dp_x G_x + dp_y G_y + dp_z G_z)
-        J_th: ca.MX = ca.MX(N, nt)
+        # A = J[:, free] Z without forming J: the theta columns of a row are
+        # w (dp_x G_x + dp_y G_y + dp_z G_z), so A's theta part is
+        # sum_c diag(w dp_c) (G_c Z_theta) with G_c Z_theta fixed (numeric); every free
+        # station parameter adds w d(reading)/d(station) times its row of Z.
+        ZZ = np.zeros((pr.n_x, fz.Z.shape[1]))
+        ZZ[fz.free] = fz.Z
+        r = ZZ.shape[1]
+        A: ca.MX = ca.MX(N, r)
         for c in range(3):
-            J_th = J_th + ca.repmat((w * dp[c, :].T), 1, nt) * ca.DM(G[:, c, :])
-        # station columns (scaled: station unit 1e-3 mm) and zero globals
+            GZ = G[:, c, :] @ ZZ[:nt]  # (N, r)
+            A = A + ca.repmat(w * dp[c, :].T, 1, r) * ca.DM(GZ)
         nps = ins.n_station_params
-        blocks = []
         for k in range(K):
-            mask = ca.DM((st == k).astype(float))
-            sc = ca.DM(np.tile(pr.scale[nt : nt + nps], (N, 1)))
-            blocks.append(ca.repmat(w * mask, 1, nps) * ds.T * sc)
-        n_g = pr.n_x - nt - nps * K
-        J = ca.horzcat(J_th, *blocks, ca.MX(N, n_g))
-        Sel = np.zeros((pr.n_x, len(fz.free)))
-        Sel[fz.free, np.arange(len(fz.free))] = 1.0
-        A = ca.mtimes(J, ca.DM(Sel @ fz.Z))
-        M = ca.mtimes(A.T, A)
+            for j in range(nps):
+                i = nt + nps * k + j
+                if not np.any(ZZ[i]):
+                    continue  # held
+                col = w * ds[j, :].T * ca.DM((st == k).astype(float)) * pr.scale[i]
+                A = A + ca.mtimes(col, ca.DM(ZZ[i][None, :]))
+        M = dense_mtimes(A.T, A)
         if criterion == "I":
-            X = ca.solve(M, ca.DM(self._B.T))
-            f = ca.sum1(ca.sum2(ca.DM(self._B.T) * X)) / self.n_eval
+            # trace(B M^-1 B^T) = trace(M^-1 B^T B): an r x r right-hand side
+            W = self._B.T @ self._B
+            f = ca.trace(ca.solve(M, ca.DM(W))) / self.n_eval
         elif criterion == "A":
-            Zt = ca.DM(fz.Z[self._theta_rows].T)
-            X = ca.solve(M, Zt)
-            f = ca.sum1(ca.sum2(Zt * X)) / max(len(self._theta_rows), 1)
+            Zt = fz.Z[self._theta_rows]
+            f = ca.trace(ca.solve(M, ca.DM(Zt.T @ Zt))) / max(len(self._theta_rows), 1)
         elif criterion == "D":
             f = ca.exp(-ca.log(ca.det(M)) / M.shape[0])
         else:
@@ -414,6 +419,8 @@ class Scorer:
     def value(self, M: np.ndarray, criterion: str | None = None) -> float:
         """The criterion of an information matrix M (r, r) (module docstring)."""
         criterion = criterion or self.criterion_name
+        if criterion == "MC":  # its expectation: the exchange and the checks use I
+            criterion = "I"
         try:
             L = np.linalg.cholesky(M)
         except np.linalg.LinAlgError:
@@ -435,7 +442,35 @@ class Scorer:
         raise ValueError(f"unknown criterion {criterion!r}; expected one of {CRITERIA}")
 
     def score(self, stations: np.ndarray, selected: np.ndarray | None = None) -> float:
+        if self.criterion_name == "MC":
+            return self.monte_carlo_rmse(stations, selected)
         return self.value(self.information(stations, selected))
+
+    #: simulated measurements per design of the MC criterion, and their seed (the same
+    #: draws for every design: common random numbers make designs comparable)
+    mc_trials: int = 100
+    mc_seed: int = 4
+
+    def monte_carlo_rmse(self, stations: np.ndarray, selected: np.ndarray | None = None) -> float:
+        """Paper 004's fitness: the RMS error (um) of the identified volumetric error over
+        the evaluation poses and ``mc_trials`` simulated measurements of the design, modulo
+        the rigid motion no multilateration sees.  Each trial draws the whitened reading
+        errors (standard normal) and solves the linearised least-squares problem of the
+        design with its Jacobian, so it converges to the I-criterion as the trials grow."""
+        A = self.jacobian(stations, selected)[:, self.free] @ self.Z
+        M = A.T @ A
+        try:
+            L = np.linalg.cholesky(M)
+        except np.linalg.LinAlgError:
+            return float("inf")
+        d = np.diag(L)
+        if d.min() <= 1e-7 * d.max():
+            return float("inf")
+        rng = np.random.default_rng(self.mc_seed)
+        E = rng.standard_normal((A.shape[0], self.mc_trials))
+        delta = sla.cho_solve((L, True), A.T @ E)  # (r, trials) estimation errors
+        err = self.B @ delta  # (3 n_eval, trials) um
+        return float(np.sqrt(np.mean(err * err) * 3.0))
 
     def run_chunk(self, chunk: tuple[int, list]) -> list[float]:
         _, designs = chunk

@@ -56,24 +56,46 @@ OPTIMIZERS = ("gradient", "ga", "none")
 
 
 def candidate_poses(
-    machine: Machine, n: int, travel: Mapping[str, Sequence[float]] | None = None
+    machine: Machine,
+    n: int,
+    travel: Mapping[str, Sequence[float]] | None = None,
+    n_sample: int = 0,
 ) -> pd.DataFrame:
-    """A grid of ``n`` positions per linear axis (the rotary default of
-    :func:`volcal.measurement.plans.grid_plan` on rotary axes) over the travel, or over
-    ``travel`` ({axis: (lo, hi)} in mm / deg, inside the axis travel) where given."""
+    """Candidate poses over the travel, or over ``travel`` ({axis: (lo, hi)} in mm / deg,
+    inside the axis travel) where given: a grid of ``n`` positions per axis for a machine
+    without rotary axes; with rotary axes the corners of the travel box and a Halton
+    sample of ``n_sample`` poses, so that every rotary axis is seen at many distinct angles
+    (a grid of 4 angles cannot determine a third-order Fourier series)."""
+    from volcal.analysis.identify import _halton
+
     spec = machine.spec
-    g = grid_plan(spec, n)
-    for a in spec.axes:
+    rotary = any(a.is_rotary for a in spec.axes)
+    lo = np.array([a.travel[0] for a in spec.axes], float)
+    hi = np.array([a.travel[1] for a in spec.axes], float)
+    for k, a in enumerate(spec.axes):
         if travel and a.name in travel:
-            lo, hi = (float(v) for v in travel[a.name])
-            t0, t1 = a.travel
-            if not (t0 - 1e-9 <= lo < hi <= t1 + 1e-9):
+            t0, t1 = (float(v) for v in travel[a.name])
+            if not (a.travel[0] - 1e-9 <= t0 < t1 <= a.travel[1] + 1e-9):
                 raise InputError(
-                    f"travel to cover on {a.name}: {lo:g} .. {hi:g} must lie inside the "
-                    f"axis travel {t0:g} .. {t1:g} with lo < hi"
+                    f"travel to cover on {a.name}: {t0:g} .. {t1:g} must lie inside the "
+                    f"axis travel {a.travel[0]:g} .. {a.travel[1]:g} with lo < hi"
                 )
-            g[a.name] = lo + (g[a.name] - t0) * (hi - lo) / (t1 - t0)
-    return g.drop_duplicates().reset_index(drop=True)
+            lo[k], hi[k] = t0, t1
+    unknown = sorted(set(travel or {}) - set(spec.axis_names))
+    if unknown:
+        raise InputError(f"travel given for unknown axes {unknown}; axes: {spec.axis_names}")
+    if not rotary:
+        g = grid_plan(spec, n)
+        for k, a in enumerate(spec.axes):
+            t0, t1 = a.travel
+            g[a.name] = lo[k] + (g[a.name] - t0) * (hi[k] - lo[k]) / (t1 - t0)
+        return g.drop_duplicates().reset_index(drop=True)
+    d = len(spec.axes)
+    u = _halton(max(int(n_sample), 16), d)
+    if d <= 6:
+        u = np.vstack([np.array(list(np.ndindex(*([2] * d))), float), u])
+    q = lo + u * (hi - lo)
+    return pd.DataFrame(q, columns=spec.axis_names).drop_duplicates().reset_index(drop=True)
 
 
 def spread_poses(machine: Machine, poses: pd.DataFrame, n: int) -> np.ndarray:
@@ -126,6 +148,8 @@ class PlanResult:
     settings: dict[str, Any]
     seconds: float
     notes: list[str] = field(default_factory=list)
+    #: the workspace centre (mm) a re-aimed reflector points from
+    centre_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     # ---- tables ----------------------------------------------------------------------
     @property
@@ -151,11 +175,12 @@ class PlanResult:
     def tools(self) -> np.ndarray:
         return self.evaluator.tools
 
-    def measurement_plan(self) -> pd.DataFrame:
+    def measurement_plan(self, *, with_tool_index: bool = False) -> pd.DataFrame:
         """Every planned reading in measuring order (station, then tool offset, then pose)
-        in the columns ``identify`` reads: ``station, point, <axes>, tool_x_mm, tool_y_mm,
-        tool_z_mm`` and an empty ``length_mm`` to fill with the readings; plus ``order``
-        and ``tool`` (the tool offset's index)."""
+        in the columns ``identify`` reads: ``station, point, <axes>, tool_x_mm,
+        tool_y_mm, tool_z_mm`` and an empty ``length_mm`` to fill with the readings
+        (``with_tool_index``: also ``tool``, the tool offset's index, for the NC
+        program)."""
         ev, m = self.evaluator, self.machine
         keep = self.selected[ev.pose_of]
         q = ev.q[keep].copy()
@@ -166,16 +191,11 @@ class PlanResult:
         # point ids: one per (pose, tool), the same at every station
         sel_idx = np.cumsum(self.selected) - 1
         point = ev.tool_of[keep] * int(self.selected.sum()) + sel_idx[ev.pose_of[keep]] + 1
-        df = pd.DataFrame(
-            {
-                "order": np.arange(1, keep.sum() + 1),
-                "station": [f"S{k + 1}" for k in st],
-                "point": point,
-            }
-        )
+        df = pd.DataFrame({"station": [f"S{k + 1}" for k in st], "point": point})
         for k, name in enumerate(m.axis_names):
             df[name] = q[:, k]
-        df["tool"] = ev.tool_of[keep]
+        if with_tool_index:
+            df["tool"] = ev.tool_of[keep]
         df[["tool_x_mm", "tool_y_mm", "tool_z_mm"]] = ev.t[keep]
         df["length_mm"] = np.nan
         return df
@@ -191,7 +211,7 @@ class PlanResult:
             ev.station_of[keep],
             self.stations_mm,
             self.constraints,
-            ev.points.mean(0),
+            self.centre_mm,
         )
 
     # ---- prediction --------------------------------------------------------------------
@@ -402,11 +422,13 @@ def plan(
             "declare at least one region where the tracker may stand ([[constraints.region]] "
             "with a box or polygon)"
         )
-    cand = candidate_poses(machine, grid, travel)
-    q_cand = machine.axis_to_internal(cand[machine.axis_names].to_numpy(float))
     n_total = _readings_budget(readings, minutes, seconds_per_reading)
     per_pose = n_stations * len(T)
-    n_poses = len(cand) if n_total is None else n_total // per_pose
+    want = None if n_total is None else n_total // per_pose
+    # with rotary axes: three candidates per planned pose (a sample, not a grid)
+    cand = candidate_poses(machine, grid, travel, n_sample=min(max(3 * (want or 64), 128), 900))
+    q_cand = machine.axis_to_internal(cand[machine.axis_names].to_numpy(float))
+    n_poses = len(cand) if want is None else want
     notes: list[str] = []
     if n_poses > len(cand):
         notes.append(
@@ -424,7 +446,9 @@ def plan(
     ev = PlanEvaluator(machine, em, q_cand, T, n_stations, bud)
     rng = np.random.default_rng(seed)
     sel = spread_poses(machine, cand, n_poses)
-    centre = ev.points.mean(0)
+    # the workspace centre the re-aimed reflector points from: the middle of the bounding
+    # box of every candidate reading's nominal point
+    centre = 0.5 * (ev.points.min(0) + ev.points.max(0))
     ckpt = Path(checkpoint_dir) if checkpoint_dir is not None else None
     if ckpt is not None:
         ckpt.mkdir(parents=True, exist_ok=True)
@@ -535,9 +559,11 @@ def plan(
             "budget": bud.name,
             "degree": degree,
             "travel": {k: list(map(float, v)) for k, v in (travel or {}).items()},
+            "centre_mm": centre.tolist(),
         },
         time.perf_counter() - t0,
         notes,
+        centre,
     )
     bad = result.violations()
     if len(bad):

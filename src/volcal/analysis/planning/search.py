@@ -107,9 +107,26 @@ class StationSampler:
                 return out[:n]
         raise InputError(
             f"found only {len(out)} of {n} feasible station positions in {max_tries} rounds: "
-            "the regions, distances, acceptance angle or obstacles leave (almost) no room; "
-            "widen a region or relax a constraint"
+            f"{self._why(cand)}; widen a region, relax a constraint or cover less travel"
         )
+
+    def _why(self, cand: np.ndarray) -> str:
+        """Which constraint rules out how many of the candidate positions (a diagnosis)."""
+        from volcal.analysis.planning.geometry import reading_violations
+
+        cand = cand[:40]
+        n = len(self.points)
+        bad = reading_violations(
+            np.tile(self.points, (len(cand), 1)),
+            np.tile(self.tool_axes, (len(cand), 1)),
+            np.repeat(np.arange(len(cand)), n),
+            cand,
+            self.constraints,
+            self.centre,
+        )
+        counts = bad.groupby("constraint")["station"].nunique()
+        parts = [f"{k} rules out {v} of {len(cand)}" for k, v in counts.items()]
+        return "of the positions tried, " + (", ".join(parts) or "none is ruled out")
 
 
 # ---- scoring in parallel ---------------------------------------------------------------
@@ -123,8 +140,8 @@ def _score_all(
 ) -> np.ndarray:
     from volcal.analysis.uncertainty.parallel import run_chunks
 
-    if workers == 1 and scheduler is None:
-        return np.array([scorer.score(S, sel) for S, sel in designs])
+    # serial scoring also goes through run_chunks: one BLAS thread everywhere, so a
+    # design scores bit-identically in this process, in a worker and on Dask
     n_chunks = min(len(designs), 4 * (workers or 2))
     bounds = np.linspace(0, len(designs), n_chunks + 1).astype(int)
     chunks = [(int(a), designs[a:b]) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
@@ -316,14 +333,13 @@ def gradient_placement(
         sk = s[3 * k : 3 * k + 3]
         D = ca.repmat(sk.T, len(P), 1) - ca.DM(P)  # beams, point -> station
         d2 = ca.sum2(D * D)
-        if cons.min_distance_mm > 0:
-            g.append(d2 - cons.min_distance_mm**2)
-            lbg.append(np.zeros(len(P)))
-            ubg.append(np.full(len(P), np.inf))
-        if np.isfinite(cons.max_range_mm):
-            g.append(d2 - cons.max_range_mm**2)
-            lbg.append(np.full(len(P), -np.inf))
-            ubg.append(np.zeros(len(P)))
+        if cons.min_distance_mm > 0 or np.isfinite(cons.max_range_mm):
+            # in metres: constraint values of order one (IPOPT's scaling is gradient based
+            # and a squared range of 3.6e7 mm^2 stalls it)
+            g.append(ca.sqrt(d2) / 1000.0)
+            # small margins inside every limit: IPOPT may end a hair outside (1e-8 scale)
+            lbg.append(np.full(len(P), cons.min_distance_mm / 1000.0 + 1e-6))
+            ubg.append(np.full(len(P), cons.max_range_mm / 1000.0 - 1e-6))
         if cons.reflector.limited:
             ax: ca.MX | ca.DM
             if cons.reflector.axis is not None:
@@ -331,7 +347,7 @@ def gradient_placement(
             else:
                 a = sk - ca.DM(sampler.centre)
                 ax = ca.repmat((a / ca.norm_2(a)).T, len(P), 1)
-            g.append(ca.sum2(D * ax) / ca.sqrt(d2) - cos_h)
+            g.append(ca.sum2(D * ax) / ca.sqrt(d2) - cos_h - 1e-7)
             lbg.append(np.zeros(len(P)))
             ubg.append(np.full(len(P), np.inf))
     g_base = ca.vertcat(*g) if g else ca.MX(0, 1)
@@ -365,7 +381,7 @@ def gradient_placement(
             Aall = np.vstack(A_rows)
             gg.append(ca.mtimes(ca.DM(Aall), s))
             lb.append(np.full(len(Aall), -np.inf))
-            ub.append(np.concatenate(b_rows))
+            ub.append(np.concatenate(b_rows) - 1e-4)
         p0 = ev.weights(S0, selected)
         nlp = {"x": s, "p": pp, "f": fscale * f_sym(s, pp), "g": ca.vertcat(*gg)}
         solver = ca.nlpsol(
@@ -380,6 +396,7 @@ def gradient_placement(
                 "ipopt.tol": 1e-6,
                 "ipopt.acceptable_tol": 1e-4,
                 "ipopt.sb": "yes",
+                "ipopt.bound_relax_factor": 0.0,
             },
         )
         sol = solver(

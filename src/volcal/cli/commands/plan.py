@@ -1,0 +1,240 @@
+"""``volcal plan``: station placement and a measurement plan that minimise the predicted
+uncertainty.
+
+Examples::
+
+    # the bundled setting for the MCV 754 (paper 000's machine): 4 stations, 960 readings
+    volcal plan --setting mcv754 --out plan/
+    # the same with paper 004's genetic algorithm, scored in 2 local processes
+    volcal plan --setting mcv754 --optimizer ga --workers 2 --out plan_ga/
+    # your own setting file, flags override it; checkpoints allow a stopped search to resume
+    volcal plan --setting my_machine.toml --readings 2000 --checkpoint ckpt/ --out plan/
+    # NC programs for two controls
+    volcal plan --setting trunnion_ac --nc fanuc,heidenhain --out plan5/
+
+Writes stations.csv, poses.csv, measurement_plan.csv (the columns ``identify`` reads),
+program_<dialect>.nc, the predicted uncertainties (error motions, volumetric error over the
+workspace, parameters), search_history.csv, summary.json, report.md and plan.png (see
+:mod:`volcal.outputs.plan_files`).  Exit codes: 0 done, 2 bad input (the message names the
+file and key), 1 a search that found no feasible design.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def _travel(text: str) -> dict[str, list[float]]:
+    out: dict[str, list[float]] = {}
+    for item in str(text).split(","):
+        name, eq, rng = item.partition("=")
+        lo, colon, hi = rng.partition(":")
+        try:
+            out[name.strip()] = [float(lo), float(hi)]
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected AXIS=LO:HI[,AXIS=LO:HI] in mm / deg, got {text!r}"
+            ) from None
+        if not eq or not colon:
+            raise argparse.ArgumentTypeError(
+                f"expected AXIS=LO:HI[,AXIS=LO:HI] in mm / deg, got {text!r}"
+            )
+    return out
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "plan",
+        help="station placement and measurement plan minimising the predicted uncertainty",
+        description="Plan a sequential multilateration measurement: where to put the "
+        "tracker (regions, acceptance angle of the reflector, distance, line of sight) "
+        "and which poses to measure within a readings budget, by minimising the "
+        "predicted uncertainty of the identification (I-optimal by default: the "
+        "volumetric error's uncertainty over the workspace).  A setting file (TOML) "
+        "holds the model, tools, budget and constraints; flags override it.",
+    )
+    p.add_argument(
+        "--setting",
+        required=True,
+        metavar="FILE|NAME",
+        help="planning setting (TOML file, or a bundled one: mcv754, trunnion_ac)",
+    )
+    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
+    p.add_argument("--model", metavar="M", help="bundled model name or model file")
+    p.add_argument("--stations", type=int, metavar="K", help="number of tracker set-ups")
+    p.add_argument(
+        "--start-stations",
+        type=Path,
+        metavar="S.csv",
+        help="start (or, with --optimizer none, given) stations: station, x_mm, y_mm, z_mm",
+    )
+    p.add_argument("--tools", metavar="X,Y,Z;...", help="available tool offsets, mm")
+    p.add_argument("--readings", type=int, metavar="N", help="readings budget")
+    p.add_argument("--minutes", type=float, metavar="MIN", help="time budget, minutes")
+    p.add_argument(
+        "--seconds-per-reading",
+        type=float,
+        metavar="S",
+        help="time per reading (move and dwell) for --minutes (default 4 s)",
+    )
+    p.add_argument(
+        "--travel", type=_travel, metavar="AX=LO:HI,...", help="travel to cover, mm / deg"
+    )
+    p.add_argument("--criterion", choices=("I", "A", "D", "E"), help="design criterion")
+    p.add_argument(
+        "--optimizer", choices=("gradient", "ga", "none"), help="station placement method"
+    )
+    p.add_argument("--poses", choices=("exchange", "spread"), help="pose selection")
+    p.add_argument("--grid", type=int, metavar="N", help="candidate positions per axis")
+    p.add_argument("--starts", type=int, metavar="N", help="gradient: starts (default 6)")
+    p.add_argument("--population", type=int, metavar="N", help="GA population (default 40)")
+    p.add_argument("--generations", type=int, metavar="N", help="GA generations (default 30)")
+    p.add_argument("--rounds", type=int, metavar="N", help="placement / exchange rounds")
+    p.add_argument("--seed", type=int, help="seed of every random draw (default 0)")
+    p.add_argument("--budget", metavar="NAME|FILE", help="uncertainty budget")
+    p.add_argument("--degree", type=int, help="polynomial degree of the error motions")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        metavar="N",
+        help="GA: local processes scoring the population (default 1; 0: all cores)",
+    )
+    p.add_argument("--dask", metavar="ADDRESS", help="GA: score on a Dask scheduler")
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        metavar="DIR",
+        help="save the searches there after every generation / start and resume from it",
+    )
+    p.add_argument(
+        "--nc",
+        default="iso",
+        metavar="D[,D]",
+        help="NC program dialects: iso, fanuc, siemens, heidenhain (default iso)",
+    )
+    p.add_argument("--dwell", type=float, default=2.0, metavar="S", help="dwell per point, s")
+    p.add_argument("--feed", type=float, default=2000.0, metavar="MM/MIN", help="feed")
+    p.add_argument("--no-plots", action="store_true", help="skip plan.png")
+    p.add_argument("--force", action="store_true", help="replace an earlier plan folder")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from volcal.analysis.planning import plan
+    from volcal.analysis.planning.setting import load_setting
+    from volcal.base.exceptions import InputError
+    from volcal.base.folders import check_out_dir
+    from volcal.outputs.nc_program import NC_DIALECTS
+    from volcal.outputs.plan_files import PLAN_FILES, write_plan
+
+    dialects = [d.strip() for d in args.nc.split(",") if d.strip()]
+    bad = [d for d in dialects if d not in NC_DIALECTS]
+    if bad or not dialects:
+        raise InputError(
+            f"unknown NC dialect(s) {', '.join(bad) or '(none)'}; expected some of "
+            f"{', '.join(NC_DIALECTS)}",
+            source="--nc",
+        )
+    check_out_dir(args.out, PLAN_FILES, "a measurement plan", force=args.force or None)
+    cfg = load_setting(args.setting)
+    over = {
+        "model": args.model,
+        "stations": args.stations,
+        "readings": args.readings,
+        "minutes": args.minutes,
+        "seconds_per_reading": args.seconds_per_reading,
+        "criterion": args.criterion,
+        "optimizer": args.optimizer,
+        "poses": args.poses,
+        "grid": args.grid,
+        "starts": args.starts,
+        "population": args.population,
+        "generations": args.generations,
+        "rounds": args.rounds,
+        "seed": args.seed,
+        "budget": args.budget,
+        "degree": args.degree,
+        "travel": args.travel,
+        "start_stations": str(args.start_stations) if args.start_stations else None,
+    }
+    if args.minutes is not None:
+        cfg.pop("readings", None)
+    cfg.update({k: v for k, v in over.items() if v is not None})
+    if args.tools:
+        from volcal.measurement.simulate import parse_tools
+
+        cfg["tools"] = parse_tools(args.tools).tolist()
+    if "model" not in cfg:
+        raise InputError("the setting names no model (key 'model' or --model)", source=args.setting)
+    stations = None
+    if cfg.get("start_stations"):
+        import pandas as pd
+
+        from volcal.measurement.tables import load_instrument_stations
+
+        stations = load_instrument_stations(cfg["start_stations"], ("x_mm", "y_mm", "z_mm"))
+        stations = pd.DataFrame(stations)
+    quiet = getattr(args, "quiet", False)
+
+    def progress(stage: str, step: int, best: float) -> None:
+        if not quiet:  # one line per generation / start: long searches show life
+            print(f"{stage}: step {step + 1}, criterion {best:.4g}", file=sys.stderr, flush=True)
+
+    res = plan(
+        cfg["model"],
+        n_stations=int(cfg.get("stations", 4)),
+        tools=np.asarray(cfg["tools"], float) if "tools" in cfg else None,
+        readings=cfg.get("readings"),
+        minutes=cfg.get("minutes"),
+        seconds_per_reading=float(cfg.get("seconds_per_reading", 4.0)),
+        constraints=cfg.get("constraints", {}),
+        travel=cfg.get("travel"),
+        budget=cfg.get("budget", "paper002"),
+        degree=int(cfg.get("degree", 3)),
+        criterion=cfg.get("criterion", "I"),
+        optimizer=cfg.get("optimizer", "gradient"),
+        poses=cfg.get("poses", "exchange"),
+        stations=stations,
+        grid=int(cfg.get("grid", 6)),
+        seed=int(cfg.get("seed", 0)),
+        starts=int(cfg.get("starts", 6)),
+        population=int(cfg.get("population", 40)),
+        generations=int(cfg.get("generations", 30)),
+        rounds=int(cfg.get("rounds", 2)),
+        workers=None if args.workers == 0 else args.workers,
+        scheduler=args.dask,
+        checkpoint_dir=args.checkpoint,
+        progress=progress,
+    )
+    res.settings["setting_file"] = cfg.get("_source")
+    out = write_plan(
+        res,
+        args.out,
+        dialects=dialects,
+        dwell_s=args.dwell,
+        feed_mm_min=args.feed,
+        plots=not args.no_plots,
+        force=args.force or None,
+    )
+    if not quiet:
+        s = res.summary()
+        print(
+            f"{s['model']}: {s['stations']} stations, {s['poses']} poses x "
+            f"{s['tool_offsets']} tool offset(s) = {s['readings']} readings\n"
+            f"criterion {s['criterion']}: {s['criterion_value']:.4g} "
+            f"(start {s['start_value']:.4g}); predicted volumetric u RMS "
+            f"{s['volumetric_u_rms_um']:.3g} um, max {s['volumetric_u_max_um']:.3g} um\n"
+            f"unidentifiable error parameters: "
+            f"{', '.join(s['unidentifiable_error_parameters']) or 'none'}\n"
+            f"written to {out} in {s['seconds']:.1f} s"
+        )
+    return 0

@@ -1,0 +1,180 @@
+"""The files of a measurement plan (``volcal plan --out DIR``).
+
+Written into a temporary folder and renamed into place (:func:`volcal.base.folders.write_folder`):
+
+* ``stations.csv``: station, x_mm, y_mm, z_mm, the tracker set-ups (the stations table
+  ``identify`` reads; dead lengths are found by the identification);
+* ``poses.csv``: the selected poses, one column per axis (mm / deg), the plan format of
+  ``volcal simulate --plan`` and ``volcal analyze --plan``;
+* ``measurement_plan.csv``: every reading in measuring order with the columns ``identify``
+  reads (station, point, axes, tool_x_mm, tool_y_mm, tool_z_mm) and an empty length_mm;
+* ``program_<dialect>.nc``: the NC program that runs the plan (one per dialect asked for);
+* ``prediction_parameters.csv`` (parameter, unit, u), ``prediction_error_motions.csv``
+  (error, axis, position, u_value, unit) and ``prediction_volumetric.csv`` (axes, tool,
+  nominal point, u_dx_um, u_dy_um, u_dz_um, u_total_um, modulo the rigid motion no
+  multilateration sees): the predicted standard uncertainties;
+* ``search_history.csv`` (search, step, best, seconds), ``summary.json`` (the figures,
+  the effective settings, what stays unidentifiable) and ``report.md``;
+* ``plan.png`` (stations and workspace from above and from the side, the points coloured
+  by the predicted volumetric uncertainty) unless plots are off.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from volcal.base.folders import write_folder
+from volcal.outputs.nc_program import NC_DIALECTS, nc_program
+
+__all__ = ["write_plan", "PLAN_FILES"]
+
+PLAN_FILES = (
+    "stations.csv",
+    "poses.csv",
+    "measurement_plan.csv",
+    *(f"program_{d}.nc" for d in NC_DIALECTS),
+    "prediction_parameters.csv",
+    "prediction_error_motions.csv",
+    "prediction_volumetric.csv",
+    "search_history.csv",
+    "summary.json",
+    "report.md",
+    "plan.png",
+)
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.3g}"
+
+
+def _report(summary: dict[str, Any], vol: pd.DataFrame, motions: pd.DataFrame) -> str:
+    lines = [
+        f"# Measurement plan: {summary['model']}",
+        "",
+        f"- {summary['stations']} stations, {summary['poses']} poses x "
+        f"{summary['tool_offsets']} tool offset(s) = {summary['readings']} readings",
+        f"- criterion {summary['criterion']}: {_fmt(summary['criterion_value'])} "
+        f"(start {_fmt(summary['start_value'])})",
+        f"- predicted volumetric standard uncertainty over the workspace (modulo the rigid "
+        f"motion no multilateration sees): RMS {_fmt(summary['volumetric_u_rms_um'])} um, "
+        f"max {_fmt(summary['volumetric_u_max_um'])} um",
+        f"- evaluation poses whose volumetric error the data do not determine: "
+        f"{summary['field_not_determined']}",
+        "- unidentifiable error parameters: "
+        + (", ".join(summary["unidentifiable_error_parameters"]) or "none"),
+        f"- every reading checked against the constraints: {summary['violations']} violations",
+        "",
+        "## Searches",
+        "",
+        "| search | criterion reached | evaluations | seconds |",
+        "|---|---|---|---|",
+    ]
+    for s in summary["searches"]:
+        lines.append(
+            f"| {s['method']} | {_fmt(s['value'])} | {s['evaluations']} | {s['seconds']:.1f} |"
+        )
+    worst = motions.groupby(["error", "unit"])["u_value"].max().sort_values(ascending=False).head(8)
+    lines += ["", "## Largest predicted error-motion uncertainties", "", "| error | max u |"]
+    lines.append("|---|---|")
+    for (err, unit), v in worst.items():
+        lines.append(f"| {err} | {_fmt(v)} {unit} |")
+    if summary["notes"]:
+        lines += ["", "## Notes", ""] + [f"- {n}" for n in summary["notes"]]
+    return "\n".join(lines) + "\n"
+
+
+def _plot(result: Any, vol: pd.DataFrame, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    S = result.stations_mm
+    P = vol[["x_mm", "y_mm", "z_mm"]].to_numpy()
+    u = vol["u_total_um"].to_numpy()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2), constrained_layout=True)
+    for ax, (i, j, lab) in zip(axes, [(0, 1, "from above (x, y)"), (0, 2, "from the side (x, z)")]):
+        sc = ax.scatter(P[:, i], P[:, j], c=u, s=10, cmap="viridis", rasterized=True)
+        ax.plot(S[:, i], S[:, j], "r^", markersize=9, label="stations")
+        for k, s in enumerate(S):
+            ax.annotate(f"S{k + 1}", (s[i], s[j]), textcoords="offset points", xytext=(4, 4))
+        ax.set_xlabel("xyz"[i] + " / mm")
+        ax.set_ylabel("xyz"[j] + " / mm")
+        ax.set_title(lab)
+        ax.set_aspect("equal", adjustable="datalim")
+    fig.colorbar(sc, ax=axes, label="predicted u of the volumetric error / um")
+    axes[0].legend(loc="best", fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_plan(
+    result: Any,
+    out_dir: str | Path,
+    *,
+    dialects: Sequence[str] = ("iso",),
+    dwell_s: float = 2.0,
+    feed_mm_min: float = 2000.0,
+    plots: bool = True,
+    force: bool | None = None,
+) -> Path:
+    """Write the files of a :class:`volcal.analysis.planning.PlanResult` (see the module
+    docstring) atomically into ``out_dir``; returns its path."""
+    m = result.machine
+    mp = result.measurement_plan()
+    mp_nc = result.measurement_plan(with_tool_index=True)
+    axes = [(a.name, "rotary" if a.is_rotary else "linear") for a in m.spec.axes]
+    programs = {
+        d: nc_program(
+            mp_nc,
+            axes,
+            dialect=d,
+            dwell_s=dwell_s,
+            feed_mm_min=feed_mm_min,
+            header_lines=[
+                f"volcal measurement plan for {m.spec.name}: {len(result.stations_mm)} "
+                f"stations, {int(result.selected.sum())} poses, {len(result.tools)} tool "
+                "offset(s)"
+            ],
+        )
+        for d in dialects
+    }
+    vol = result.volumetric_uncertainty()
+    motions = result.error_motion_uncertainty()
+    params = result.parameter_uncertainty()
+    summary = result.summary()
+    summary["field_not_determined"] = int((~result.field_determined()).sum())
+    summary["violations"] = int(len(result.violations()))
+    summary["settings"] = result.settings
+    summary["stations_mm"] = np.round(result.stations_mm, 4).tolist()
+    hist = pd.DataFrame(
+        [
+            {"search": f"{k + 1}:{s.method}", **h}
+            for k, s in enumerate(result.searches)
+            for h in s.history
+        ],
+        columns=["search", "step", "best", "seconds"],
+    )
+
+    def writer(d: Path) -> None:
+        result.stations.to_csv(d / "stations.csv", index=False)
+        result.poses.to_csv(d / "poses.csv", index=False)
+        mp.to_csv(d / "measurement_plan.csv", index=False)
+        for name, text in programs.items():
+            (d / f"program_{name}.nc").write_text(text)
+        params.to_csv(d / "prediction_parameters.csv", index=False)
+        motions.to_csv(d / "prediction_error_motions.csv", index=False)
+        vol.to_csv(d / "prediction_volumetric.csv", index=False)
+        hist.to_csv(d / "search_history.csv", index=False)
+        (d / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        (d / "report.md").write_text(_report(summary, vol, motions))
+        if plots:
+            _plot(result, vol, d / "plan.png")
+
+    return write_folder(out_dir, PLAN_FILES, "a measurement plan", writer, force=force)
