@@ -1,6 +1,30 @@
 """volcal: identify the geometric errors of machine tools from multilateration lengths.
 
 Units inside the code: lengths in mm, angles in rad. Files carry units in column names.
+
+The main entry points, mirroring the command line, are importable from here (lazily: a
+bare ``import volcal`` loads neither CasADi nor SymPy)::
+
+    volcal.identify(...)   # volcal identify
+    volcal.plan(...)       # volcal plan
 """
 
+from typing import Any
+
 __version__ = "0.1.0"
+
+_LAZY = {
+    "identify": ("volcal.analysis.identify", "identify"),
+    "plan": ("volcal.analysis.planning.plan", "plan"),
+}
+
+__all__ = ["__version__", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        mod, attr = _LAZY[name]
+        return getattr(importlib.import_module(mod), attr)
+    raise AttributeError(f"module 'volcal' has no attribute {name!r}")
