@@ -218,7 +218,9 @@ def test_a_failure_mid_write_leaves_no_folder(case, tmp_path, monkeypatch):
     # and one plot are in the temporary folder
     monkeypatch.setattr(results, "_plot_component_errors",
                         lambda table, em, path: Path(path).write_bytes(b"png"))
-    monkeypatch.setattr(results, "_plot_volumetric_map", boom)
+    from volcal.outputs import plots
+
+    monkeypatch.setattr(plots, "volumetric_slices", boom)
     out = tmp_path / "new"
     with pytest.raises(RuntimeError, match="plot failed"):
         save_result(case["res"], out)

@@ -7,6 +7,7 @@ bare ``import volcal`` loads neither CasADi nor SymPy)::
 
     volcal.identify(...)   # volcal identify
     volcal.plan(...)       # volcal plan
+    volcal.plots           # the plots of a result (volcal.outputs.plots)
 """
 
 from typing import Any
@@ -16,6 +17,7 @@ __version__ = "0.1.0"
 _LAZY = {
     "identify": ("volcal.analysis.identify", "identify"),
     "plan": ("volcal.analysis.planning.plan", "plan"),
+    "plots": ("volcal.outputs.plots", None),
 }
 
 __all__ = ["__version__", *_LAZY]
@@ -26,5 +28,6 @@ def __getattr__(name: str) -> Any:
         import importlib
 
         mod, attr = _LAZY[name]
-        return getattr(importlib.import_module(mod), attr)
+        module = importlib.import_module(mod)
+        return module if attr is None else getattr(module, attr)
     raise AttributeError(f"module 'volcal' has no attribute {name!r}")

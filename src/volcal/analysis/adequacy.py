@@ -525,10 +525,10 @@ def plot_residuals_vs_axes(
     residuals: pd.DataFrame,
     axis_names: Sequence[str],
     units: Sequence[str],
-    path: str | Path,
+    path: str | Path | None,
     adequacy: Adequacy | None = None,
     max_points: int = 4000,
-) -> None:
+):
     """Normalised residuals against each axis position (one panel per axis), with the
     binned means per station (lines) and the binned RMS over all stations (black); at
     most ``max_points`` readings are drawn (an even subsample), the binned statistics use
@@ -606,4 +606,6 @@ def plot_residuals_vs_axes(
         wspace=0.3,
         hspace=0.45,
     )
-    fig.savefig(path, dpi=100)
+    if path is not None:
+        fig.savefig(path, dpi=100)
+    return fig

@@ -27,8 +27,12 @@ file                       content
 ``order_selection.csv``    only with ``--degree auto``: every candidate order per axis and
                            its criterion value (:mod:`volcal.analysis.order_selection`)
 ``component_errors.png``   the component error motions with +-2 u bands
-``volumetric_map.png``     3D map of magnified error vectors over the grid
-``residuals.png``          residual histogram and residuals per station
+``volumetric_map.png``     2-D slice maps of the volumetric error (|d| in colour, in-plane
+                           arrows): XY at several heights, and per rotary axis at several
+                           angles
+``residuals.png``          residual histogram, normal QQ plot of the standardised
+                           residuals, residuals per reading by station
+``correlations.png``       correlations of the identifiable error parameters
 ``residuals_vs_axes.png``  normalised residuals against each axis position, binned means
 =========================  ==================================================================
 
@@ -69,7 +73,7 @@ import numpy as np
 import pandas as pd
 
 from volcal import __version__
-from volcal.analysis.adequacy import assess, plot_residuals_vs_axes
+from volcal.analysis.adequacy import assess
 from volcal.analysis.identifiability import FieldNullSpace
 from volcal.analysis.identify import IdentificationResult, SolverState, predict_volumetric
 from volcal.base.exceptions import InputError
@@ -115,6 +119,7 @@ PLOT_FILES = (
     "volumetric_map.png",
     "residuals.png",
     "residuals_vs_axes.png",
+    "correlations.png",
 )
 RESULT_FILES = DATA_FILES + PLOT_FILES
 #: written only by some runs (``order_selection.csv``: ``--degree auto``)
@@ -654,138 +659,9 @@ def _figure(w: float, h: float):
 
 
 def _plot_component_errors(table: pd.DataFrame, em: ErrorModel, path: Path) -> None:
-    spec = em.spec
-    axes = [a for a in spec.axes if (table["axis"] == a.name).any()]
-    if not axes:
-        fig = _figure(6, 2)
-        fig.text(0.5, 0.5, "no component error motions in this model", ha="center")
-        fig.savefig(path, dpi=110)
-        return
-    fig = _figure(11, 2.8 * len(axes))
-    panels = fig.subplots(len(axes), 2, squeeze=False)
-    for row, a in zip(panels, axes):
-        sub = table[table["axis"] == a.name]
-        unit = _axis_unit(spec, a.name)
-        x = sub[f"position_{unit}"].to_numpy()
-        for ax, quantity, u_name in ((row[0], "translation", "um"), (row[1], "rotation", "urad")):
-            errs = [
-                s
-                for s in em.errors
-                if s.axis == a.name and s.kind == "component" and s.quantity == quantity
-            ]
-            for s in errs:
-                y = sub[f"{s.name}_{u_name}"].to_numpy()
-                (line,) = ax.plot(x, y, label=s.name)
-                ucol = f"u_{s.name}_{u_name}"
-                if ucol in sub:
-                    u = sub[ucol].to_numpy()
-                    if np.isfinite(u).all():
-                        ax.fill_between(
-                            x, y - 2 * u, y + 2 * u, color=line.get_color(), alpha=0.2, linewidth=0
-                        )
-                    else:
-                        line.set_label(f"{s.name} (not identifiable)")
-                        line.set_linestyle("--")
-            kind = "translational" if quantity == "translation" else "angular"
-            ax.set_title(f"axis {a.name}: {kind} error motions")
-            ax.set_xlabel(f"{a.name} position ({unit})")
-            ax.set_ylabel(f"error ({u_name})")
-            ax.axhline(0.0, color="0.6", linewidth=0.6)
-            ax.grid(True, alpha=0.3)
-            if errs:
-                ax.legend(fontsize=8, loc="best")
-            else:
-                ax.text(0.5, 0.5, "none in this model", transform=ax.transAxes, ha="center")
-    fig.suptitle("Component error motions (error = actual - nominal), band = +-2 u")
-    fig.savefig(path, dpi=110)
+    from volcal.outputs.plots import component_errors
 
-
-def _nice_magnification(x: float) -> float:
-    """The largest of 1, 2, 5 x 10^k not above x (at least 1)."""
-    if not np.isfinite(x) or x <= 1.0:
-        return 1.0
-    k = math.floor(math.log10(x))
-    for m in (5.0, 2.0, 1.0):
-        if m * 10**k <= x:
-            return m * 10**k
-    return 10.0**k  # pragma: no cover
-
-
-def _plot_volumetric_map(machine: Machine, grid: pd.DataFrame, path: Path) -> None:
-    q = machine.axis_to_internal(grid[machine.axis_names].to_numpy(float))
-    p0, _, _ = machine.evaluate(q, np.zeros(3), np.zeros(machine.n_errors))
-    d_mm = grid[_VOL].to_numpy() * 1e-3
-    norm = grid["norm_um"].to_numpy()
-    extent = float(np.max(np.ptp(p0, axis=0))) if len(p0) > 1 else 100.0
-    extent = extent if extent > 0 else 100.0
-    peak = float(np.max(norm)) * 1e-3 if len(norm) else 0.0
-    mag = _nice_magnification(0.12 * extent / peak) if peak > 0 else 1.0
-    fig = _figure(8, 7)
-    ax = fig.add_subplot(projection="3d")
-    ax.scatter(*p0.T, s=6, color="0.55", label="nominal tool point")
-    ax.quiver(*p0.T, *(d_mm * mag).T, color="tab:red", linewidth=0.8, arrow_length_ratio=0.25)
-    end = p0 + d_mm * mag
-    sc = ax.scatter(*end.T, c=norm, cmap="viridis", s=10, label="actual (magnified)")
-    fig.colorbar(sc, ax=ax, shrink=0.6, label="volumetric error |d| (um)")
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_zlabel("z (mm)")
-    ax.legend(loc="upper left", fontsize=8)
-    rot = [a.name for a in machine.spec.axes if a.is_rotary]
-    extra = f"; {', '.join(rot)} at reference" if rot else ""
-    ax.set_title(
-        f"Volumetric error map, error vectors magnified x{mag:g}\n"
-        f"(actual - nominal tool point, tool offset 0{extra}; "
-        f"max {float(np.max(norm)) if len(norm) else 0.0:.1f} um)",
-        fontsize=10,
-    )
-    fig.savefig(path, dpi=110)
-
-
-def _plot_residuals_vs_axes(result: IdentificationResult, path: Path) -> None:
-    spec = result.machine.spec
-    plot_residuals_vs_axes(
-        result.residuals,
-        spec.axis_names,
-        [_axis_unit(spec, a) for a in spec.axis_names],
-        path,
-        adequacy=assess(result),
-    )
-
-
-def _plot_residuals(residuals: pd.DataFrame, path: Path) -> None:
-    r = residuals["residual_um"].to_numpy(float)
-    rej = np.asarray(residuals["rejected"], bool)
-    fig = _figure(12, 4.5)
-    ax1, ax2 = fig.subplots(1, 2, width_ratios=[1, 2])
-    kept = r[~rej & np.isfinite(r)]
-    ax1.hist(
-        kept,
-        bins=max(10, min(60, int(np.sqrt(max(len(kept), 1))))),
-        color="tab:blue",
-        alpha=0.8,
-        label="used",
-    )
-    if rej.any():
-        ax1.hist(r[rej], bins=10, color="tab:red", alpha=0.8, label="rejected")
-        ax1.legend(fontsize=8)
-    rms = float(np.sqrt(np.mean(kept**2))) if len(kept) else float("nan")
-    ax1.set_title(f"residuals (RMS {rms:.3g} um, {len(kept)} readings)")
-    ax1.set_xlabel("residual (um)")
-    ax1.set_ylabel("readings")
-    idx = np.arange(1, len(r) + 1)
-    for sid in dict.fromkeys(residuals["station"].astype(str)):
-        m = (residuals["station"].astype(str) == sid).to_numpy()
-        ax2.plot(idx[m & ~rej], r[m & ~rej], ".", markersize=3, label=str(sid))
-    if rej.any():
-        ax2.plot(idx[rej], r[rej], "x", color="tab:red", label="rejected")
-    ax2.axhline(0.0, color="0.5", linewidth=0.6)
-    ax2.set_xlabel("reading (order in the data file)")
-    ax2.set_ylabel("residual (um)")
-    ax2.set_title("residual (model - measured) per reading, by station")
-    ax2.grid(True, alpha=0.3)
-    ax2.legend(fontsize=7, ncol=2, markerscale=3, loc="best")
-    fig.savefig(path, dpi=110)
+    component_errors(table, em, path)
 
 
 # --------------------------------------------------------------------------------------
@@ -1113,8 +989,9 @@ def _report(
             + (
                 ""
                 if not rot
-                else f"\n\n(The map shows the poses with "
-                f"{', '.join(a.name for a in rot)} at their reference.)"
+                else f"\n\n(XY slices at several heights with "
+                f"{', '.join(a.name for a in rot)} at their reference, then slices at "
+                "several angles of each rotary axis.)"
             )
         )
         add("")
@@ -1164,7 +1041,7 @@ def _report(
         "`volumetric_grid.csv`, `result.json` (everything `volcal predict --result` needs)"
         + (
             ", `component_errors.png`, `volumetric_map.png`, `residuals.png`, "
-            "`residuals_vs_axes.png`"
+            "`residuals_vs_axes.png`, `correlations.png`"
             if plots
             else " (plots not written: --no-plots)"
         )
@@ -1270,7 +1147,12 @@ def _adequacy_section(ad, plots: bool) -> str:
         )
     lines.append("")
     if plots:
-        lines += ["![normalised residuals against each axis](residuals_vs_axes.png)", ""]
+        lines += [
+            "![normalised residuals against each axis](residuals_vs_axes.png)",
+            "",
+            "![correlations of the identifiable error parameters](correlations.png)",
+            "",
+        ]
     return "\n".join(lines)
 
 
@@ -1372,17 +1254,13 @@ def save_result(
         )
         if plots:
             log.info("plotting")
+            from volcal.outputs import plots as P
+
             _plot_component_errors(comp, em, tmp / "component_errors.png")
-            # the 3D map: the poses with the rotary axes at their reference
-            at_ref = np.ones(len(grid), bool)
-            for a in machine.spec.axes:
-                if a.is_rotary:
-                    at_ref &= np.isclose(grid[a.name].to_numpy(float), a.reference)
-            _plot_volumetric_map(
-                machine, grid[at_ref].reset_index(drop=True), tmp / "volumetric_map.png"
-            )
-            _plot_residuals(result.residuals, tmp / "residuals.png")
-            _plot_residuals_vs_axes(result, tmp / "residuals_vs_axes.png")
+            P.volumetric_slices(machine, em, result.theta, tmp / "volumetric_map.png")
+            P.residuals(result.residuals, tmp / "residuals.png")
+            P.residuals_vs_axes(result, tmp / "residuals_vs_axes.png")
+            P.correlations(result, tmp / "correlations.png")
         (tmp / "report.md").write_text(
             _report(
                 result,
