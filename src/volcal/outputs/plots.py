@@ -170,8 +170,8 @@ def volumetric_slices(
         vals = vals[:-1] if full else vals
         for v in vals:
             slices.append((f"{r.name} = {v:g} deg", {r.name: float(v), **mid}))
-    g1 = np.linspace(*ax1.travel, n)
-    g2 = np.linspace(*ax2.travel, n)
+    g1 = np.linspace(ax1.travel[0], ax1.travel[1], n)
+    g2 = np.linspace(ax2.travel[0], ax2.travel[1], n)
     G1, G2 = np.meshgrid(g1, g2, indexing="ij")
     fields = []
     for _, fixed in slices:
