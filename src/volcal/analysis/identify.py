@@ -41,6 +41,7 @@ from volcal.analysis import (
 )
 from volcal.analysis.identifiability import FieldSets, rigid_columns
 from volcal.base.exceptions import InputError, SolverError
+from volcal.base.progress import stage as report_stage
 from volcal.base.units import report_factors, report_unit
 from volcal.measurement.budget import Budget, load_budget
 from volcal.measurement.instruments import Instrument, get_instrument
@@ -779,7 +780,11 @@ def _identify(
             **opts,
         )
     t_start = time.perf_counter()
-    machine = model if isinstance(model, Machine) else Machine.from_model(model)
+    if isinstance(model, Machine):
+        machine = model
+    else:
+        with report_stage("building the model"):
+            machine = Machine.from_model(model)
     spec = machine.spec
     ins = get_instrument(instrument)
     st_table = None
@@ -838,17 +843,18 @@ def _identify(
         )
 
     layout = Layout.from_measurements(meas)
-    ider = Identifier(
-        machine,
-        em,
-        layout,
-        exact=exact,
-        hessian=hessian,
-        verbose=verbose,
-        datum_mode=datum_mode,
-        instrument=ins,
-        solver=solver,
-    )
+    with report_stage(f"building the problem ({layout.n_readings} readings)"):
+        ider = Identifier(
+            machine,
+            em,
+            layout,
+            exact=exact,
+            hessian=hessian,
+            verbose=verbose,
+            datum_mode=datum_mode,
+            instrument=ins,
+            solver=solver,
+        )
     pr = ider.problem
     weights = 1.0 / sigma
     x0 = pr.pack_x(np.zeros(em.n_params), st0, glob0)
@@ -863,7 +869,8 @@ def _identify(
     rejected = np.zeros(len(meas), bool)
     for round_ in range(12 if robust else 1):
         p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
-        x, outcomes, fixed, ident = ider.run(strat, x0, p, user_fixed=user_fixed)
+        with report_stage(f"solving ({strategy}, {ider.solver_name})"):
+            x, outcomes, fixed, ident = ider.run(strat, x0, p, user_fixed=user_fixed)
         r = (
             pr.residual(
                 pr.to_scaled(x), pr.pack_data(meas.q_internal, meas.tool, meas.length, weights)
@@ -900,6 +907,8 @@ def _identify(
             )
 
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
+    unc = report_stage("uncertainty and identifiability")
+    unc.__enter__()
     cov = ider.covariance(x, p, fixed)
     resid_w = r
     dof = max(int((~rejected).sum()) - int((~fixed).sum()) + pr.C.shape[0], 1)
@@ -920,6 +929,7 @@ def _identify(
         x, p, base_fixed, meas.q_internal[first], meas.tool[first]
     )
     split_gauge(ident, nt, sets, pr.scale[:nt])
+    unc.__exit__(None, None, None)
     # a parameter taking part in an unidentifiable direction has no value of its own: its
     # value depends on which variable was held (reported), so it gets no uncertainty
     identifiable = ~ident.unidentifiable[:nt]

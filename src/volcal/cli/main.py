@@ -132,6 +132,10 @@ def main(argv: list[str] | None = None) -> int:
         )
     )
     logging.basicConfig(level=level, format="%(levelname)s: %(message)s")
+    if not args.quiet:  # stages longer than a moment report on stderr (volcal.base.progress)
+        from volcal.base import progress
+
+        progress.enable()
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

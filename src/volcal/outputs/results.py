@@ -76,6 +76,7 @@ from volcal import __version__
 from volcal.analysis.adequacy import assess
 from volcal.analysis.identifiability import FieldNullSpace
 from volcal.analysis.identify import IdentificationResult, SolverState, predict_volumetric
+from volcal.base import progress
 from volcal.base.exceptions import InputError
 from volcal.base.units import REPORT
 from volcal.model.errors import ErrorForm, ErrorModel
@@ -1256,11 +1257,15 @@ def save_result(
             log.info("plotting")
             from volcal.outputs import plots as P
 
+            stage = progress.stage("plotting")
+            stage.__enter__()
+
             _plot_component_errors(comp, em, tmp / "component_errors.png")
             P.volumetric_slices(machine, em, result.theta, tmp / "volumetric_map.png")
             P.residuals(result.residuals, tmp / "residuals.png")
             P.residuals_vs_axes(result, tmp / "residuals_vs_axes.png")
             P.correlations(result, tmp / "correlations.png")
+            stage.__exit__(None, None, None)
         (tmp / "report.md").write_text(
             _report(
                 result,

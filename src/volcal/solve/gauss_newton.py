@@ -29,6 +29,7 @@ import casadi as ca
 import numpy as np
 import scipy.linalg as sla
 
+from volcal.base import progress
 from volcal.problem.residuals import IdentificationProblem
 from volcal.solve.outcome import SolveOutcome
 
@@ -143,6 +144,7 @@ class GaussNewtonSolver:
         for it in range(1, max_iter + 1):  # noqa: B007  (the count is reported)
             f, dx, kkt, pred = (v.full() for v in step(xs, p, Z, mu))
             f, dx, pred = f.item(), dx.ravel(), pred.item()
+            progress.update(f"Gauss-Newton iteration {it}, cost {f:.6g}")
             if not np.all(np.isfinite(dx)):
                 status = "Invalid_Number_Detected"
                 break

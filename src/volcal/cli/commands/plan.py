@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -185,10 +184,14 @@ def run(args: argparse.Namespace) -> int:
         stations = pd.DataFrame(stations)
     quiet = getattr(args, "quiet", False)
 
-    def progress(stage: str, step: int, best: float) -> None:
-        if not quiet:  # one line per generation / start: long searches show life
-            print(f"{stage}: step {step + 1}, criterion {best:.4g}", file=sys.stderr, flush=True)
+    from volcal.base import progress as report
 
+    def progress(stage: str, step: int, best: float) -> None:
+        # one report per generation / start: long searches show life (volcal.base.progress)
+        report.update(f"{stage}, step {step + 1}: criterion {best:.4g}")
+
+    stage = report.stage("planning")
+    stage.__enter__()
     res = plan(
         cfg["model"],
         n_stations=int(cfg.get("stations", 4)),
@@ -215,6 +218,7 @@ def run(args: argparse.Namespace) -> int:
         checkpoint_dir=args.checkpoint,
         progress=progress,
     )
+    stage.__exit__(None, None, None)
     res.settings["setting_file"] = cfg.get("_source")
     out = write_plan(
         res,
