@@ -48,6 +48,12 @@ def build_parser() -> argparse.ArgumentParser:
     from volcal import __version__
 
     parser.add_argument("--version", action="version", version=f"volcal {__version__}")
+    parser.add_argument(
+        "--project",
+        metavar="FILE",
+        help="project file with one table of settings per command (default ./volcal.toml "
+        "when present); flags override it",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for modname in _COMMANDS:
         importlib.import_module(modname).add_parser(sub)
@@ -121,9 +127,93 @@ def _exit_now(code: int) -> None:  # pragma: no cover - ends the process
     os._exit(code)
 
 
+PROJECT_FILE = "volcal.toml"
+
+
+def _project_defaults(parser: argparse.ArgumentParser, argv: list[str]) -> str | None:
+    """Apply a project file's settings as defaults of the command about to run, so that a
+    run needs no long flag list and flags still override it.
+
+    The file is ``--project FILE`` or ``./volcal.toml``; one table per command, keys are
+    the command's long options without dashes (``[identify] model = "mcv754_wxyzt"``,
+    ``strategy = "joint"``, ``out = "result"``).  Parsed with tomllib: data, never code.
+    Returns the file used (None: none).  Unknown commands or keys are an InputError
+    naming the file, table and key."""
+    import tomllib
+    from pathlib import Path
+
+    path = None
+    if "--project" in argv:
+        i = argv.index("--project")
+        if i + 1 >= len(argv):
+            raise InputError("--project needs a file name")
+        path = Path(argv[i + 1])
+        del argv[i : i + 2]
+        if not path.is_file():
+            raise InputError("no such project file", source=str(path))
+    elif Path(PROJECT_FILE).is_file():
+        path = Path(PROJECT_FILE)
+    if path is None:
+        return None
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid TOML: {exc}", source=str(path)) from None
+    sub = next(
+        a
+        for a in parser._actions
+        if isinstance(a, argparse._SubParsersAction)  # noqa: SLF001
+    )
+    unknown = sorted(set(doc) - set(sub.choices))
+    if unknown:
+        raise InputError(
+            f"unknown command table(s) [{'], ['.join(unknown)}]; commands: "
+            f"{', '.join(sub.choices)}",
+            source=str(path),
+        )
+    command = next((a for a in argv if a in sub.choices), None)
+    if command is None or command not in doc:
+        return str(path)
+    cmd = sub.choices[command]
+    dests = {
+        a.dest: a
+        for a in cmd._actions  # noqa: SLF001
+        if a.option_strings and a.dest not in ("help", "quiet", "verbose")
+    }
+    values = {}
+    for key, value in doc[command].items():
+        dest = key.replace("-", "_")
+        if dest not in dests:
+            raise InputError(
+                f"[{command}] has no option '{key}'; options: "
+                f"{', '.join(sorted(k.replace('_', '-') for k in dests))}",
+                source=str(path),
+            )
+        action = dests[dest]
+        # a string is parsed as the command line would (types, paths); a relative path is
+        # relative to the project file; other TOML values are taken as they are
+        if isinstance(value, str) and action.type is Path and not Path(value).is_absolute():
+            value = str(path.parent / value)
+        values[dest] = value
+        action.required = False  # given by the file; a flag still overrides it
+    for group in cmd._mutually_exclusive_groups:  # noqa: SLF001
+        if any(a.dest in values for a in group._group_actions):  # noqa: SLF001
+            group.required = False
+    cmd.set_defaults(**values)
+    return str(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    as_program = argv is None
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        project = _project_defaults(parser, argv)
+    except InputError as exc:
+        print(f"volcal: error: {exc}", file=sys.stderr)
+        return 2
     args = parser.parse_args(argv)
+    args.project_file = project
     level = (
         logging.ERROR
         if args.quiet
@@ -159,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         with output_policy(bool(getattr(args, "force", False))):
             code = int(args.func(args) or 0)
         if (
-            argv is None
+            as_program
             and getattr(args, "exit_now", False)
             and sys.getprofile() is None  # a profiler or coverage writes its data at exit
             and sys.gettrace() is None

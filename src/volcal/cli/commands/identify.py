@@ -272,6 +272,7 @@ def run(args: argparse.Namespace) -> int:
         "solver": args.solver,
         "instrument": args.instrument,
         "stations": str(args.stations) if args.stations else None,
+        "project_file": getattr(args, "project_file", None),
     }
     path = save_result(res, out, data_name=str(args.data), plots=not args.no_plots, options=options)
     meta = json.loads((path / "result.json").read_text(encoding="utf-8"))

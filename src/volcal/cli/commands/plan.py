@@ -220,6 +220,7 @@ def run(args: argparse.Namespace) -> int:
     )
     stage.__exit__(None, None, None)
     res.settings["setting_file"] = cfg.get("_source")
+    res.settings["project_file"] = getattr(args, "project_file", None)
     out = write_plan(
         res,
         args.out,
