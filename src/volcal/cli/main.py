@@ -29,6 +29,7 @@ _COMMANDS = [
     "volcal.cli.commands.plan",
     "volcal.cli.commands.mc",
     "volcal.cli.commands.compensate",
+    "volcal.cli.commands.report",
 ]
 
 
