@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -732,6 +733,7 @@ def _identify(
     progress: bool = False,
     instrument: str | Instrument | None = None,
     solver: str = "ipopt",
+    columns: Mapping[str, str] | str | None = None,
 ) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
@@ -752,6 +754,9 @@ def _identify(
 
     instrument: the observation model (:mod:`volcal.measurement.instruments`; a name such
     as ``"tracker"`` (default) or ``"multilaser"``, or an :class:`Instrument` object).
+
+    columns: a column mapping for an instrument's export (``"length=L[m],station=Tracker"``,
+    see :func:`volcal.measurement.tables.parse_column_map`).
     """
     if degree == "auto":  # every other argument goes to each candidate fit
         opts = {
@@ -802,7 +807,11 @@ def _identify(
         data
         if isinstance(data, Measurements)
         else load_measurements(
-            data, spec, stations=st_table, relative_lengths=not ins.positive_readings
+            data,
+            spec,
+            stations=st_table,
+            relative_lengths=not ins.positive_readings,
+            columns=columns,
         )
     )
     em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)

@@ -68,7 +68,7 @@ from __future__ import annotations
 import difflib
 import re
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -85,6 +85,7 @@ __all__ = [
     "load_measurements",
     "load_stations",
     "load_instrument_stations",
+    "parse_column_map",
     "MAX_LENGTH_MM",
     "TRAVEL_TOLERANCE",
     "MIN_READINGS_PER_STATION",
@@ -339,6 +340,104 @@ def _read_raw(source: str | Path | pd.DataFrame, name: str | None, what: str) ->
     if body.shape[0] == 0:
         raise InputError(f"the {what} has a header but no data rows", source=label, row=2)
     return _Raw(label, header_cells, body, rows)
+
+
+# --------------------------------------------------------------------------------------
+# column mapping (instrument exports)
+
+#: units a mapped column may carry, with their factor to volcal's unit (mm, deg, s)
+_MAP_UNITS = {
+    "mm": ("mm", 1.0),
+    "m": ("mm", 1000.0),
+    "um": ("mm", 1e-3),
+    "µm": ("mm", 1e-3),
+    "in": ("mm", 25.4),
+    "deg": ("deg", 1.0),
+    "rad": ("deg", 180.0 / np.pi),
+    "s": ("s", 1.0),
+    "ms": ("s", 1e-3),
+    "min": ("s", 60.0),
+}
+
+
+def parse_column_map(spec: Mapping[str, str] | str) -> dict[str, tuple[str, str | None]]:
+    """``{volcal column: (file column, unit or None)}`` from ``"length=L[m],station=Tracker"``
+    or a mapping ``{"length": "L[m]"}``; the unit in brackets is the file's (mm, m, um,
+    in, deg, rad, s, ms, min).  Raises :class:`InputError` on a malformed entry."""
+    items = (
+        [tuple(part.split("=", 1)) for part in spec.split(",") if part.strip()]
+        if isinstance(spec, str)
+        else list(spec.items())
+    )
+    out: dict[str, tuple[str, str | None]] = {}
+    for item in items:
+        if len(item) != 2 or not str(item[0]).strip() or not str(item[1]).strip():
+            raise InputError(
+                f"column mapping entry {'='.join(map(str, item))!r}: expected "
+                "VOLCAL_COLUMN=FILE_COLUMN[UNIT], e.g. length=L[m]",
+                source="--columns",
+            )
+        key, val = str(item[0]).strip(), str(item[1]).strip()
+        m = re.fullmatch(r"(.+?)\s*\[\s*([^\]]+?)\s*\]", val)
+        col, unit = (m.group(1), m.group(2)) if m else (val, None)
+        if unit is not None and unit not in _MAP_UNITS:
+            raise InputError(
+                f"column mapping {key}={val}: unknown unit {unit!r}; expected one of "
+                f"{', '.join(_MAP_UNITS)}",
+                source="--columns",
+            )
+        out[key] = (col, unit)
+    return out
+
+
+def _map_columns(raw: _Raw, mapping: dict[str, tuple[str, str | None]], spec) -> _Raw:
+    """The raw table with the mapped file columns renamed to volcal's and their values
+    converted to volcal's units (values that are not numbers are left for the validator
+    to report by row and column)."""
+    canon = {n: c for c in _measurement_schema(spec) for n in c.names}
+    header = list(raw.header)
+    body = raw.body.copy()
+    for key, (col, unit) in mapping.items():
+        if key not in canon:
+            close = _closest(key, canon)
+            raise InputError(
+                f"column mapping: volcal has no column {key!r}"
+                + (f" (did you mean {close!r}?)" if close else "")
+                + f"; columns: {', '.join(c.canonical for c in _measurement_schema(spec))}",
+                source=raw.name,
+            )
+        if col not in header and unit is not None:
+            # a file column named with its unit ("Distance [m]"): the bracket is both part
+            # of the name and the unit of the values
+            col = next((c for c in (f"{col} [{unit}]", f"{col}[{unit}]") if c in header), col)
+        if col not in header:
+            raise InputError(
+                f"column mapping {key}={col}: the file has no column {col!r}; its columns: "
+                f"{', '.join(header)}",
+                source=raw.name,
+                row=1,
+            )
+        k = header.index(col)
+        header[k] = canon[key].canonical
+        if unit is not None:
+            want = canon[key].unit
+            key = canon[key].canonical
+            base, factor = _MAP_UNITS[unit]
+            if want and base != want:
+                raise InputError(
+                    f"column mapping {key}={col}[{unit}]: {key} is in {want}, a {unit} "
+                    "value cannot be converted to it",
+                    source=raw.name,
+                )
+
+            def conv(v, f=factor):
+                try:
+                    return repr(float(v) * f) if not _is_blank(v) else v
+                except (TypeError, ValueError):
+                    return v
+
+            body[k] = body[k].map(conv)
+    return _Raw(raw.name, header, body, raw.rows)
 
 
 # --------------------------------------------------------------------------------------
@@ -774,6 +873,7 @@ def load_measurements(
     stations: pd.DataFrame | None = None,
     require_station_positions: bool = False,
     relative_lengths: bool = False,
+    columns: Mapping[str, str] | str | None = None,
 ) -> Measurements:
     """Load and validate a measurement table (CSV path or DataFrame; never modified).
 
@@ -786,6 +886,10 @@ def load_measurements(
     relative_lengths: lengths are relative to an unknown dead length (interferometer in
         relative mode) and may be zero or negative; only ``|length| <= MAX_LENGTH_MM`` is
         checked.  By default lengths must lie in ``(0, MAX_LENGTH_MM]``.
+    columns: a column mapping for instrument exports (:func:`parse_column_map`):
+        ``{"length": "L[m]", "station": "Tracker"}`` or the text
+        ``"length=L[m],station=Tracker"``: which column of the file holds each of volcal's
+        columns, with the unit of the file's values in brackets (converted to volcal's).
 
     Errors (:class:`InputError`, naming source, row and column): missing, misnamed
     (closest expected name suggested), unknown or doubled columns; axis columns that do not
@@ -804,6 +908,8 @@ def load_measurements(
     """
     spec = resolve_model(spec)
     raw = _read_raw(source, name, "measurement table")
+    if columns:
+        raw = _map_columns(raw, parse_column_map(columns), spec)
     problems = _Problems(raw.name)
     schema = _measurement_schema(spec)
     axis_names = spec.axis_names

@@ -54,6 +54,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "optional tool_x/y/z, length in mm, optional time, sigma)",
     )
     p.add_argument(
+        "--columns",
+        metavar="COL=FILECOL[UNIT],...",
+        help="column mapping for an instrument export: which file column holds each of "
+        "volcal's columns, with the file's unit in brackets, e.g. "
+        "'length=Distance[m],station=Tracker,point=Target' (units: mm, m, um, in, deg, "
+        "rad, s, ms, min)",
+    )
+    p.add_argument(
         "--stations",
         type=Path,
         metavar="S.csv",
@@ -253,6 +261,7 @@ def run(args: argparse.Namespace) -> int:
         progress=not getattr(args, "quiet", False),
         solver=args.solver,
         instrument=args.instrument,
+        columns=args.columns,
     )
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
     options = {
@@ -273,6 +282,7 @@ def run(args: argparse.Namespace) -> int:
         "instrument": args.instrument,
         "stations": str(args.stations) if args.stations else None,
         "project_file": getattr(args, "project_file", None),
+        "columns": args.columns,
     }
     path = save_result(res, out, data_name=str(args.data), plots=not args.no_plots, options=options)
     meta = json.loads((path / "result.json").read_text(encoding="utf-8"))
