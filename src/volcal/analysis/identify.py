@@ -96,7 +96,7 @@ class SolverState:
         return self.fingerprint == problem.fingerprint()
 
 
-@dataclass
+@dataclass(repr=False)
 class IdentificationResult:
     """Everything an identification produced (values in mm / rad unless a name says)."""
 
@@ -130,6 +130,39 @@ class IdentificationResult:
         d = dict(self.__dict__)
         d["identifier"] = None
         return d
+
+    def __repr__(self) -> str:
+        n = int(len(self.residuals))
+        return (
+            f"IdentificationResult({self.machine.spec.name}, {self.strategy}, {n} readings: "
+            f"{self.status}, residual RMS {self.residual_rms_um:.3g} um, chi2/dof "
+            f"{self.conditions.get('chi2_per_dof', float('nan')):.3g}, "
+            f"{int((~np.asarray(self.identifiable)).sum())} unidentifiable)"
+        )
+
+    def _repr_html_(self) -> str:
+        """A summary for Jupyter: status, fit, adequacy, unidentifiable, largest values."""
+        from html import escape
+
+        adq = self.adequacy
+        colour = "#1a7f37" if adq.adequate else "#b42318"
+        par = self.parameters()
+        top = par.reindex(par["value"].abs().sort_values(ascending=False).index).head(8)
+        rows = "".join(
+            f"<tr><td>{escape(str(r['name']))}</td><td>{r['value']:.6g}</td>"
+            f"<td>{escape(str(r['unit']))}</td><td>{r['std']:.3g}</td></tr>"
+            for _, r in top.iterrows()
+        )
+        un = [n for n, ok in zip(self.error_model.param_names, self.identifiable) if not ok]
+        return (
+            f"<b>Identification of {escape(self.machine.spec.name)}</b> ({escape(self.strategy)}"
+            f", {len(self.residuals)} readings, {self.seconds:.1f} s)<br>"
+            f"solver: {escape(self.status)}<br>residual RMS {self.residual_rms_um:.3g} um; "
+            f"<span style='color:{colour}'>{escape(adq.message)}</span><br>"
+            f"unidentifiable: {escape(', '.join(un) or 'none')}"
+            f"<table><tr><th>largest parameters</th><th>value</th><th>unit</th><th>u</th></tr>"
+            f"{rows}</table>"
+        )
 
     @property
     def success(self) -> bool:

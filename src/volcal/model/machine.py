@@ -81,7 +81,7 @@ def _build_functions(spec: MachineSpec) -> dict[str, ca.Function]:
     }
 
 
-@dataclass
+@dataclass(repr=False)
 class Machine:
     """A topology with its compiled tool-point functions (see the module docstring)."""
 
@@ -90,6 +90,15 @@ class Machine:
     errors: list[ErrorSymbol] = field(repr=False)
     build_seconds: float = 0.0
     from_cache: bool = False
+
+    def __repr__(self) -> str:
+        return (
+            f"Machine({self.spec.name!r}: {' '.join(self.spec.axis_names)}, "
+            f"{len(self.errors)} error quantities)"
+        )
+
+    def _repr_html_(self) -> str:
+        return self.spec._repr_html_() + f"<p>{len(self.errors)} error quantities</p>"
 
     @classmethod
     def from_model(cls, model: str | Path | MachineSpec, *, use_cache: bool = True) -> Machine:

@@ -226,7 +226,7 @@ class AxisSpec:
         return [f"E{c}{self.name}" for c in AXIS_LETTERS + ROT_LETTERS]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class MachineSpec:
     """A machine topology: a name, a description and the axes in chain order.
 
@@ -248,6 +248,25 @@ class MachineSpec:
             if a.name == name:
                 return a
         raise KeyError(name)
+
+    def __repr__(self) -> str:
+        axes = " ".join(f"{a.name}({a.kind[0]})" for a in self.axes)
+        return f"MachineSpec({self.name!r}: {axes})"
+
+    def _repr_html_(self) -> str:
+        """A table of the axes for Jupyter."""
+        from html import escape
+
+        rows = "".join(
+            f"<tr><td>{escape(a.name)}</td><td>{a.kind}</td><td>{escape(a.direction)}</td>"
+            f"<td>{a.branch}</td><td>{a.travel[0]:g} .. {a.travel[1]:g} "
+            f"{'deg' if a.is_rotary else 'mm'}</td></tr>"
+            for a in self.axes
+        )
+        return (
+            f"<b>{escape(self.name)}</b> {escape(self.description)}<table><tr><th>axis</th>"
+            f"<th>kind</th><th>direction</th><th>branch</th><th>travel</th></tr>{rows}</table>"
+        )
 
     def fingerprint(self) -> str:
         """Content hash of the topology (used as the build-cache key).  Error bases are

@@ -131,7 +131,7 @@ def _tool_axes(machine: Machine, q: np.ndarray, t: np.ndarray, axis) -> np.ndarr
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-@dataclass
+@dataclass(repr=False)
 class PlanResult:
     """A measurement plan and its prediction (see :func:`plan`)."""
 
@@ -328,6 +328,20 @@ class PlanResult:
             "seconds": round(self.seconds, 3),
             "notes": self.notes,
         }
+
+    def _repr_html_(self) -> str:
+        """The plan's summary and stations for Jupyter."""
+        from html import escape
+
+        s = self.summary()
+        return (
+            f"<b>Measurement plan for {escape(s['model'])}</b>: {s['stations']} stations, "
+            f"{s['poses']} poses x {s['tool_offsets']} tool offset(s) = {s['readings']} "
+            f"readings<br>criterion {s['criterion']} {s['criterion_value']:.4g} (start "
+            f"{s['start_value']:.4g}); predicted volumetric u RMS "
+            f"{s['volumetric_u_rms_um']:.3g} um, max {s['volumetric_u_max_um']:.3g} um<br>"
+            + self.stations.round(1).to_html(index=False)
+        )
 
     def __repr__(self) -> str:
         return (
