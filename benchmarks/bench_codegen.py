@@ -125,7 +125,7 @@ def bench(label, machine, df, repeat, workdir):
     # ---- agreement (example program output vs identify())
     pc = pd.read_csv(workdir / "o" / "parameters.csv")["value"].to_numpy()
     pp = res.parameters()
-    vp, sd = pp["value"].to_numpy(), pp["std"].to_numpy()
+    vp, sd = pp["value"].to_numpy(), pp["u"].to_numpy()
     ok = pp["identifiable"].to_numpy() & (vp != 0)  # held or unidentifiable: no own scale
     row["par_normrel"] = float(np.abs(pc - vp).max() / np.abs(vp).max())
     row["par_rel_std"] = float(np.max((np.abs(pc - vp) / np.fmax(np.abs(vp), sd))[ok]))

@@ -97,7 +97,7 @@ def test_c_example_reproduces_python_identification(c_run, python_result, ex, ex
     assert np.max(np.abs(vc - vp)) <= 1e-9 * np.max(np.abs(vp))
     # ... and to each parameter's own size or standard uncertainty, whichever is larger
     # (a parameter near zero is known only to its uncertainty)
-    scale = np.fmax(np.abs(vp), par_py["std"].to_numpy())
+    scale = np.fmax(np.abs(vp), par_py["u"].to_numpy())
     # (1e-8: the C solver's own stationarity tolerance; held at zero: exactly zero)
     assert np.all(np.abs(vc - vp) <= 1e-8 * scale)
 

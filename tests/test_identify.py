@@ -65,7 +65,7 @@ def test_single_tool_offset_reports_unobservable_angles_by_name():
     # unidentifiable parameters are held at zero and carry no uncertainty
     table = res.parameters()
     unid = table[~table["identifiable"]]
-    assert np.all(unid["value"] == 0.0) and unid["std"].isna().all()
+    assert np.all(unid["value"] == 0.0) and unid["u"].isna().all()
     # what the data do determine is still right: the volumetric field at tool offset 0
     rms, _ = field_error_um(res, machine, em, theta)
     assert rms < 0.5
@@ -78,7 +78,7 @@ def test_multi_offset_identifies_everything():
     # identified parameters agree with the truth within their uncertainty (z-scores)
     tab = res.parameters()
     f = np.array([1e3 if u == "mm" else 1e6 for u in em.param_units])
-    std = tab["std"].to_numpy()
+    std = tab["u"].to_numpy()
     # parameters the datum holds exactly (std 0: the tool's zero position, a translation
     # no multilateration sees) are compared by the field, not one by one
     held = std == 0

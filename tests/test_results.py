@@ -83,7 +83,7 @@ def test_every_file_is_written_with_its_columns_and_units(case):
     for png in PLOT_FILES:
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     par = pd.read_csv(out / "parameters.csv")
-    assert list(par.columns) == ["name", "value", "unit", "std", "identifiable"]
+    assert list(par.columns) == ["name", "value", "unit", "u", "identifiable"]
     assert set(par["unit"]) == {"um", "urad"}
     st = pd.read_csv(out / "stations.csv")
     assert list(st.columns[:5]) == ["station", "x_mm", "y_mm", "z_mm", "dead_length_mm"]
@@ -124,7 +124,7 @@ def test_tables_hold_the_result(case):
     exp = res.parameters()
     assert list(par["name"]) == list(exp["name"])
     np.testing.assert_allclose(par["value"], exp["value"], rtol=1e-15, atol=0)
-    np.testing.assert_allclose(par["std"], exp["std"], rtol=1e-15, atol=0)
+    np.testing.assert_allclose(par["u"], exp["u"], rtol=1e-15, atol=0)
     grid = pd.read_csv(out / "volumetric_grid.csv")
     q = case["machine"].axis_to_internal(grid[["X", "Y", "Z"]].to_numpy())
     pred = res.predict(q)

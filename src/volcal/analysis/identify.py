@@ -150,7 +150,7 @@ class IdentificationResult:
         top = par.reindex(par["value"].abs().sort_values(ascending=False).index).head(8)
         rows = "".join(
             f"<tr><td>{escape(str(r['name']))}</td><td>{r['value']:.6g}</td>"
-            f"<td>{escape(str(r['unit']))}</td><td>{r['std']:.3g}</td></tr>"
+            f"<td>{escape(str(r['unit']))}</td><td>{r['u']:.3g}</td></tr>"
             for _, r in top.iterrows()
         )
         un = [n for n, ok in zip(self.error_model.param_names, self.identifiable) if not ok]
@@ -186,7 +186,8 @@ class IdentificationResult:
         return float(np.sqrt(np.mean(r**2))) if len(r) else float("nan")
 
     def parameters(self) -> pd.DataFrame:
-        """name, value, unit, std, identifiable (values in um / urad)."""
+        """name, value, unit, u (standard uncertainty), identifiable (values and u in um /
+        urad)."""
         units = self.error_model.param_units
         f = report_factors(units)
         std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
@@ -196,7 +197,7 @@ class IdentificationResult:
                 "name": self.error_model.param_names,
                 "value": self.theta * f,
                 "unit": [report_unit(u) for u in units],
-                "std": std,
+                "u": std,
                 "identifiable": self.identifiable,
             }
         )
@@ -993,7 +994,7 @@ def _identify(
         unit = ins.station_param_units[j]
         f, rep = (1e3, "um") if unit == "mm" else ((1e6, "urad") if unit == "rad" else (1.0, ""))
         base = name[: -len(unit) - 1] if name.endswith("_" + unit) else name
-        col = f"std_{base}_{rep}" if rep else f"std_{base}"
+        col = f"u_{base}_{rep}" if rep else f"u_{base}"
         stations_out[col] = np.sqrt(var_st[:, j]) * f
     stations_out["fixed"] = True if getattr(strat, "hold_stations", False) else st_fixed
     residuals = meas.table.copy()

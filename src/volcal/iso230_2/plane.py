@@ -340,7 +340,7 @@ class PlaneResult:
                 power_p=kp,
                 power_r=kr,
                 value=a[q],
-                std=math.sqrt(max(C[q, q], 0.0)),
+                u=math.sqrt(max(C[q, q], 0.0)),
                 unit=unit,
             )
             for l, nm in enumerate(mdl.names):
@@ -542,7 +542,7 @@ def write_plane_report(result: PlaneResult, out_dir, *, spacing_mm: float | None
             "",
             "## Coefficients",
             "",
-            _md_table(poly[["coefficient", "value", "std", "unit"]], fmt=lambda v: f"{v:.6g}"),
+            _md_table(poly[["coefficient", "value", "u", "unit"]], fmt=lambda v: f"{v:.6g}"),
             "",
         ]
         if result.warnings:

@@ -170,7 +170,7 @@ def markdown_report(result, *, correction=None, image: str | None = "iso230_2.pn
             "two directions.",
             "",
         ]
-        sub = pt[pt["axis"] == ax.axis][["direction", "coefficient", "value", "std", "unit"]]
+        sub = pt[pt["axis"] == ax.axis][["direction", "coefficient", "value", "u", "unit"]]
         out += [_md_table(sub, fmt=lambda v: f"{v:.6g}"), ""]
         for lab, c2 in zip(mdl.labels, mdl.chi2):
             out.append(
@@ -204,7 +204,7 @@ def markdown_report(result, *, correction=None, image: str | None = "iso230_2.pn
         "",
         "- `parameters.csv`: axis parameters (name with unit suffix, value, unit)",
         "- `targets.csv`: per target: means, s, R, B per direction, fitted values",
-        "- `polynomial.csv`: coefficients a_k with std and covariance (cov_a<l> in "
+        "- `polynomial.csv`: coefficients a_k with u and covariance (cov_a<l> in "
         "deviation-unit² / position-unit^(k+l))",
         "- `correction_table.csv`: fitted deviation, correction and U on a grid",
         "- `iso230_2.png`: the plot",

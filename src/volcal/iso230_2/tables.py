@@ -116,7 +116,7 @@ def targets_table(result) -> pd.DataFrame:
 
 def polynomial_table(result) -> pd.DataFrame:
     """Coefficients a_k of Δ(P) = Σ a_k P^k per axis and direction (+, -, bidir), in
-    deviation unit / position unit^k, with std and covariance.
+    deviation unit / position unit^k, with its standard uncertainty u and covariance.
 
     Column ``cov_a<l>`` of the row of a_k holds cov(a_k, a_l) in
     (deviation unit)^2 / (position unit)^(k+l); ``cov_unit`` spells it out per row.
@@ -140,7 +140,7 @@ def polynomial_table(result) -> pd.DataFrame:
                     coefficient=f"a{j}",
                     power=j,
                     value=a[j],
-                    std=math.sqrt(max(C[j, j], 0.0)),
+                    u=math.sqrt(max(C[j, j], 0.0)),
                     unit=unit,
                 )
                 for l in range(p):

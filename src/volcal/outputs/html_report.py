@@ -286,7 +286,7 @@ def _data(res: LoadedResult, residuals: pd.DataFrame | None) -> dict[str, Any]:
                 "name": str(st.get("station", "")),
                 "xyz": ", ".join(_g(st.get(k), 7) for k in ("x_mm", "y_mm", "z_mm")),
                 "dead": _g(st.get("dead_length_mm"), 4),
-                "u": ", ".join(_g(st.get(k), 3) for k in ("std_x_um", "std_y_um", "std_z_um")),
+                "u": ", ".join(_g(st.get(k), 3) for k in ("u_x_um", "u_y_um", "u_z_um")),
                 "fixed": "yes" if st.get("fixed") else "no",
             }
         )
@@ -404,7 +404,7 @@ def _parameters(res: LoadedResult) -> list[dict[str, Any]]:
             "name": str(r.name),
             "value": _g(r.value, 6),
             "unit": _unit(r.unit),
-            "std": _g(r.std, 6) if r.identifiable else "not identifiable",
+            "std": _g(r.u, 6) if r.identifiable else "not identifiable",
             "identifiable": bool(r.identifiable),
         }
         for r in table.itertuples(index=False)
@@ -415,13 +415,13 @@ def _uncertainty(res: LoadedResult, grid: pd.DataFrame | None) -> dict[str, Any]
     table = res.parameters()
     largest = []
     for unit in dict.fromkeys(table["unit"]):
-        sub = table[(table["unit"] == unit) & table["identifiable"] & np.isfinite(table["std"])]
-        for r in sub.sort_values("std", ascending=False).head(LARGEST_UNCERTAINTIES).itertuples():
+        sub = table[(table["unit"] == unit) & table["identifiable"] & np.isfinite(table["u"])]
+        for r in sub.sort_values("u", ascending=False).head(LARGEST_UNCERTAINTIES).itertuples():
             largest.append(
                 {
                     "name": str(r.name),
                     "value": _g(r.value, 6),
-                    "std": _g(r.std, 4),
+                    "std": _g(r.u, 4),
                     "unit": _unit(unit),
                 }
             )

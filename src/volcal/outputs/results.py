@@ -5,12 +5,13 @@
 =========================  ==================================================================
 file                       content
 =========================  ==================================================================
-``parameters.csv``         ``name, value, unit, std, identifiable``: every error parameter in
-                           um / urad (``unit`` says which); ``std`` its standard uncertainty
+``parameters.csv``         ``name, value, unit, u, identifiable``: every error parameter in
+                           um / urad (``unit`` says which); ``u`` its standard uncertainty
                            (empty for unidentifiable parameters: their values are one
                            representative of what the data allow, not determined)
 ``stations.csv``           the identified stations: ``station, x_mm, y_mm, z_mm,
-                           dead_length_mm`` (+ their standard uncertainties in um, ``fixed``)
+                           dead_length_mm`` (+ their standard uncertainties ``u_x_um`` ...
+                           ``u_dead_length_um``, ``fixed``)
 ``residuals.csv``          the validated input rows plus ``residual_um`` (model - measured),
                            ``normalised_residual`` (residual / sigma) and ``rejected``
 ``component_errors.csv``   per axis, on a grid over its travel: ``axis``, ``position_mm``
@@ -485,7 +486,7 @@ class LoadedResult:
         return self.meta.get("adequacy")
 
     def parameters(self) -> pd.DataFrame:
-        """``name, value, unit, std, identifiable`` in um / urad (as parameters.csv)."""
+        """``name, value, unit, u, identifiable`` in um / urad (as parameters.csv)."""
         units = self.error_model.param_units
         f = np.array([_unit_factor(u)[0] for u in units])
         std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
@@ -495,7 +496,7 @@ class LoadedResult:
                 "name": self.error_model.param_names,
                 "value": self.theta * f,
                 "unit": [_unit_factor(u)[1] for u in units],
-                "std": std,
+                "u": std,
                 "identifiable": self.identifiable,
             }
         )

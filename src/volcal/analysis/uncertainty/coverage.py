@@ -131,7 +131,7 @@ def coverage_experiment(setup: CoverageSetup, k: int, *, seed: int = 0, mc: bool
     lin_in = np.abs(est - truth) <= Z95 * u
     par = res.parameters()
     f = report_factors(em.param_units)
-    zpar = (par["value"].to_numpy() - theta * f) / par["std"].to_numpy()
+    zpar = (par["value"].to_numpy() - theta * f) / par["u"].to_numpy()
     out = {
         "k": k,
         "truth": truth,

@@ -100,7 +100,8 @@ def run(args: argparse.Namespace) -> int:
     log.info("predicting at the poses of %s", args.points)
     table = res.predict(args.points, with_uncertainty=not args.no_uncertainty)
     if args.out is None:
-        table.to_csv(sys.stdout, index=False)
+        # printed: six significant digits (the file written with --out keeps full precision)
+        table.to_csv(sys.stdout, index=False, float_format="%.6g")
     else:
         _write_csv(table, args.out)
         if not getattr(args, "quiet", False):
