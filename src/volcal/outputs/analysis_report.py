@@ -774,12 +774,15 @@ def analyze_jacobian_report(
     The null directions' pivots are held (frame variables first, as the joint
     identification does) for the covariance."""
     from volcal.analysis.uncertainty.engine import unpack_data
+    from volcal.base import progress
     from volcal.measurement.plans import grid_plan
 
     pr = ider.problem
     machine = pr.machine
     n = pr.n_x
     user_fixed = np.zeros(n, bool) if user_fixed is None else np.asarray(user_fixed, bool)
+    stage = progress.stage("identifiability and covariance")
+    stage.__enter__()
     if datum_active is None:
         ider.select_datum(x, p, user_fixed)
     else:
@@ -789,6 +792,7 @@ def analyze_jacobian_report(
     fixed = user_fixed.copy()
     fixed[ident.pivots] = True
     cov = ider.covariance(x, p, fixed) * cov_scale
+    stage.__exit__(None, None, None)
     identifiable = ~(ident.unidentifiable | fixed)
     q, t, _, w = unpack_data(machine.n_axes, p)
     null = _null_directions(
