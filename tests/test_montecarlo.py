@@ -109,6 +109,30 @@ def test_dask_local_cluster_gives_identical_results(example_mc):
     assert np.array_equal(local.vol, remote.vol)
 
 
+@pytest.mark.parametrize("mode", ["nonlinear", "linear"])
+def test_same_seed_identical_serially_with_processes_and_on_dask(example_mc, mode, monkeypatch):
+    """One seed, one chunk size: the same numbers in this process, in local worker
+    processes (forked: the kernel inherited; spawned: the kernel pickled; by default this
+    process computing chunks too) and on a Dask LocalCluster."""
+    distributed = pytest.importorskip("distributed")
+    k = example_mc["kernel"]
+    opts = dict(mode=mode, chunk_size=60)
+    serial = run_trials(k, 240, 21, workers=1, **opts)
+    runs = {}
+    for method in ("fork", "spawn"):
+        monkeypatch.setenv("VOLCAL_MP_START", method)
+        runs[method] = run_trials(k, 240, 21, workers=2, **opts)
+        runs[method + ", this process too"] = run_trials(k, 240, 21, workers=None, **opts)
+    monkeypatch.delenv("VOLCAL_MP_START")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        runs["dask"] = run_trials(k, 240, 21, scheduler=client, **opts)
+    for name, other in runs.items():
+        for f in ("x", "vol", "iterations", "converged", "step"):
+            assert np.array_equal(getattr(serial, f), getattr(other, f)), (name, f)
+
+
 class _Interrupt(Exception):
     pass
 
@@ -136,6 +160,7 @@ def test_interrupted_run_resumes_from_saved_chunks(example_mc, tmp_path):
     again = run_trials(k, 500, 3, workers=1, chunk_size=100, out_dir=tmp_path)
     assert again.resumed_chunks == 2
     assert np.array_equal(again.x, full.x)
+    assert np.array_equal(again.vol, full.vol)  # recomputed from the saved parameters
     # a damaged chunk file is recomputed, never trusted
     files = sorted((tmp_path / "samples").glob("*/chunk*.npz"))
     files[0].write_bytes(b"garbage")
@@ -224,6 +249,43 @@ def test_mc_command_writes_results_and_resumes(tmp_path, capsys):
     assert "3 chunk(s) resumed" in capsys.readouterr().out
     pd.testing.assert_frame_equal(first, pd.read_csv(out / "parameters.csv"))
     assert main(["mc", "--model", "mcv754_wxyzt", "--out", str(out)]) == 2
+
+
+def test_mc_program_with_plots_and_stage_timings(tmp_path):
+    """The whole program as a user runs it: the plots drawn by the plotting process, the
+    stage timings of -v, the process ended without the interpreter's teardown."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "mc"
+    run = subprocess.run(
+        [sys.executable, "-m", "volcal.cli.main", "mc", "--example", "mcv754", "--trials",
+         "60", "--chunk-size", "30", "--workers", "2", "--verify", "1", "--no-progress",
+         "--out", str(out), "-v"],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert run.returncode == 0, run.stdout + run.stderr
+    for f in ("volumetric_U.png", "max_volumetric.png", "summary.json", "parameters.csv"):
+        assert (out / f).is_file(), f
+    assert (out / "volumetric_U.png").read_bytes()[:4] == b"\x89PNG"
+    assert "stage timings" in run.stdout and "identification" in run.stdout
+
+
+def test_plot_process_reports_a_failed_plot(tmp_path):
+    from volcal.outputs.mc_plots import PlotProcess
+
+    pp = PlotProcess.start()
+    if pp is None:
+        pytest.skip("no plotting process on this platform")
+    try:
+        pp.draw("max_hist", np.linspace(1.0, 2.0, 50), tmp_path / "h.png")
+        pp.wait()
+        assert (tmp_path / "h.png").is_file()
+        pp.draw("max_hist", np.linspace(1.0, 2.0, 50), tmp_path / "no" / "such" / "h.png")
+        with pytest.raises(RuntimeError, match="plotting failed"):
+            pp.wait()
+    finally:
+        pp.close()
 
 
 def test_paper002_study_smoke(tmp_path):

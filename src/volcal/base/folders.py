@@ -382,3 +382,36 @@ def write_folder(
             shutil.rmtree(tmp, ignore_errors=True)
             raise
     return out
+
+
+# --------------------------------------------------------------------------------------
+# writes that a signal must not cut in two
+
+_CRITICAL = 0
+_PENDING: list[int] = []
+
+
+@contextlib.contextmanager
+def uninterrupted() -> Iterator[None]:
+    """Defer Ctrl-C and SIGTERM (which the command line turns into KeyboardInterrupt) until
+    the block ends, so that a file written there and renamed into place is whole or
+    absent.  Outside the command line (no volcal handler installed) it changes nothing."""
+    global _CRITICAL
+    _CRITICAL += 1
+    try:
+        yield
+    finally:
+        _CRITICAL -= 1
+        if _CRITICAL == 0 and _PENDING:
+            sig = _PENDING[-1]
+            _PENDING.clear()
+            raise KeyboardInterrupt(f"signal {sig}")
+
+
+def interrupt_deferred(signum: int) -> bool:
+    """For the command line's signal handler: inside :func:`uninterrupted`, note the signal
+    and return True (the handler then returns); otherwise False."""
+    if _CRITICAL:
+        _PENDING.append(signum)
+        return True
+    return False

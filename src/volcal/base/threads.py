@@ -16,12 +16,51 @@ from contextlib import contextmanager
 from threadpoolctl import threadpool_limits
 
 _global_limiter = None
+_casadi_blas: bool | None = None
+
+
+def _casadi_openblas() -> None:
+    """Bring CasADi's own OpenBLAS under the limits (once per process).
+
+    CasADi's wheels bundle an OpenBLAS (``libcasadi-tp-openblas``, used by IPOPT's MUMPS)
+    whose file name threadpoolctl does not recognise, and which is loaded only with the
+    IPOPT plugin: left alone it runs on every core.  It is registered with threadpoolctl
+    and loaded now, so that the limits below hold for IPOPT as well.  Besides the speed,
+    this makes a ``fork`` safe while IPOPT runs in another thread: OpenBLAS stops its
+    worker threads at a fork, which leaves a threaded call waiting for them forever."""
+    global _casadi_blas
+    if _casadi_blas is not None:
+        return
+    _casadi_blas = False
+    try:
+        import ctypes
+        import importlib.util
+        from pathlib import Path
+
+        from threadpoolctl import OpenBLASController, register
+
+        spec = importlib.util.find_spec("casadi")
+        if spec is None or not spec.submodule_search_locations:
+            return
+        libs = sorted(Path(spec.submodule_search_locations[0]).glob("libcasadi-tp-openblas.so*"))
+        if not libs:
+            return
+
+        class CasadiOpenBLASController(OpenBLASController):
+            filename_prefixes = ("libcasadi-tp-openblas",)
+
+        register(CasadiOpenBLASController)
+        ctypes.CDLL(str(libs[0]))
+        _casadi_blas = True
+    except Exception:  # pragma: no cover - another CasADi build or an old threadpoolctl
+        return
 
 
 def set_blas_threads(n: int | None = 1) -> None:
     """Limit BLAS to ``n`` threads for the rest of the process (None: leave as is)."""
     global _global_limiter
     if n is not None:
+        _casadi_openblas()
         _global_limiter = threadpool_limits(limits=int(n), user_api="blas")
 
 
@@ -31,5 +70,6 @@ def blas_threads(n: int | None = 1) -> Iterator[None]:
     if n is None:
         yield
         return
+    _casadi_openblas()
     with threadpool_limits(limits=int(n), user_api="blas"):
         yield

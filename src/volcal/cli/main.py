@@ -94,6 +94,10 @@ def _terminate(signum, frame):  # pragma: no cover - exercised through a subproc
     # stop worker processes
     global _SIGNALLED
     _SIGNALLED = True
+    from volcal.base.folders import interrupt_deferred
+
+    if interrupt_deferred(signum):  # a file is being renamed into place: raise right after
+        return
     raise KeyboardInterrupt(f"signal {signum}")
 
 

@@ -26,6 +26,7 @@ import casadi as ca
 import numpy as np
 
 from volcal import __version__
+from volcal.model.numpy_call import NumpyCall
 from volcal.model.spec import ErrorSymbol, MachineSpec, error_symbols, resolve_model
 
 log = logging.getLogger(__name__)
@@ -150,6 +151,26 @@ class Machine:
     def __getitem__(self, name: str) -> ca.Function:
         return self.functions[name]
 
+    def _call(self, name: str, n: int) -> NumpyCall:
+        """Function ``name`` mapped over n points, called through numpy buffers (see
+        :mod:`volcal.model.numpy_call`); the last few kept, per thread."""
+        import threading
+
+        calls = self.__dict__.setdefault("_calls", {})
+        key = (name, n, threading.get_ident())
+        call = calls.pop(key, None)
+        if call is None:
+            call = NumpyCall(self.functions[name].map(n))
+        calls[key] = call  # most recent last
+        while len(calls) > 8:
+            calls.pop(next(iter(calls)))
+        return call
+
+    def __getstate__(self):
+        d = dict(self.__dict__)
+        d.pop("_calls", None)  # buffers bound to this process
+        return d
+
     def axis_to_internal(self, q: np.ndarray) -> np.ndarray:
         """File units (mm, deg) -> internal units (mm, rad), along the last dimension."""
         q = np.array(q, dtype=float, copy=True)
@@ -165,15 +186,15 @@ class Machine:
         n = q.shape[0]
         t = np.broadcast_to(np.asarray(t, float), (n, 3))
         e = np.broadcast_to(np.asarray(e, float), (n, self.n_errors))
-        f = self.functions["tool_point_exact" if exact else "tool_point"].map(n)
-        p, dp, J = (v.full() for v in f(q.T, t.T, e.T))
+        f = self._call("tool_point_exact" if exact else "tool_point", n)
+        p, dp, J = f(q.T, t.T, e.T)
         # map stacks the (3, n_err) blocks side by side: column a * n_err + b
         J = (
             np.asarray(J).reshape(3, n, self.n_errors).transpose(1, 0, 2)
             if self.n_errors
             else np.zeros((n, 3, 0))
         )
-        return np.asarray(p).T, np.asarray(dp).T, J
+        return np.reshape(p, (3, n)).T, np.reshape(dp, (3, n)).T, J
 
 
 def _save(path: Path, funcs: dict[str, ca.Function]) -> None:

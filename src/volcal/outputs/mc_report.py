@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 
 from volcal.analysis.uncertainty.montecarlo import MCResult, quantity_table
+from volcal.outputs.mc_plots import PlotProcess, _figure, _plot_max_hist, _plot_volumetric_U
 
 __all__ = ["write_mc_outputs", "default_quantities", "plot_contributions"]
 
@@ -73,15 +74,6 @@ def _atomic_text(text: str, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def _figure(w: float, h: float):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(w, h), layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
 def plot_contributions(
     table: pd.DataFrame, total: pd.DataFrame, path: Path, title: str = "", label: str = "{} only"
 ) -> None:
@@ -108,36 +100,6 @@ def plot_contributions(
     fig.savefig(path, dpi=110)
 
 
-def _plot_volumetric_U(vol: pd.DataFrame, points: np.ndarray, path: Path) -> None:
-    fig = _figure(8, 6.5)
-    ax = fig.add_subplot(projection="3d")
-    sc = ax.scatter(*points.T, c=vol["U_norm_um"].to_numpy(), cmap="viridis", s=25)
-    fig.colorbar(sc, ax=ax, shrink=0.6, label="U(|d|), k = 2 (um)")
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_zlabel("z (mm)")
-    ax.set_title(
-        f"Monte Carlo expanded uncertainty of the volumetric error |d|\n"
-        f"(|d| up to {vol['norm_um'].max():.1f} um; U up to "
-        f"{vol['U_norm_um'].max():.2f} um)",
-        fontsize=10,
-    )
-    fig.savefig(path, dpi=110)
-
-
-def _plot_max_hist(mx: np.ndarray, path: Path) -> None:
-    fig = _figure(6, 4)
-    ax = fig.subplots()
-    ax.hist(mx, bins=60, color="tab:blue", alpha=0.85)
-    lo, hi = np.quantile(mx, [0.025, 0.975])
-    for v in (lo, hi):
-        ax.axvline(v, color="tab:red", linestyle="--", linewidth=0.8)
-    ax.set_xlabel("largest volumetric error over the evaluation poses (um)")
-    ax.set_ylabel("trials")
-    ax.set_title(f"{len(mx)} trials; 95 % interval [{lo:.2f}, {hi:.2f}] um")
-    fig.savefig(path, dpi=110)
-
-
 def write_mc_outputs(
     out_dir: str | Path,
     mc: MCResult,
@@ -148,74 +110,102 @@ def write_mc_outputs(
     quantities: list[str] | None = None,
     plots: bool = True,
     extra: dict[str, Any] | None = None,
+    stages=None,
+    plotter: PlotProcess | None = None,
 ) -> dict[str, Any]:
     """Write the run's tables, plots and summary into ``out_dir`` (created; the
-    ``samples/`` folder of the run is kept).  Returns the summary dict."""
+    ``samples/`` folder of the run is kept).  Returns the summary dict.  stages: a
+    :class:`volcal.base.timing.Stages` that receives the seconds of tables and plots;
+    plotter: a :class:`PlotProcess` that draws the volumetric plots meanwhile (else they
+    are drawn here)."""
     from volcal.analysis.uncertainty.evaluation import compare_with_reference
+    from volcal.base.timing import Stages
 
+    st = stages if stages is not None else Stages()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    par = mc.parameters()
-    _atomic_csv(par, out / "parameters.csv", index=False)
-    qs = quantities or default_quantities(error_model)
-    qt = quantity_table(mc, error_model, qs)
-    _atomic_csv(qt, out / "error_motions.csv", index=False)
-    vol = mc.volumetric()
-    _atomic_csv(vol, out / "volumetric.csv", index=False)
-    mv = mc.max_volumetric()
-    agree = mc.agreement()
-    s = mc.samples
-    summary: dict[str, Any] = {
-        "trials": s.n,
-        "seed": s.seed,
-        "mode": s.mode,
-        "sources": mc.kernel.source_names,
-        "enabled": list(s.enabled) if s.enabled else None,
-        "seconds": s.seconds,
-        "resumed_chunks": s.resumed_chunks,
-        "not_converged": int((~s.converged).sum()),
-        "iterations": {
-            str(k): int(v) for k, v in zip(*np.unique(s.iterations, return_counts=True))
-        },
-        "agreement_with_linearised": agree,
-        "max_volumetric": mv,
-        "notes": mc.kernel.sampler.notes,
-    }
-    summary.update(extra or {})
-    comp = None
-    if reference is not None:
-        both = pd.concat([qt, par[["name", "unit", "value", "U"]]], ignore_index=True)
-        both = both.drop_duplicates("name")
-        comp = compare_with_reference(both, reference)
-        _atomic_csv(comp, out / "comparison.csv", index=False)
-        summary["comparison"] = {
-            "n": int(len(comp)),
-            "agree": int(comp["agrees"].sum()),
-            "max_E_n": float(np.nanmax(comp["E_n"])),
-        }
-    if contributions is not None:
-        wide = contributions.pivot_table(
-            index=["quantity", "unit"], columns="source", values="u", sort=False
-        ).reset_index()
-        _atomic_csv(wide, out / "contributions.csv", index=False)
     if plots:
-        pts = mc.kernel.volmap.points
-        _plot_volumetric_U(vol, pts, out / "volumetric_U.png")
-        mx = np.linalg.norm(s.vol * 1e3, axis=2).max(axis=1)
-        _plot_max_hist(mx, out / "max_volumetric.png")
-        if contributions is not None:
-            tot = par[par["name"].isin(contributions["quantity"])][["name", "unit", "U"]]
-            tot = tot[tot["unit"].isin(["um", "urad"])]
-            # error parameters only (stations are instrument set-up, not machine errors)
-            tot = tot[~tot["name"].str.contains(r"\.")]
-            plot_contributions(
-                contributions,
-                tot,
-                out / "contributions.png",
-                "Expanded uncertainty of the error parameters by input source",
+        # the plots first (from the few figures they need): a plotting process draws them
+        # while the tables are computed and written
+        with st("plots"):
+            args_u = (
+                2 * mc.norm_u_um(),
+                float(np.linalg.norm(mc.estimate_um(), axis=1).max()),
+                mc.kernel.volmap.points,
+                out / "volumetric_U.png",
             )
-    _atomic_text(json.dumps(summary, indent=2, default=float) + "\n", out / "summary.json")
-    _atomic_text(_markdown(summary, qt, comp, contributions is not None, plots), out / "report.md")
+            args_h = (mc.norm_um().max(axis=1), out / "max_volumetric.png")
+            if plotter is not None:
+                plotter.draw("volumetric_U", *args_u)
+                plotter.draw("max_hist", *args_h)
+            else:
+                _plot_volumetric_U(*args_u)
+                _plot_max_hist(*args_h)
+    with st("tables"):
+        par = mc.parameters()
+        _atomic_csv(par, out / "parameters.csv", index=False)
+        qs = quantities or default_quantities(error_model)
+        qt = quantity_table(mc, error_model, qs)
+        _atomic_csv(qt, out / "error_motions.csv", index=False)
+        vol = mc.volumetric()
+        _atomic_csv(vol, out / "volumetric.csv", index=False)
+        mv = mc.max_volumetric()
+        agree = mc.agreement()
+        s = mc.samples
+        summary: dict[str, Any] = {
+            "trials": s.n,
+            "seed": s.seed,
+            "mode": s.mode,
+            "sources": mc.kernel.source_names,
+            "enabled": list(s.enabled) if s.enabled else None,
+            "seconds": s.seconds,
+            "resumed_chunks": s.resumed_chunks,
+            "not_converged": int((~s.converged).sum()),
+            "iterations": {
+                str(k): int(v) for k, v in zip(*np.unique(s.iterations, return_counts=True))
+            },
+            "agreement_with_linearised": agree,
+            "max_volumetric": mv,
+            "notes": mc.kernel.sampler.notes,
+        }
+        summary.update(extra or {})
+        comp = None
+        if reference is not None:
+            both = pd.concat([qt, par[["name", "unit", "value", "U"]]], ignore_index=True)
+            both = both.drop_duplicates("name")
+            comp = compare_with_reference(both, reference)
+            _atomic_csv(comp, out / "comparison.csv", index=False)
+            summary["comparison"] = {
+                "n": int(len(comp)),
+                "agree": int(comp["agrees"].sum()),
+                "max_E_n": float(np.nanmax(comp["E_n"])),
+            }
+        if contributions is not None:
+            wide = contributions.pivot_table(
+                index=["quantity", "unit"], columns="source", values="u", sort=False
+            ).reset_index()
+            _atomic_csv(wide, out / "contributions.csv", index=False)
+    if plots:
+        with st("plots"):
+            if contributions is not None:
+                tot = par[par["name"].isin(contributions["quantity"])][["name", "unit", "U"]]
+                tot = tot[tot["unit"].isin(["um", "urad"])]
+                # error parameters only (stations are instrument set-up, not machine errors)
+                tot = tot[~tot["name"].str.contains(r"\.")]
+                plot_contributions(
+                    contributions,
+                    tot,
+                    out / "contributions.png",
+                    "Expanded uncertainty of the error parameters by input source",
+                )
+    with st("summary and report"):
+        _atomic_text(json.dumps(summary, indent=2, default=float) + "\n", out / "summary.json")
+        _atomic_text(
+            _markdown(summary, qt, comp, contributions is not None, plots), out / "report.md"
+        )
+    if plots and plotter is not None:
+        with st("plots"):
+            plotter.wait()
     return summary
 
 

@@ -19,7 +19,6 @@ Fixing a variable is done with equal bounds, again without rebuild.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -29,6 +28,7 @@ from volcal.measurement.instruments import Instrument
 from volcal.model.datum import candidate_conditions
 from volcal.model.errors import ErrorModel
 from volcal.model.machine import Machine
+from volcal.model.numpy_call import NumpyCall  # noqa: F401  (its home before model/)
 
 
 def _dense_kernel() -> str:
@@ -55,45 +55,6 @@ def dense_mtimes(a, b):
     """a @ b for dense MX operands through CasADi's fastest available BLAS plugin."""
     kernel = _dense_kernel()
     return ca.mtimes(a, b) if kernel == "reference" else ca.mtimes(a, b, kernel)
-
-
-class NumpyCall:
-    """Evaluate a CasADi Function on numpy arrays through its raw buffers, returning dense
-    numpy outputs.  Converting the DM outputs of an ordinary call costs more than the
-    evaluation for a large sparse Jacobian (DM.full() walks the nonzeros one by one); here
-    the nonzeros land in a numpy array and are scattered once.  Not thread-safe: one
-    object per thread."""
-
-    def __init__(self, f: ca.Function):
-        self.f = f
-        # CasADi's stub of FunctionBuffer lists a size argument the binding does not take
-        self._buf: Any
-        self._buf, self._eval = f.buffer()
-        self._nz = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
-        self._where = []
-        for i in range(f.n_out()):
-            sp = f.sparsity_out(i)
-            colind = np.asarray(sp.colind(), int)
-            rows = np.asarray(sp.row(), int)
-            cols = np.repeat(np.arange(sp.size2()), np.diff(colind))
-            self._where.append((sp.size1(), sp.size2(), rows, cols, sp.is_dense()))
-        for i, nz in enumerate(self._nz):
-            self._buf.set_res(i, nz.data)
-
-    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
-        keep = [np.ascontiguousarray(np.asarray(a, float).ravel(order="F")) for a in args]
-        for i, a in enumerate(keep):
-            self._buf.set_arg(i, a.data)
-        self._eval()
-        out = []
-        for nz, (m, n, rows, cols, dense) in zip(self._nz, self._where):
-            if dense:
-                out.append(nz.reshape(n, m).T.copy() if n > 1 else nz.copy())
-            else:
-                full = np.zeros((m, n))
-                full[rows, cols] = nz
-                out.append(full)
-        return out
 
 
 @dataclass(frozen=True)

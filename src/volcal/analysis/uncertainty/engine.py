@@ -23,7 +23,11 @@ solution, factorised once.  The gradient ``J(x)^T r(x)`` is exact at every itera
 fixed point is the exact stationary point of the constrained nonlinear problem, not of its
 linearisation; the fixed matrix only sets the (linear, here ~1e-5 per iteration) rate.
 Iterations stop once the largest step is below ``tol`` (scaled units: 1 = 1 um or
-1 urad).  Every batch operation is a dense matrix product over the trials.
+1 urad).  Every batch operation is a dense matrix product over the trials: the tool
+points are computed once per distinct pose (every station sees the same poses) and the
+readings station by station, in arrays that stay in the cache; the first iteration, at
+x_hat, where the residuals are linear in the readings, is one product with a matrix
+computed once (see :meth:`StructuredLSQ._first_gradient`).
 
 :meth:`StructuredLSQ.linear_map` gives the linearised mode: one factorisation, the
 estimate's change as ``K @ dm`` for a matrix of reading changes (many right-hand sides).
@@ -61,9 +65,18 @@ def unpack_data(
 
 
 def _point_model(
-    machine, error_model, q: np.ndarray, t: np.ndarray
+    machine, error_model, q: np.ndarray, t: np.ndarray, pose_index: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """P0 (N, 3) and G (N, 3, n_theta) with P = P0 + G theta (first-order model, exact)."""
+    """P0 (N, 3) and G (N, 3, n_theta) with P = P0 + G theta (first-order model, exact).
+    With ``pose_index`` (N,) the model is evaluated once per distinct pose (readings of
+    one pose share q and t; the pose's first reading stands for it): the same numbers,
+    one evaluation per pose instead of one per reading."""
+    if pose_index is not None:
+        idx = np.asarray(pose_index, int)
+        first = np.full(int(idx.max()) + 1 if idx.size else 0, -1)
+        first[idx[::-1]] = np.arange(idx.size)[::-1]
+        p0, G = _point_model(machine, error_model, np.asarray(q)[first], np.asarray(t)[first])
+        return p0[idx], G[idx]
     p0, _, Je = machine.evaluate(q, t, np.zeros(machine.n_errors))
     B = error_model.basis(q)
     G = np.einsum("nik,nkp->nip", Je, B)
@@ -119,6 +132,78 @@ class BatchSolution:
 
 
 @dataclass
+class _Station:
+    """The readings of one station in the order of their tool points: ``rows`` (n_k,)
+    reading indices, ``points`` (n_k,) their points (ascending) or None when the station
+    saw every point once (then point j is row j), ``w2`` (n_k, 1) the squared weights and
+    ``repeated`` whether a point occurs twice."""
+
+    rows: np.ndarray
+    points: np.ndarray | None
+    w2: np.ndarray
+    repeated: bool
+
+
+@dataclass
+class _Blocks:
+    """The readings of a :class:`StructuredLSQ` arranged for the batched gradient: the
+    distinct tool points, component-major (P0 (3, U, 1); G2 (3 U, n_theta), rows x of
+    every point, then y, then z), the stations (:class:`_Station`) and work arrays reused
+    between calls of one batch size (per thread; fresh megabyte-sized temporaries cost
+    more than the arithmetic on them)."""
+
+    P0: np.ndarray
+    G2: np.ndarray
+    stations: list[_Station]
+    work: dict = field(default_factory=dict)
+
+    @classmethod
+    def build(cls, eng: StructuredLSQ) -> _Blocks:
+        N, nt = eng.n_readings, eng.n_theta
+        if eng.point_index is not None:
+            pt = np.asarray(eng.point_index, int)
+        else:  # readings with bit-identical P0 and G share a point
+            key = np.concatenate([eng.P0, eng.G.reshape(N, -1)], axis=1)
+            pt = np.unique(key, axis=0, return_inverse=True)[1].ravel()
+        U = int(pt.max()) + 1 if N else 0
+        first = np.full(U, -1)
+        first[pt[::-1]] = np.arange(N)[::-1]
+        P0 = np.ascontiguousarray(eng.P0[first].T[:, :, None])
+        G2 = np.ascontiguousarray(eng.G[first].transpose(1, 0, 2).reshape(3 * U, nt))
+        w2 = eng.w**2
+        stations = []
+        for k in range(eng.n_stations):
+            idx = np.flatnonzero(eng.station_index == k)
+            idx = idx[np.argsort(pt[idx], kind="stable")]
+            pts = pt[idx]
+            every = pts.size == U and bool(np.all(pts == np.arange(U)))
+            repeated = bool(pts.size > 1 and np.any(pts[1:] == pts[:-1]))
+            stations.append(_Station(idx, None if every else pts, w2[idx][:, None], repeated))
+        return cls(P0, G2, stations)
+
+    def buffers(self, B: int) -> dict[str, np.ndarray]:
+        """Work arrays for a batch of B trials (per thread: two threads may solve at
+        once; the last size kept)."""
+        import threading
+
+        w = self.work.setdefault(threading.get_ident(), {})
+        if w.get("B") != B:
+            U = self.P0.shape[1]
+            n = max([s.rows.size for s in self.stations] + [0])
+            w.clear()
+            w.update(
+                B=B,
+                P=np.empty((3, U, B)),
+                VP=np.empty((3, U, B)),
+                D=np.empty((3, n, B)),
+                L=np.empty((n, B)),
+                r=np.empty((n, B)),
+                t=np.empty((n, B)),
+            )
+        return w
+
+
+@dataclass
 class StructuredLSQ:
     """The identification problem of a sequential multilateration data set, in arrays
     (see the module docstring).  Build it with :meth:`build`.
@@ -141,6 +226,9 @@ class StructuredLSQ:
     Z: np.ndarray  # (n_free, n_z)
     R: np.ndarray  # (n_z, n_z) upper triangular, J0 Z = Q R
     names: list[str] = field(default_factory=list)
+    #: (N,) the distinct tool point (pose and tool offset) of every reading; None: found
+    #: from P0 and G
+    point_index: np.ndarray | None = None
     _J0: np.ndarray | None = field(default=None, repr=False)
 
     # ---- construction -------------------------------------------------------------------
@@ -172,7 +260,8 @@ class StructuredLSQ:
             )
         m_ = problem.machine
         q, t, meas, w = unpack_data(m_.n_axes, p)
-        P0, G = _point_model(m_, problem.error_model, q, t)
+        pose_index = getattr(problem.layout, "pose_index", None)
+        P0, G = _point_model(m_, problem.error_model, q, t, pose_index)
         n, nt = problem.n_x, problem.n_theta
         fixed = np.asarray(fixed, bool).copy()
         free = ~fixed
@@ -195,6 +284,7 @@ class StructuredLSQ:
             Z=Z,
             R=np.zeros((0, 0)),
             names=list(problem.names),
+            point_index=None if pose_index is None else np.asarray(pose_index, int),
         )
         J0 = self.jacobian(self.x_hat)
         A = J0[:, free] @ Z
@@ -221,7 +311,7 @@ class StructuredLSQ:
     def __getstate__(self):
         d = dict(self.__dict__)
         # large and rebuilt on demand
-        for k in ("_J0", "_ind", "_w2"):
+        for k in ("_J0", "_blocks", "_at_hat"):
             d.pop(k, None)
         d["_J0"] = None
         return d
@@ -268,19 +358,33 @@ class StructuredLSQ:
         D, L, S = self._geometry(np.atleast_2d(X))
         return self.w * (L - S[:, self.station_index, 3] - M)
 
+    def _structure(self) -> _Blocks:
+        """The readings grouped for the batched gradient (built once, not pickled)."""
+        blk = getattr(self, "_blocks", None)
+        if blk is None:
+            blk = self._blocks = _Blocks.build(self)
+        return blk
+
     def _gradient_t(self, X: np.ndarray, MT: np.ndarray) -> np.ndarray:
         """J^T r (B, n) wrt the physical variables at X (B, n) for readings MT (N, B).
 
-        Trial-last layout: every array is (readings, ..., trials), so that the model is two
-        dense products with G and a few passes over contiguous memory."""
+        Trial-last layout: every array is (component, points or readings, trials).  The
+        tool points are computed once per distinct pose (every station sees the same
+        points: one product with the poses' G), then station by station, in the order of
+        the points (arrays that stay in the cache, no gather where a station saw every
+        point), the beam vectors, residuals and their contributions, which are summed per
+        point for the one product with G^T."""
+        blk = self._structure()
         B = X.shape[0]
-        N, nt, K = self.n_readings, self.n_theta, self.n_stations
-        G2 = self.G.reshape(3 * N, nt)
+        nt, K = self.n_theta, self.n_stations
+        U = blk.P0.shape[1]
+        buf = blk.buffers(B)
         th = X[:, :nt]
         S = X[:, nt : nt + 4 * K].reshape(B, K, 4).transpose(1, 2, 0)  # (K, 4, B)
         gl = X[:, nt + 4 * K :]  # (B, 6)
-        P = (G2 @ th.T).reshape(N, 3, B)
-        P += self.P0[:, :, None]
+        P = buf["P"]
+        np.matmul(blk.G2, th.T, out=P.reshape(3 * U, B))
+        P += blk.P0
         Qs = S[:, :3, :]  # (K, 3, B)
         frame = bool(np.any(gl))
         if frame:
@@ -288,21 +392,42 @@ class StructuredLSQ:
             Qeff = Qs + gl[:, :3].T[None] + np.cross(om[None], Qs, axis=1)
         else:
             Qeff = Qs
-        idx = self.station_index
-        P -= Qeff[idx]  # D, (N, 3, B)
-        D = P
-        L = np.sqrt(D[:, 0] ** 2 + D[:, 1] ** 2 + D[:, 2] ** 2)  # (N, B)
-        r = L - S[idx, 3, :]
-        r -= MT
-        wr = r * self.w2[:, None]  # w * (w * raw)
-        coef = wr / L
-        D *= coef[:, None, :]  # V = r U, (N, 3, B)
-        V = D
+        VP = buf["VP"]  # contributions summed per point
+        VP.fill(0.0)
+        VS = np.empty((K, 3, B))
+        wrS = np.empty((K, B))
+        for k, st in enumerate(blk.stations):
+            n = st.rows.size
+            D, L, r, t = buf["D"][:, :n], buf["L"][:n], buf["r"][:n], buf["t"][:n]
+            if st.points is None:  # D = P - Q_eff, the beam vectors
+                np.subtract(P, Qeff[k][:, None, :], out=D)
+            else:
+                np.take(P, st.points, axis=1, out=D, mode="clip")
+                D -= Qeff[k][:, None, :]
+            np.multiply(D[0], D[0], out=L)
+            np.multiply(D[1], D[1], out=t)
+            L += t
+            np.multiply(D[2], D[2], out=t)
+            L += t
+            np.sqrt(L, out=L)
+            np.subtract(L, S[k, 3][None, :], out=r)
+            np.take(MT, st.rows, axis=0, out=t, mode="clip")
+            r -= t
+            r *= st.w2  # w * (w * raw)
+            np.divide(r, L, out=L)
+            D *= L[None]  # V = r U
+            if st.points is None:
+                VP += D
+            elif not st.repeated:
+                VP[:, st.points] += D
+            else:
+                np.add.at(VP.transpose(1, 0, 2), st.points, D.transpose(1, 0, 2))
+            D.sum(axis=1, out=VS[k])
+            r.sum(axis=0, out=wrS[k])
+        np.negative(VS, out=VS)
+        np.negative(wrS, out=wrS)
         g = np.empty((B, self.n))
-        g[:, :nt] = (G2.T @ V.reshape(3 * N, B)).T
-        Ind = self._indicator()
-        VS = -(Ind @ V.reshape(N, 3 * B)).reshape(K, 3, B)
-        wrS = -(Ind @ wr)  # (K, B)
+        g[:, :nt] = (blk.G2.T @ VP.reshape(3 * U, B)).T
         if frame:
             gS = VS - np.cross(om[None], VS, axis=1)
         else:
@@ -317,25 +442,10 @@ class StructuredLSQ:
         X = np.atleast_2d(X)
         return self._gradient_t(X, np.ascontiguousarray(np.atleast_2d(M).T)), None
 
-    @property
-    def w2(self) -> np.ndarray:
-        w2 = getattr(self, "_w2", None)
-        if w2 is None:
-            w2 = self._w2 = self.w**2
-        return w2
-
     def gradient(self, X: np.ndarray, M: np.ndarray) -> np.ndarray:
         """J^T r (B, n) with respect to the *scaled* variables."""
         g, _ = self._gradient(X, M)
         return g * self.scale
-
-    def _indicator(self) -> np.ndarray:
-        ind = getattr(self, "_ind", None)
-        if ind is None or ind.shape != (self.n_stations, self.n_readings):
-            ind = np.zeros((self.n_stations, self.n_readings))
-            ind[self.station_index, np.arange(self.n_readings)] = 1.0
-            self._ind = ind
-        return ind
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         """Jacobian (N, n) of the whitened residuals wrt the scaled variables at x."""
@@ -393,11 +503,12 @@ class StructuredLSQ:
         done = np.zeros(B, bool)
         it = np.zeros(B, int)
         last = np.full(B, np.inf)
-        for _ in range(max_iter):
+        for n_it in range(max_iter):
             idx = np.flatnonzero(active)
             if not idx.size:
                 break
-            g = self._gradient_t(X[idx], MT if idx.size == B else np.ascontiguousarray(MT[:, idx]))
+            MTa = MT if idx.size == B else np.ascontiguousarray(MT[:, idx])
+            g = self._first_gradient(X, MT) if n_it == 0 else self._gradient_t(X[idx], MTa)
             dxs = self._step((g * self.scale)[:, free])
             X[np.ix_(idx, np.flatnonzero(free))] += dxs * sc
             size = np.max(np.abs(dxs), axis=1)
@@ -408,6 +519,40 @@ class StructuredLSQ:
             done[idx[ok]] = True
             active[idx[ok]] = False
         return BatchSolution(X, it, last, done)
+
+    def prepare(self) -> None:
+        """Build the cached arrays of :meth:`solve` now (the grouping of the readings and
+        the first iteration's linear map)."""
+        self._structure()
+        self._hat_arrays()
+
+    def _hat_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(g_hat, A) of :meth:`_first_gradient`, computed once."""
+        cached = getattr(self, "_at_hat", None)
+        if cached is None:
+            J0 = self._J0 if self._J0 is not None else self.jacobian(self.x_hat)
+            A = np.ascontiguousarray(((J0 / self.scale[None, :]) * self.w[:, None]).T)
+            g_hat = self._gradient_t(self.x_hat[None, :], self.m[:, None])[0]
+            cached = self._at_hat = (g_hat, A)
+        return cached
+
+    def _first_gradient(self, X: np.ndarray, MT: np.ndarray) -> np.ndarray:
+        """The gradient of the first iteration.  At x_hat the residuals are linear in the
+        readings (r = w (L(x_hat) - d - m')), so there J^T r = g_hat - A (m' - m) with
+        g_hat the gradient at x_hat for the nominal readings m and A = J^T diag(w), both
+        computed once: one product instead of the model.  Trials that start elsewhere (held
+        variables drawn) take the full gradient."""
+        hat = np.all(X == self.x_hat[None, :], axis=1)
+        if not hat.any():
+            return self._gradient_t(X, MT)
+        g_hat, A = self._hat_arrays()
+        if hat.all():
+            dMT = MT - self.m[:, None]
+            return g_hat[None, :] - (A @ dMT).T
+        g = np.empty((X.shape[0], self.n))
+        g[hat] = self._first_gradient(X[hat], np.ascontiguousarray(MT[:, hat]))
+        g[~hat] = self._gradient_t(X[~hat], np.ascontiguousarray(MT[:, ~hat]))
+        return g
 
     def linear_map(self) -> tuple[np.ndarray, np.ndarray]:
         """Linearised mode: (K_m, K_x) with dx = K_m dm + K_x dx_fixed (physical units,

@@ -6,15 +6,16 @@ Plan -> sample -> aggregate:
    the structured re-solver of the identification problem
    (:class:`~volcal.analysis.uncertainty.engine.StructuredLSQ`), the input sampler
    (:class:`~volcal.analysis.uncertainty.sampling.InputSampler`) and the volumetric map at the
-   evaluation poses.  Built once, shipped once per worker.
+   evaluation poses.  Built once, given once to every worker.
 2. *Sample* (:func:`run_trials`): trials are cut into fixed chunks (``chunk_size``, not
    tied to the number of workers); trial ``i`` draws its inputs from its own random stream
    (seed, i); every chunk re-solves the full nonlinear problem for its trials (or, in
    ``mode="linear"``, applies the linearised map: one factorisation, many right-hand
    sides) and returns parameters, stations and volumetric errors.  With an output folder
    every chunk is saved (``.npz``, written atomically) and an interrupted run resumes from
-   the chunks present.  Local worker processes by default; a Dask scheduler address (or
-   Client) runs the chunks on that cluster.  Same seed -> same numbers, whatever ran them.
+   the chunks present.  Local worker processes by default (one per further core; this
+   process computes chunks too); a Dask scheduler address (or Client) runs the chunks on
+   that cluster.  Same seed -> same numbers, whatever ran them.
 3. *Aggregate* (:class:`MCResult`): GUM S1 estimate (mean of the trials), standard
    uncertainty (standard deviation), expanded uncertainty U = 2u, the probabilistically
    symmetric 95 % coverage interval, and the linearised standard uncertainty from the same
@@ -34,7 +35,7 @@ import logging
 import os
 import tempfile
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -116,6 +117,18 @@ class MCKernel:
             self._lin = self.engine.linear_map()
         return self._lin
 
+    def prepare(self, mode: str = "nonlinear") -> None:
+        """Compute once what every chunk of ``mode`` uses (the linear map, or the arrays of
+        the re-solver), with one BLAS thread as in the workers: local worker processes
+        started by ``fork`` inherit it instead of each computing it again."""
+        from volcal.base.threads import blas_threads
+
+        with blas_threads(1):
+            if mode == "linear":
+                self.linear()
+            else:
+                self.engine.prepare()
+
     def run_chunk(self, chunk: Chunk) -> dict[str, np.ndarray]:
         trials = range(chunk.start, chunk.stop)
         dM, dX = self.sampler.draw(chunk.seed, trials, chunk.enabled)
@@ -134,8 +147,17 @@ class MCKernel:
             X, it, conv, step = sol.x, sol.iterations, sol.converged, sol.step
         else:
             raise ValueError(f"unknown mode {chunk.mode!r}")
-        vol = self.volmap(X[:, : self.n_theta])
-        return {"x": X, "vol": vol, "iterations": it, "converged": conv, "step": step}
+        return {
+            "x": X,
+            "vol": self.volumetric(X),
+            "iterations": it,
+            "converged": conv,
+            "step": step,
+        }
+
+    def volumetric(self, X: np.ndarray) -> np.ndarray:
+        """The volumetric errors (B, M, 3; mm) of trials X (B, n)."""
+        return self.volmap(np.ascontiguousarray(X[:, : self.n_theta]))
 
     def fingerprint(self) -> str:
         """Hash of everything that determines the trials' results."""
@@ -325,24 +347,36 @@ def _plan_chunks(
 
 
 def _save_npz(path: Path, arrays: dict[str, np.ndarray], chunk: Chunk) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npz")
-    os.close(fd)
-    try:
-        # numpy's stub types **kwargs as allow_pickle; these are arrays
-        np.savez(tmp, start=chunk.start, stop=chunk.stop, **arrays)  # type: ignore[arg-type]
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    """Save a chunk's trials atomically.  The volumetric errors are left out: they are
+    the kernel's linear map of the parameters, recomputed on loading (four times less to
+    write)."""
+    from volcal.base.folders import uninterrupted
+
+    keep = {k: v for k, v in arrays.items() if k != "vol"}
+    # a signal (Ctrl-C, SIGTERM) waits until the chunk is whole or gone: an interrupt inside
+    # numpy's zip writer can otherwise leave a temporary file or print a traceback
+    with uninterrupted():
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npz")
+        os.close(fd)
+        try:
+            # numpy's stub types **kwargs as allow_pickle; these are arrays
+            np.savez(tmp, start=chunk.start, stop=chunk.stop, **keep)  # type: ignore[arg-type]
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+            raise
 
 
-def _load_npz(path: Path, chunk: Chunk) -> dict[str, np.ndarray] | None:
+def _load_npz(path: Path, chunk: Chunk, kernel: MCKernel) -> dict[str, np.ndarray] | None:
     try:
         with np.load(path) as z:
             if int(z["start"]) != chunk.start or int(z["stop"]) != chunk.stop:
                 return None
-            return {k: z[k] for k in ("x", "vol", "iterations", "converged", "step")}
+            out = {k: z[k] for k in ("x", "iterations", "converged", "step")}
+            # files of earlier versions carry the volumetric errors
+            out["vol"] = z["vol"] if "vol" in z else kernel.volumetric(out["x"])
+            return out
     except Exception:  # a damaged chunk file is recomputed, never trusted
         return None
 
@@ -360,14 +394,18 @@ def run_trials(
     out_dir: str | Path | None = None,
     progress: bool = False,
     label: str | None = None,
+    on_start: Callable[[], None] | None = None,
 ) -> MCSamples:
     """Run ``trials`` Monte Carlo trials (see the module docstring).
 
     mode: ``nonlinear`` (the exact re-solve) or ``linear``; enabled: input sources on
     (None: all); chunk_size: trials per chunk (part of the run's definition: the same seed
-    and chunk size give the same numbers whatever the workers); workers: local processes
-    (None: every core, 1: this process); scheduler: Dask scheduler address or Client;
-    out_dir: folder for the chunk files (resumable); progress: a tqdm bar on stderr.
+    and chunk size give the same numbers whatever the workers); workers: local worker
+    processes (None: every core, this process computing too; 1: this process only);
+    scheduler: Dask scheduler address or Client; out_dir: folder for the chunk files
+    (resumable); progress: a tqdm bar on stderr; on_start: called once the trials are
+    under way (see
+    :func:`~volcal.analysis.uncertainty.parallel.run_chunks`).
     """
     if trials < 1:
         raise ValueError(f"expected at least one trial, got {trials}")
@@ -378,7 +416,19 @@ def run_trials(
         kernel.sampler._mask(en)  # validates the names
     chunks = _plan_chunks(int(trials), int(chunk_size), int(seed), mode, en)
     t0 = time.perf_counter()
-    done: dict[int, dict[str, np.ndarray]] = {}
+    done: set[int] = set()
+    cat: dict[str, np.ndarray] = {}
+
+    def put(c: Chunk, res: dict[str, np.ndarray]) -> None:
+        # into the run's arrays as chunks arrive (no concatenation of every chunk at the
+        # end, nor all of them held until then)
+        if not cat:
+            for k, v in res.items():
+                cat[k] = np.empty((int(trials),) + v.shape[1:], v.dtype)
+        for k, v in res.items():
+            cat[k][c.start : c.stop] = v
+        done.add(c.index)
+
     folder = None
     if out_dir is not None:
         key = hashlib.sha256(
@@ -398,25 +448,25 @@ def run_trials(
         for c in chunks:
             f = folder / f"chunk{c.index:05d}.npz"
             if f.exists():
-                got = _load_npz(f, c)
+                got = _load_npz(f, c, kernel)
                 if got is not None:
-                    done[c.index] = got
+                    put(c, got)
     todo = [c for c in chunks if c.index not in done]
     resumed = len(done)
     bar = None
     if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(
+        bar = _progress_bar()(
             total=int(trials),
             unit="trial",
             desc=label or mode,
             leave=False,
             initial=sum(c.stop - c.start for c in chunks if c.index in done),
         )
+    if todo and scheduler is None:
+        kernel.prepare(mode)  # once here, inherited by forked workers
     try:
-        for c, res in _dispatch(kernel, todo, workers, scheduler):
-            done[c.index] = res
+        for c, res in _dispatch(kernel, todo, workers, scheduler, on_start):
+            put(c, res)
             if folder is not None:
                 _save_npz(folder / f"chunk{c.index:05d}.npz", res, c)
             if bar is not None:
@@ -424,8 +474,6 @@ def run_trials(
     finally:
         if bar is not None:
             bar.close()
-    parts = [done[c.index] for c in chunks]
-    cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     return MCSamples(
         cat["x"],
         cat["vol"],
@@ -440,10 +488,22 @@ def run_trials(
     )
 
 
-def _dispatch(kernel, chunks, workers, scheduler):
+def _progress_bar():
+    """tqdm's class: the notebook widget under IPython, else the plain terminal bar (whose
+    import skips the asyncio machinery of ``tqdm.auto``)."""
+    import sys
+
+    if "ipykernel" in sys.modules:
+        from tqdm.auto import tqdm
+    else:
+        from tqdm.std import tqdm
+    return tqdm
+
+
+def _dispatch(kernel, chunks, workers, scheduler, on_start=None):
     from volcal.analysis.uncertainty.parallel import run_chunks
 
-    return run_chunks(kernel, chunks, workers=workers, scheduler=scheduler)
+    return run_chunks(kernel, chunks, workers=workers, scheduler=scheduler, on_start=on_start)
 
 
 # --------------------------------------------------------------------------------------
@@ -454,10 +514,28 @@ def _factor(unit: str) -> tuple[float, str]:
     return (1e3, "um") if unit == "mm" else (1e6, "urad")
 
 
-def _interval(a: np.ndarray, p: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
-    """Probabilistically symmetric coverage interval (GUM S1 7.7) along axis 0."""
-    lo, hi = np.quantile(a, [(1 - p) / 2, (1 + p) / 2], axis=0)
+def _interval(
+    a: np.ndarray, p: float = 0.95, *, overwrite: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """Probabilistically symmetric coverage interval (GUM S1 7.7) along axis 0
+    (``overwrite``: partition ``a`` itself instead of a copy)."""
+    lo, hi = np.quantile(a, [(1 - p) / 2, (1 + p) / 2], axis=0, overwrite_input=overwrite)
     return lo, hi
+
+
+def _spread(
+    a: np.ndarray, *, copy: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(mean, u, lo, hi) of samples ``a`` (T, ...) along axis 0: mean, standard deviation
+    (ddof 1) and 95 % interval, from one copy in the memory order of ``a`` (so the sums run
+    as on ``a`` itself; ``copy=False``: ``a`` is a temporary, used itself).  The interval
+    partitions the copy in place, after the moments (order statistics do not depend on
+    the order)."""
+    c = np.array(a, order="K") if copy else a
+    mean = c.mean(axis=0)
+    u = c.std(axis=0, ddof=1)
+    lo, hi = _interval(c, overwrite=True)
+    return mean, u, lo, hi
 
 
 @dataclass
@@ -468,6 +546,8 @@ class MCResult:
     samples: MCSamples
     cov_linear: np.ndarray
     eval_table: pd.DataFrame | None = None  # axis columns (file units) of the eval poses
+    # the summaries below, computed once (the tables, the summary and the plots share them)
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def from_samples(
@@ -475,10 +555,48 @@ class MCResult:
     ) -> MCResult:
         return cls(kernel, samples, kernel.linear_covariance(samples.enabled), eval_table)
 
+    def _cached(self, key, make):
+        if key not in self._cache:
+            self._cache[key] = make()
+        return self._cache[key]
+
+    def norm_um(self) -> np.ndarray:
+        """|d| (T, M) in um: the norm of the volumetric error of every trial at every
+        evaluation pose (computed once; read-only).  ``sqrt(sum d_i^2)`` of the errors in
+        um as ``numpy.linalg.norm`` computes it, a block of trials at a time (no
+        temporaries the size of all the trials)."""
+
+        def make() -> np.ndarray:
+            vol = self.samples.vol
+            out = np.empty(vol.shape[:2])
+            step = 2048
+            for a in range(0, vol.shape[0], step):
+                b = vol[a : a + step] * 1e3
+                np.sqrt(np.add.reduce(b * b, axis=2), out=out[a : a + step])
+            out.flags.writeable = False
+            return out
+
+        return self._cached("norm_um", make)
+
+    def norm_u_um(self) -> np.ndarray:
+        """u(|d|) (M,) in um: the standard deviation of the norm of the volumetric error
+        over the trials at every evaluation pose (computed once)."""
+        return self._cached("norm_u_um", lambda: self.norm_um().std(axis=0, ddof=1))
+
+    def estimate_um(self) -> np.ndarray:
+        """The volumetric error (M, 3) in um at the identification's estimate."""
+        k = self.kernel
+        return k.volmap(k.engine.x_hat[: k.n_theta]) * 1e3
+
     def parameters(self, *, include_stations: bool = True) -> pd.DataFrame:
         """Per variable: name, unit (um / urad), value (the identification), mc_mean, u,
         U (k = 2), ci95_low, ci95_high (95 % coverage interval), u_linear, u_ratio
         (u / u_linear).  Held variables are left out."""
+        return self._cached(
+            ("parameters", include_stations), lambda: self._parameters(include_stations)
+        ).copy()
+
+    def _parameters(self, include_stations: bool) -> pd.DataFrame:
         k = self.kernel
         X = self.samples.x
         keep = ~k.engine.fixed
@@ -486,15 +604,15 @@ class MCResult:
             keep &= np.arange(k.engine.n) < k.n_theta
         idx = np.flatnonzero(keep)
         f = np.array([_factor(k.units[i])[0] for i in idx])
-        lo, hi = _interval(X[:, idx])
-        u = X[:, idx].std(axis=0, ddof=1) * f
+        mean, u, lo, hi = _spread(X[:, idx], copy=False)  # indexing made a copy
+        u = u * f
         ul = np.sqrt(np.clip(np.diag(self.cov_linear)[idx], 0, None)) * f
         return pd.DataFrame(
             {
                 "name": [k.names[i] for i in idx],
                 "unit": [_factor(k.units[i])[1] for i in idx],
                 "value": k.engine.x_hat[idx] * f,
-                "mc_mean": X[:, idx].mean(axis=0) * f,
+                "mc_mean": mean * f,
                 "u": u,
                 "U": 2 * u,
                 "ci95_low": lo * f,
@@ -509,9 +627,12 @@ class MCResult:
         dx, dy, dz (um) and the norm |d| (um; paper 002 eq. 4): value (at the
         identification's estimate), u, U (k = 2), 95 % interval, and for the components
         u_linear."""
+        return self._cached("volumetric", self._volumetric).copy()
+
+    def _volumetric(self) -> pd.DataFrame:
         k = self.kernel
-        V = self.samples.vol * 1e3  # (T, M, 3) um
-        est = k.volmap(k.engine.x_hat[: k.n_theta]) * 1e3  # (M, 3)
+        vol = self.samples.vol  # (T, M, 3) mm
+        est = self.estimate_um()  # (M, 3)
         G = k.volmap.G
         nt = k.n_theta
         cov_t = self.cov_linear[:nt, :nt]
@@ -523,19 +644,19 @@ class MCResult:
         )
         out = out.reset_index(drop=True)
         out[["tool_x", "tool_y", "tool_z"]] = k.volmap.tool
+        work = np.empty(vol.shape[:2])  # one component (or |d|) of every trial, um
         for j, c in enumerate(("dx", "dy", "dz")):
-            lo, hi = _interval(V[:, :, j])
-            u = V[:, :, j].std(axis=0, ddof=1)
+            _, u, lo, hi = _spread(np.multiply(vol[:, :, j], 1e3, out=work), copy=False)
             out[f"{c}_um"] = est[:, j]
             out[f"u_{c}_um"] = u
             out[f"U_{c}_um"] = 2 * u
             out[f"{c}_ci95_low_um"] = lo
             out[f"{c}_ci95_high_um"] = hi
             out[f"u_{c}_linear_um"] = np.sqrt(np.clip(var_l[:, j], 0, None))
-        nrm = np.linalg.norm(V, axis=2)
-        lo, hi = _interval(nrm)
+        np.copyto(work, self.norm_um())
+        lo, hi = _interval(work, overwrite=True)
         out["norm_um"] = np.linalg.norm(est, axis=1)
-        out["u_norm_um"] = nrm.std(axis=0, ddof=1)
+        out["u_norm_um"] = self.norm_u_um()
         out["U_norm_um"] = 2 * out["u_norm_um"]
         out["norm_ci95_low_um"] = lo
         out["norm_ci95_high_um"] = hi
@@ -547,7 +668,7 @@ class MCResult:
         of |d| at the pose of the maximum and the largest U of |d| over the poses (um)."""
         vol = self.volumetric()
         i = int(np.argmax(vol["norm_um"].to_numpy()))
-        mx = np.linalg.norm(self.samples.vol * 1e3, axis=2).max(axis=1)
+        mx = self.norm_um().max(axis=1)
         lo, hi = _interval(mx)
         return {
             "max_norm_um": float(vol["norm_um"].iloc[i]),
@@ -629,15 +750,15 @@ def quantity_table(mc: MCResult, error_model, quantities: Iterable[str]) -> pd.D
     nt = k.n_theta
     S = mc.samples.x[:, :nt] @ A.T
     f = np.array([_factor(u)[0] for u in units])
-    lo, hi = _interval(S)
-    u = S.std(axis=0, ddof=1) * f
+    mean, u, lo, hi = _spread(S, copy=False)
+    u = u * f
     ul = np.sqrt(np.clip(np.einsum("kp,pq,kq->k", A, mc.cov_linear[:nt, :nt], A), 0, None)) * f
     return pd.DataFrame(
         {
             "name": names,
             "unit": [_factor(x)[1] for x in units],
             "value": (A @ k.engine.x_hat[:nt]) * f,
-            "mc_mean": S.mean(axis=0) * f,
+            "mc_mean": mean * f,
             "u": u,
             "U": 2 * u,
             "ci95_low": lo * f,
@@ -716,10 +837,20 @@ def ipopt_resolve(
     *,
     tol: float = 1e-10,
     max_iter: int = 30,
+    step_tol: float = 1e-9,
+    round_iter: int = 3,
 ) -> tuple[np.ndarray, list[str]]:
     """Re-solve readings M (B, N) with IPOPT on the Identifier's own NLP (tight tolerance,
-    no early "acceptable" stop), from x_hat with the same held variables.  Returns
-    (X (B, n) physical, statuses).  Slow (~0.5 s a solve); for verification."""
+    no early "acceptable" stop), from x_hat (n,) or one start per trial (B, n) with the same
+    held variables.  Returns (X (B, n) physical, statuses).  Slow (~0.02 s an iteration
+    here); for verification.  The solver is built once for the batch, with the problem's
+    own gradient function.
+
+    The gradient of the whitened objective cannot fall below its rounding level, so
+    ``tol`` is seldom met: IPOPT runs in rounds of ``round_iter`` iterations, each from
+    where the last ended, until its last step is below ``step_tol`` (scaled units,
+    1 = 1 um / 1 urad: the structured solver's own criterion) or ``max_iter`` iterations
+    in all, instead of stepping at the rounding level until ``max_iter``."""
     import casadi as ca
 
     pr = ider.problem
@@ -729,23 +860,80 @@ def ipopt_resolve(
         "ipopt.sb": "yes",
         "ipopt.tol": tol,
         "ipopt.acceptable_iter": 0,
-        "ipopt.max_iter": max_iter,
+        "ipopt.max_iter": min(round_iter, max_iter),
         "ipopt.nlp_scaling_method": "none",
         "hess_lag": pr.hess_lag,
+        "grad_f": pr.grad_f,
         "error_on_fail": False,
     }
     S = ca.nlpsol("verify", "ipopt", pr.nlp, opts)
     q, t, _, w = unpack_data(pr.machine.n_axes, p)
-    x0 = pr.to_scaled(x_hat)
-    lb, ub = np.full(pr.n_x, -np.inf), np.full(pr.n_x, np.inf)
-    lb[fixed] = ub[fixed] = x0[fixed]
+    M = np.atleast_2d(M)
+    X0 = np.broadcast_to(np.asarray(x_hat, float), (M.shape[0], pr.n_x))
     lbg, ubg = pr.g_bounds()
-    out, st = [], []
-    for m in np.atleast_2d(M):
-        r = S(x0=x0, p=pr.pack_data(q, t, m, w), lbx=lb, ubx=ub, lbg=lbg, ubg=ubg)
-        out.append(pr.from_scaled(r["x"].full()))
-        st.append(S.stats().get("return_status", "unknown"))
+    out: list[np.ndarray] = []
+    st: list[str] = []
+    for x_start, m in zip(X0, M):
+        x0 = pr.to_scaled(x_start)
+        lb, ub = np.full(pr.n_x, -np.inf), np.full(pr.n_x, np.inf)
+        lb[fixed] = ub[fixed] = x0[fixed]
+        bounds = {"lbx": lb, "ubx": ub, "lbg": lbg, "ubg": ubg}
+        x, status = _ipopt_rounds(
+            S, pr, opts, x0, pr.pack_data(q, t, m, w), bounds, max_iter, round_iter, step_tol
+        )
+        out.append(pr.from_scaled(x))
+        st.append(status)
     return np.array(out), st
+
+
+def _ipopt_rounds(
+    S,
+    pr,
+    opts: dict,
+    x: np.ndarray,
+    pm: np.ndarray,
+    bounds: dict[str, np.ndarray],
+    max_iter: int,
+    round_iter: int,
+    step_tol: float,
+) -> tuple[np.ndarray, str]:
+    """IPOPT in rounds of ``round_iter`` iterations from x (scaled) until its last step is
+    below ``step_tol`` or ``max_iter`` iterations in all (see :func:`ipopt_resolve`).
+    Returns (x scaled, IPOPT's status)."""
+    done = 0
+    status = "unknown"
+    extra: dict[str, Any] = {}
+    solver = S
+    while True:
+        r = solver(x0=x, p=pm, **bounds, **extra)
+        stats = solver.stats()
+        x = r["x"].full().ravel()
+        extra = {"lam_g0": r["lam_g"]}
+        status = str(stats.get("return_status", "unknown"))
+        n_it = int(stats.get("iter_count", 0))
+        done += n_it
+        its = stats.get("iterations", {})
+        step = (
+            float(its["alpha_pr"][-1]) * float(its["d_norm"][-1])
+            if n_it and its.get("d_norm")
+            else 0.0
+        )
+        if (
+            status != "Maximum_Iterations_Exceeded"
+            or step < step_tol
+            or n_it == 0
+            or done >= max_iter
+        ):
+            return x, status
+        if done + round_iter > max_iter:
+            solver = _with_max_iter(pr, opts, max_iter - done)
+
+
+def _with_max_iter(pr, opts: dict, n: int):
+    """The verification solver with another iteration limit (the last round)."""
+    import casadi as ca
+
+    return ca.nlpsol("verify", "ipopt", pr.nlp, {**opts, "ipopt.max_iter": n})
 
 
 def verify_against_ipopt(
@@ -759,11 +947,7 @@ def verify_against_ipopt(
     X0 = np.tile(eng.x_hat, (len(trials), 1))
     X0[:, eng.fixed] += dX
     sol = eng.solve(eng.m[None, :] + dM, X0, tol=kernel.tol)
-    rows = []
-    for b in range(len(trials)):
-        xi, _ = ipopt_resolve(ider, X0[b], p, eng.fixed, (eng.m + dM[b])[None, :])
-        rows.append(xi[0])
-    Xi = np.array(rows)
+    Xi, _ = ipopt_resolve(ider, X0, p, eng.fixed, eng.m[None, :] + dM)
     d = np.abs(Xi - sol.x) / eng.scale
     nt = kernel.n_theta
     return {
@@ -777,7 +961,43 @@ def verify_against_ipopt(
 # front end
 
 
-def monte_carlo(
+class _Background:
+    """``fn(*args)`` in a daemon thread; :meth:`result` waits for it and returns its value
+    or raises its exception."""
+
+    def __init__(self, fn, *args) -> None:
+        import threading
+
+        self._value: Any = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(
+            target=self._run, args=(fn, args), name="volcal-background", daemon=True
+        )
+        self._thread.start()
+
+    def _run(self, fn, args) -> None:
+        try:
+            self._value = fn(*args)
+        except BaseException as exc:  # handed to the caller by result()
+            self._error = exc
+
+    def result(self) -> Any:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
+def monte_carlo(*args, **kwargs) -> dict[str, Any]:
+    """Identify, then Monte Carlo around the identification (see :func:`_monte_carlo` for
+    the arguments); the numerics run with one BLAS thread (see :mod:`volcal.base.threads`)."""
+    from volcal.base.threads import blas_threads
+
+    with blas_threads(1):
+        return _monte_carlo(*args, **kwargs)
+
+
+def _monte_carlo(
     model,
     data,
     stations=None,
@@ -801,87 +1021,103 @@ def monte_carlo(
     contribution_trials: int | None = None,
     progress: bool = False,
     verify: int = 0,
+    stages=None,
 ) -> dict[str, Any]:
     """Identify, then Monte Carlo around the identification.  Returns a dict with the
     identification ``result``, ``kernel``, ``mc`` (:class:`MCResult`), ``contributions``
-    (a table or None) and ``verify`` (IPOPT cross-check of ``verify`` trials, or None)."""
-    from volcal.analysis.identify import Identifier, identify
-    from volcal.measurement.budget import load_budget
-    from volcal.measurement.tables import load_measurements, load_stations
-    from volcal.model.machine import Machine
-    from volcal.problem.residuals import Layout
+    (a table or None) and ``verify`` (IPOPT cross-check of ``verify`` trials, or None).
+    stages: a :class:`volcal.base.timing.Stages` that receives the seconds per stage."""
+    from volcal.base.timing import Stages
 
-    machine = model if isinstance(model, Machine) else Machine.from_model(model)
-    bud = load_budget(budget)
-    st_table = (
-        load_stations(stations)
-        if stations is not None
-        and not (isinstance(stations, pd.DataFrame) and "dead_length_given" in stations)
-        else stations
-    )
-    meas = (
-        data
-        if hasattr(data, "q_internal")
-        else load_measurements(data, machine.spec, stations=st_table)
-    )
-    res = identify(
-        machine,
-        meas,
-        st_table,
-        strategy=strategy,
-        degree=degree,
-        datum=datum,
-        error_model=error_model,
-        budget=bud,
-    )
-    em = res.error_model
-    layout = Layout.from_measurements(meas)
-    ider = Identifier(machine, em, layout)
-    x_hat, w = identification_data(res, meas, bud)
-    p = ider.problem.pack_data(meas.q_internal, meas.tool, meas.length, w)
-    fixed = fixed_mask(ider, res)
-    if eval_points is None:
-        from volcal.measurement.plans import grid_plan
+    st = stages if stages is not None else Stages()
+    with st("identification"):
+        from volcal.analysis.identify import Identifier, identify
+        from volcal.measurement.budget import load_budget
+        from volcal.measurement.tables import load_measurements, load_stations
+        from volcal.model.machine import Machine
+        from volcal.problem.residuals import Layout
 
-        eval_points = grid_plan(machine.spec, 5)
-    eq = machine.axis_to_internal(eval_points[machine.axis_names].to_numpy(float))
-    etool = (
-        eval_points[["tool_x", "tool_y", "tool_z"]].to_numpy(float)
-        if "tool_x" in eval_points
-        else None
-    )
-    kernel = build_kernel(
-        ider,
-        x_hat,
-        p,
-        fixed,
-        bud,
-        time_s=meas.time,
-        eval_q=eq,
-        eval_tool=etool,
-        tool_sigma_mm=tool_sigma_um * 1e-3,
-        station_sigma_mm=station_sigma_um * 1e-3,
-    )
-    samples = run_trials(
-        kernel,
-        trials,
-        seed,
-        mode=mode,
-        chunk_size=chunk_size,
-        workers=workers,
-        scheduler=scheduler,
-        out_dir=out_dir,
-        progress=progress,
-        label="all",
-    )
-    mc = MCResult.from_samples(
-        kernel, samples, eval_points[machine.axis_names].reset_index(drop=True)
-    )
-    contrib = None
-    if with_contributions:
-        contrib, _ = contributions(
+        machine = model if isinstance(model, Machine) else Machine.from_model(model)
+        bud = load_budget(budget)
+        st_table = (
+            load_stations(stations)
+            if stations is not None
+            and not (isinstance(stations, pd.DataFrame) and "dead_length_given" in stations)
+            else stations
+        )
+        meas = (
+            data
+            if hasattr(data, "q_internal")
+            else load_measurements(data, machine.spec, stations=st_table)
+        )
+        res = identify(
+            machine,
+            meas,
+            st_table,
+            strategy=strategy,
+            degree=degree,
+            datum=datum,
+            error_model=error_model,
+            budget=bud,
+        )
+    with st("Monte Carlo set-up"):
+        em = res.error_model
+        layout = Layout.from_measurements(meas)
+        # the identification's own problem and solvers (the same model, error model and
+        # layout), else built again
+        ider = res.identifier
+        if (
+            ider is None
+            or ider.machine is not machine
+            or ider.error_model is not em
+            or ider.problem.exact
+            or ider.instrument.name != "tracker"
+            or ider.layout.n_stations != layout.n_stations
+            or not np.array_equal(ider.layout.station_index, layout.station_index)
+            or not np.array_equal(ider.layout.poses[0], layout.poses[0])
+        ):
+            ider = Identifier(machine, em, layout)
+        x_hat, w = identification_data(res, meas, bud)
+        p = ider.problem.pack_data(meas.q_internal, meas.tool, meas.length, w)
+        fixed = fixed_mask(ider, res)
+        if eval_points is None:
+            from volcal.measurement.plans import grid_plan
+
+            eval_points = grid_plan(machine.spec, 5)
+        eq = machine.axis_to_internal(eval_points[machine.axis_names].to_numpy(float))
+        etool = (
+            eval_points[["tool_x", "tool_y", "tool_z"]].to_numpy(float)
+            if "tool_x" in eval_points
+            else None
+        )
+        kernel = build_kernel(
+            ider,
+            x_hat,
+            p,
+            fixed,
+            bud,
+            time_s=meas.time,
+            eval_q=eq,
+            eval_tool=etool,
+            tool_sigma_mm=tool_sigma_um * 1e-3,
+            station_sigma_mm=station_sigma_um * 1e-3,
+        )
+    background: list[_Background] = []
+
+    def start_verify() -> None:
+        # the IPOPT cross-check needs only the kernel: it runs in a thread alongside the
+        # trials (in worker processes, or numpy code that releases the interpreter lock),
+        # started once the workers are (no fork while it runs)
+        if verify:
+            kernel.engine.prepare()
+            background.append(
+                _Background(verify_against_ipopt, kernel, ider, p, seed, range(verify))
+            )
+
+    with st("trials"):
+        samples = run_trials(
             kernel,
-            contribution_trials or trials,
+            trials,
             seed,
             mode=mode,
             chunk_size=chunk_size,
@@ -889,8 +1125,34 @@ def monte_carlo(
             scheduler=scheduler,
             out_dir=out_dir,
             progress=progress,
+            label="all",
+            on_start=start_verify,
         )
-    ver = verify_against_ipopt(kernel, ider, p, seed, range(verify)) if verify else None
+    with st("linearised covariance"):
+        mc = MCResult.from_samples(
+            kernel, samples, eval_points[machine.axis_names].reset_index(drop=True)
+        )
+    ver = None
+    if verify:
+        # finished before anything forks again (the contributions' workers)
+        with st("IPOPT cross-check (the part after the trials)"):
+            if not background:  # on_start not called (cannot happen: one chunk at least)
+                start_verify()
+            ver = background[0].result()
+    contrib = None
+    if with_contributions:
+        with st("contributions"):
+            contrib, _ = contributions(
+                kernel,
+                contribution_trials or trials,
+                seed,
+                mode=mode,
+                chunk_size=chunk_size,
+                workers=workers,
+                scheduler=scheduler,
+                out_dir=out_dir,
+                progress=progress,
+            )
     return {
         "result": res,
         "identifier": ider,

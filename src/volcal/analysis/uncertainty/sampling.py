@@ -99,17 +99,28 @@ class InputSampler:
         tool = np.asarray(tool, float)
         N = len(q)
         zeros = np.zeros(machine.n_errors)
-        p0, _, _ = machine.evaluate(q, tool, zeros)
+        # the machine is evaluated once per distinct pose and tool offset (every station
+        # sees the same poses): the same numbers as per reading, in a fraction of the time
+        _, first, pose = np.unique(
+            np.hstack([q, tool]), axis=0, return_index=True, return_inverse=True
+        )
+        pose = pose.ravel()
+        qd, td = q[first], tool[first]
+
+        def point(qq: np.ndarray, tt: np.ndarray) -> np.ndarray:
+            return machine.evaluate(qq, tt, zeros)[0][pose]
+
+        p0 = point(qd, td)
         names = list(machine.axis_names)
         sens = np.zeros((N, len(names)))
         h = 1e-6
         for k, a in enumerate(names):
             if budget.axis_sigma(a) == 0.0:
                 continue
-            dq = np.zeros_like(q)
+            dq = np.zeros_like(qd)
             dq[:, k] = h
-            p1, _, _ = machine.evaluate(q + dq, tool, zeros)
-            pm, _, _ = machine.evaluate(q - dq, tool, zeros)
+            p1 = point(qd + dq, td)
+            pm = point(qd - dq, td)
             sens[:, k] = np.einsum("ni,ni->n", beam_unit, (p1 - pm) / (2 * h))
         # tool offsets: P is affine in t (the tool frame's rotation), so differences are exact
         tsens = np.zeros((N, 3))
@@ -118,7 +129,7 @@ class InputSampler:
             for k in range(3):
                 dt = np.zeros(3)
                 dt[k] = 1.0
-                p1, _, _ = machine.evaluate(q, tool + dt, zeros)
+                p1 = point(qd, td + dt)
                 tsens[:, k] = np.einsum("ni,ni->n", beam_unit, p1 - p0)
         st_idx = np.asarray(station_index, int)
         rows = [np.flatnonzero(st_idx == s) for s in range(int(st_idx.max()) + 1)]
@@ -230,22 +241,29 @@ class InputSampler:
         dX = np.zeros((len(trials), self.n_fixed))
         plan = self._plan()
         bud = self.budget
+        # a rectangular draw is (2 u - 1) s with u uniform on [0, 1) (u = k 2^-53): u - 0.5
+        # and 2 s are exact, so (u - 0.5) (2 s) is the same double as (2 u - 1) s, in one
+        # pass less
+        steps = [
+            (kind, dist, None if scale is None else (scale if dist == "normal" else 2.0 * scale))
+            for kind, dist, scale in plan
+        ]
+        buf = np.empty(N)
         for b, i in enumerate(trials):
             g = trial_rng(seed, i)
             row = dM[b]
-            for k, (kind, dist, scale) in enumerate(plan):
+            for k, (kind, dist, f) in enumerate(steps):
                 if kind == "reading":
                     # the distributions of Source.sample, drawn without its per-call overhead
                     if dist == "normal":
-                        v = g.standard_normal(N)
+                        g.standard_normal(out=buf)
                     else:
-                        v = g.random(N)
-                        v *= 2.0
-                        v -= 1.0
+                        g.random(out=buf)
+                        buf -= 0.5
                     if on[k]:
-                        assert scale is not None  # a reading source always has its factor
-                        v *= scale
-                        row += v
+                        assert f is not None  # a reading source always has its factor
+                        buf *= f
+                        row += buf
                 elif kind == "drift":
                     for rows in self.station_rows:
                         v = bud.sample_drift(self.time_s[rows], g)

@@ -135,7 +135,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         type=int,
         default=None,
         metavar="W",
-        help="local worker processes (default: all cores; 1: in this process)",
+        help="local worker processes (default: all cores, this process computing "
+        "too; 1: in this process)",
     )
     p.add_argument(
         "--scheduler",
@@ -219,16 +220,44 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    import pandas as pd
+    import time
 
-    from volcal.analysis.uncertainty.montecarlo import monte_carlo
-    from volcal.base.exceptions import InputError
-    from volcal.base.threads import blas_threads
-    from volcal.measurement.plans import grid_plan
-    from volcal.measurement.simulate import example
-    from volcal.model.errors import ErrorForm, ErrorModel
-    from volcal.model.machine import Machine
-    from volcal.outputs.mc_report import write_mc_outputs
+    from volcal.base.timing import Stages, process_seconds
+
+    started = process_seconds()
+    t_run = time.perf_counter()
+    stages = Stages()
+    if started is not None:
+        stages.add("start-up (interpreter, command line)", started)
+    plotter = None
+    if not args.no_plots:
+        # first: a child process that imports matplotlib while this one computes, and
+        # draws the plots while this one writes the tables
+        with stages("plotting process start"):
+            from volcal.outputs.mc_plots import PlotProcess
+
+            plotter = PlotProcess.start()
+    try:
+        return _run(args, stages, t_run, started, plotter)
+    finally:
+        if plotter is not None:
+            plotter.close()
+
+
+def _run(args: argparse.Namespace, stages, t_run: float, started: float | None, plotter) -> int:
+    import time
+
+    with stages("imports"):
+        import pandas as pd
+
+        from volcal.analysis.uncertainty.montecarlo import monte_carlo
+        from volcal.base.exceptions import InputError
+        from volcal.base.threads import blas_threads
+        from volcal.measurement.plans import grid_plan
+        from volcal.measurement.simulate import example
+        from volcal.model.errors import ErrorForm, ErrorModel
+        from volcal.model.machine import Machine
+        from volcal.outputs.mc_report import write_mc_outputs
 
     for name, v, lo in (
         ("--trials", args.trials, 2),
@@ -263,27 +292,29 @@ def run(args: argparse.Namespace) -> int:
     check_out_dir(
         args.out, MC_FILES, "volcal mc", "summary.json", inputs=inputs, allowed_dirs=("samples",)
     )
-    ex = example(args.example) if args.example else None
     strategy = args.strategy
-    if args.result is not None:
-        from volcal.outputs.analysis_report import result_inputs
+    with stages("model build"):
+        ex = example(args.example) if args.example else None
+        if args.result is not None:
+            from volcal.outputs.analysis_report import result_inputs
 
-        inp = result_inputs(args.result)
-        machine, em = inp["machine"], inp["error_model"]
-        budget = args.budget or inp["budget"]
-        data, stations, strategy = inp["data"], inp["stations"], inp["strategy"]
-    else:
-        machine = ex.machine if ex else Machine.from_model(args.model)
-        if ex is not None and args.degree == 3 and args.datum == ex.error_model.datum:
-            em = ex.error_model
+            inp = result_inputs(args.result)
+            machine, em = inp["machine"], inp["error_model"]
+            budget = args.budget or inp["budget"]
+            data, stations, strategy = inp["data"], inp["stations"], inp["strategy"]
         else:
-            em = ErrorModel(machine.spec, default=ErrorForm("poly", args.degree), datum=args.datum)
-        budget = args.budget or (ex.budget if ex is not None else "paper002")
-        if ex is not None:
-            sim = ex.simulate(args.sim_seed)
-            data, stations = sim.measurements, args.stations
-        else:
+            machine = ex.machine if ex else Machine.from_model(args.model)
+            if ex is not None and args.degree == 3 and args.datum == ex.error_model.datum:
+                em = ex.error_model
+            else:
+                em = ErrorModel(
+                    machine.spec, default=ErrorForm("poly", args.degree), datum=args.datum
+                )
+            budget = args.budget or (ex.budget if ex is not None else "paper002")
             data, stations = args.data, args.stations
+    if args.result is None and ex is not None:
+        with stages("simulation"):
+            data = ex.simulate(args.sim_seed).measurements
     quantities = [q.strip() for q in args.quantities.split(",")] if args.quantities else None
 
     with blas_threads(1):
@@ -308,6 +339,7 @@ def run(args: argparse.Namespace) -> int:
             contribution_trials=args.contribution_trials,
             progress=not args.no_progress and not getattr(args, "quiet", False),
             verify=args.verify,
+            stages=stages,
         )
         res, mc = out["result"], out["mc"]
         if not res.success:
@@ -322,6 +354,8 @@ def run(args: argparse.Namespace) -> int:
             },
             "verify_against_ipopt": out["verify"],
         }
+        t_write = time.perf_counter()
+        inner = dict(stages.seconds)
         summary = _write(
             args.out,
             inputs,
@@ -334,7 +368,16 @@ def run(args: argparse.Namespace) -> int:
                 quantities=quantities,
                 plots=not args.no_plots,
                 extra=extra,
+                stages=stages,
+                plotter=plotter,
             ),
+        )
+        # the output folder's own work: manifest, lock, renames
+        stages.add(
+            "writing (folder)",
+            time.perf_counter()
+            - t_write
+            - sum(v - inner.get(k, 0.0) for k, v in stages.seconds.items()),
         )
     if not getattr(args, "quiet", False):
         mv, ag = summary["max_volumetric"], summary["agreement_with_linearised"]
@@ -372,4 +415,12 @@ def run(args: argparse.Namespace) -> int:
                 f"(max {c['max_E_n']:.2f})"
             )
         print(f"  files                    {args.out}")
+        if getattr(args, "verbose", 0):
+            total = time.perf_counter() - t_run + (started or 0.0)
+            print("stage timings (wall clock):")
+            print(stages.table(total))
+    # everything this command opened is closed (worker processes joined, files written):
+    # as the program it may end without the interpreter's teardown; not after a Dask
+    # cluster, whose library cleans up at exit
+    args.exit_now = args.scheduler is None
     return 1 if summary["not_converged"] else 0
