@@ -819,6 +819,9 @@ def _identify(
             **opts,
         )
     t_start = time.perf_counter()
+    from volcal.base.progress import reset_timings
+
+    reset_timings()  # the stage timings recorded with the result are this run's
     if isinstance(model, Machine):
         machine = model
     else:
@@ -837,27 +840,29 @@ def _identify(
             st_table = stations if given else load_stations(stations)
         else:
             st_table = load_instrument_stations(stations, ins.station_param_names)
-    meas = (
-        data
-        if isinstance(data, Measurements)
-        else load_measurements(
-            data,
-            spec,
-            stations=st_table,
-            relative_lengths=not ins.positive_readings,
-            columns=columns,
+    with report_stage("reading the data"):
+        meas = (
+            data
+            if isinstance(data, Measurements)
+            else load_measurements(
+                data,
+                spec,
+                stations=st_table,
+                relative_lengths=not ins.positive_readings,
+                columns=columns,
+            )
         )
-    )
     em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
     bud = budget if isinstance(budget, Budget) else load_budget(budget)
     strat = get_strategy(strategy, station_method=station_method, point_method=point_method)
     strategy = strat.name
 
-    st0, glob0, st_fixed, notes = initial_instrument(machine, meas, st_table, ins)
-    sigma = meas.sigma.copy()
-    no_sigma = ~np.isfinite(sigma)
-    if no_sigma.any():  # the budget only where the table gives no sigma
-        sigma[no_sigma] = reading_sigma(machine, bud, meas, st0, ins)[no_sigma]
+    with report_stage("start values and reading uncertainties"):
+        st0, glob0, st_fixed, notes = initial_instrument(machine, meas, st_table, ins)
+        sigma = meas.sigma.copy()
+        no_sigma = ~np.isfinite(sigma)
+        if no_sigma.any():  # the budget only where the table gives no sigma
+            sigma[no_sigma] = reading_sigma(machine, bud, meas, st0, ins)[no_sigma]
     sigma_source = (
         "table"
         if not no_sigma.any()

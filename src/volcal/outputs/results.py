@@ -1231,6 +1231,8 @@ def save_result(
         em, machine = result.error_model, result.machine
         created = datetime.now(UTC).isoformat(timespec="seconds")
         log.info("writing the result tables (temporary folder %s)", tmp)
+        tables = progress.stage("writing the tables")
+        tables.__enter__()
         result.parameters().to_csv(tmp / "parameters.csv", index=False)
         result.stations.to_csv(tmp / "stations.csv", index=False)
         result.residuals.to_csv(tmp / "residuals.csv", index=False)
@@ -1248,9 +1250,13 @@ def save_result(
         log.info("evaluating the volumetric error on the grid")
         grid = volumetric_grid_table(machine, em, result.theta, result.cov_theta, grid_points)
         grid.to_csv(tmp / "volumetric_grid.csv", index=False)
+        tables.__exit__(None, None, None)
         doc = _result_document(
             result, data_name=data_name, options=options, grid=grid, created=created
         )
+        # seconds per stage of this process so far (the plots come after: a benchmark
+        # takes their cost from a run without them)
+        doc["timings_s"] = progress.timings()
         (tmp / "result.json").write_text(
             json.dumps(_json_safe(doc), indent=1, allow_nan=False) + "\n", encoding="utf-8"
         )
