@@ -20,6 +20,7 @@ Units: mm and degrees at the interface (poses in file units as in
 
 from __future__ import annotations
 
+import hashlib
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -504,6 +505,11 @@ def plan(
             if progress is not None:
                 progress(f"{optimizer} round {_r + 1}", step, best)
 
+        # what a checkpoint must belong to: the readings to place stations for, the
+        # constraints and the criterion
+        h = hashlib.sha256(ev.points[sel[ev.pose_of]].tobytes())
+        h.update(repr((cons, criterion, bud.name, em.param_names)).encode())
+        fp = h.hexdigest()[:16]
         if optimizer == "ga":
             res = genetic_placement(
                 scorer,
@@ -518,6 +524,7 @@ def plan(
                 scheduler=scheduler,
                 checkpoint=ckpt / f"ga_round{rnd + 1}.npz" if ckpt else None,
                 progress=report,
+                fingerprint=fp,
             )
             searches.append(res)
         elif optimizer == "gradient":
@@ -531,6 +538,7 @@ def plan(
                 criterion=criterion if criterion in ("I", "A", "D") else "I",
                 checkpoint=ckpt / f"gradient_round{rnd + 1}.npz" if ckpt else None,
                 progress=report,
+                fingerprint=fp,
             )
             searches.append(res)
         if searches and searches[-1].value < scorer.score(S, sel):

@@ -200,6 +200,7 @@ def genetic_placement(
     scheduler: Any = None,
     checkpoint: Path | None = None,
     progress: Callable[[int, float], None] | None = None,
+    fingerprint: str = "",
 ) -> SearchResult:
     """Paper 004's genetic algorithm on the station coordinates (see the module doc).
     ``initial``: a design (K, 3) put into the first population; ``checkpoint``: a file
@@ -207,7 +208,14 @@ def genetic_placement(
     continues from its last generation with the same random stream)."""
     t0 = time.perf_counter()
     K = int(n_stations)
-    key = {"K": K, "population": population, "seed": seed, "criterion": scorer.criterion_name}
+    # a checkpoint of another problem (poses, tools, constraints: ``fingerprint``) is refused
+    key = {
+        "K": K,
+        "population": population,
+        "seed": seed,
+        "criterion": scorer.criterion_name,
+        "problem": fingerprint,
+    }
     rng = np.random.default_rng(seed)
     state = _load(checkpoint, "ga", key)
     extent = _extent(sampler)
@@ -307,6 +315,7 @@ def gradient_placement(
     max_iter: int = 60,
     checkpoint: Path | None = None,
     progress: Callable[[int, float], None] | None = None,
+    fingerprint: str = "",
 ) -> SearchResult:
     """Multi-start IPOPT on the station coordinates (see the module doc).  The reading
     weights are those of each start's stations (the budget's distance dependence is weak);
@@ -317,7 +326,13 @@ def gradient_placement(
     scorer = ev.scorer
     cons = sampler.constraints
     rng = np.random.default_rng(seed)
-    key = {"K": K, "starts": starts, "seed": seed, "criterion": criterion}
+    key = {
+        "K": K,
+        "starts": starts,
+        "seed": seed,
+        "criterion": criterion,
+        "problem": fingerprint,
+    }
     f_sym = ev.symbolic_criterion(criterion, selected)
     sel = np.ones(len(ev.poses), bool) if selected is None else np.asarray(selected, bool)
     use = sel[ev.pose_of] & (ev.station_of == 0)  # the points of one station's readings
