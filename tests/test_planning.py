@@ -392,3 +392,40 @@ def test_cli_plan_writes_a_plan_identify_can_read(tmp_path):
     )
     assert r.returncode == 2 and "station" in r.stderr and "bad.toml" in r.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_gradient_search_resumes_from_its_checkpoint(tmp_path):
+    from volcal.analysis.planning.search import StationSampler, gradient_placement
+
+    _, _, _, ev, sel = _evaluator(n_poses=20)
+    cons = constraints_from_dict(_setting()[1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ev.freeze(S_LEFT_RIGHT, sel)
+    use = sel[ev.pose_of] & (ev.station_of == 0)
+    centre = 0.5 * (ev.points.min(0) + ev.points.max(0))
+    sampler = StationSampler(cons, ev.points[use], np.zeros((use.sum(), 3)), centre)
+
+    def run(starts, ck=None):
+        return gradient_placement(
+            ev, sampler, selected=sel, starts=starts, seed=5, max_iter=15, checkpoint=ck
+        )
+
+    full = run(2)
+    ck = tmp_path / "gradient.npz"
+    run(1, ck)  # stopped after one start
+    resumed = run(2, ck)
+    assert np.array_equal(full.stations, resumed.stations) and full.value == resumed.value
+
+
+def test_bad_constraints_name_the_setting_file(tmp_path):
+    bad = tmp_path / "bad_box.toml"
+    bad.write_text('model = "mcv754_wxyzt"\n[[constraints.region]]\nbox = [[0, 0, 0]]\n')
+    r = subprocess.run(
+        [sys.executable, "-m", "volcal.cli.main", "plan", "--setting", str(bad),
+         "--out", str(tmp_path / "x")],
+        capture_output=True, text=True,
+    )
+    assert r.returncode == 2, r.stderr
+    assert "bad_box.toml" in r.stderr and "region[0]" in r.stderr and "box" in r.stderr
+    assert "Traceback" not in r.stderr and not (tmp_path / "x").exists()

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -597,18 +597,18 @@ def axis_sensitivity(
 
 
 def combined_variance(
-    machine: Machine,
+    axis_names: Sequence[str],
     budget: Budget,
     length: np.ndarray,
     grad: np.ndarray,
     dpdq: np.ndarray,
 ) -> np.ndarray:
     """Variance (mm^2) of each reading: the budget's length part at ``length`` (N,) mm plus
-    every axis' repeatability carried through d(point)/d(axis) ``dpdq`` (n_axes, N, 3) and
-    d(reading)/d(point) ``grad`` (N, 3)."""
+    every axis' (``axis_names`` in model order) repeatability carried through
+    d(point)/d(axis) ``dpdq`` (n_axes, N, 3) and d(reading)/d(point) ``grad`` (N, 3)."""
     var = budget.length_sigma(length) ** 2
-    for k, a in enumerate(machine.spec.axes):
-        sig = budget.axis_sigma(a.name)
+    for k, name in enumerate(axis_names):
+        sig = budget.axis_sigma(name)
         if sig:
             var = var + (np.einsum("ni,ni->n", grad, dpdq[k]) * sig) ** 2
     return var
@@ -633,7 +633,7 @@ def reading_sigma(
     given = np.asarray(stations, float)
     S[:, : given.shape[1]] = given
     _, grad = ins.evaluate(p0, S[meas.station_index])  # (N, 3) d reading / d point
-    var = combined_variance(machine, budget, meas.length, grad, dpdq)
+    var = combined_variance(machine.axis_names, budget, meas.length, grad, dpdq)
     sigma = np.sqrt(var)
     bad = ~np.isfinite(sigma)
     if bad.any():
@@ -955,29 +955,27 @@ def _identify(
             )
 
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
-    unc = report_stage("uncertainty and identifiability")
-    unc.__enter__()
-    cov = ider.covariance(x, p, fixed)
-    resid_w = r
-    dof = max(int((~rejected).sum()) - int((~fixed).sum()) + pr.C.shape[0], 1)
-    chi2 = float(np.sum(resid_w[~rejected] ** 2) / dof)
-    if scale_covariance:
-        cov = cov * chi2
-        notes.append(f"covariance scaled by the residual variance factor {chi2:.3g}")
-    theta, st, frame = pr.unpack_x(x)
-    nt = pr.n_theta
-    cov_theta = cov[:nt, :nt]
-    # The null space of the final phase without datum or pivots: which directions only move
-    # the field rigidly (gauge) and which change it (unidentifiable), over the declared
-    # travel at the measured tool offsets.
-    base_fixed = fixed.copy()
-    base_fixed[list(ident.pivots)] = False
-    _, first = layout.poses  # one reading of every distinct pose
-    null_field, sets = ider.field_null_space(
-        x, p, base_fixed, meas.q_internal[first], meas.tool[first]
-    )
-    split_gauge(ident, nt, sets, pr.scale[:nt])
-    unc.__exit__(None, None, None)
+    with report_stage("uncertainty and identifiability"):
+        cov = ider.covariance(x, p, fixed)
+        resid_w = r
+        dof = max(int((~rejected).sum()) - int((~fixed).sum()) + pr.C.shape[0], 1)
+        chi2 = float(np.sum(resid_w[~rejected] ** 2) / dof)
+        if scale_covariance:
+            cov = cov * chi2
+            notes.append(f"covariance scaled by the residual variance factor {chi2:.3g}")
+        theta, st, frame = pr.unpack_x(x)
+        nt = pr.n_theta
+        cov_theta = cov[:nt, :nt]
+        # The null space of the final phase without datum or pivots: which directions only move
+        # the field rigidly (gauge) and which change it (unidentifiable), over the declared
+        # travel at the measured tool offsets.
+        base_fixed = fixed.copy()
+        base_fixed[list(ident.pivots)] = False
+        _, first = layout.poses  # one reading of every distinct pose
+        null_field, sets = ider.field_null_space(
+            x, p, base_fixed, meas.q_internal[first], meas.tool[first]
+        )
+        split_gauge(ident, nt, sets, pr.scale[:nt])
     # a parameter taking part in an unidentifiable direction has no value of its own: its
     # value depends on which variable was held (reported), so it gets no uncertainty
     identifiable = ~ident.unidentifiable[:nt]

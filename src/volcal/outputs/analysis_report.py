@@ -781,18 +781,16 @@ def analyze_jacobian_report(
     machine = pr.machine
     n = pr.n_x
     user_fixed = np.zeros(n, bool) if user_fixed is None else np.asarray(user_fixed, bool)
-    stage = progress.stage("identifiability and covariance")
-    stage.__enter__()
-    if datum_active is None:
-        ider.select_datum(x, p, user_fixed)
-    else:
-        pr.set_datum(datum_active)
-    _, J = ider.jacobian(x, p)
-    ident = ider.analyse(x, p, user_fixed)
-    fixed = user_fixed.copy()
-    fixed[ident.pivots] = True
-    cov = ider.covariance(x, p, fixed) * cov_scale
-    stage.__exit__(None, None, None)
+    with progress.stage("identifiability and covariance"):
+        if datum_active is None:
+            ider.select_datum(x, p, user_fixed)
+        else:
+            pr.set_datum(datum_active)
+        _, J = ider.jacobian(x, p)
+        ident = ider.analyse(x, p, user_fixed)
+        fixed = user_fixed.copy()
+        fixed[ident.pivots] = True
+        cov = ider.covariance(x, p, fixed) * cov_scale
     identifiable = ~(ident.unidentifiable | fixed)
     q, t, _, w = unpack_data(machine.n_axes, p)
     null = _null_directions(

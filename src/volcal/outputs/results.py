@@ -1231,26 +1231,24 @@ def save_result(
         em, machine = result.error_model, result.machine
         created = datetime.now(UTC).isoformat(timespec="seconds")
         log.info("writing the result tables (temporary folder %s)", tmp)
-        tables = progress.stage("writing the tables")
-        tables.__enter__()
-        result.parameters().to_csv(tmp / "parameters.csv", index=False)
-        result.stations.to_csv(tmp / "stations.csv", index=False)
-        result.residuals.to_csv(tmp / "residuals.csv", index=False)
-        _write_order_selection(result, tmp)
-        if result.state is not None:
-            _save_state(result.state, tmp / "solver_state.npz")
-        if result.datum is not None:
-            result.datum.rename(columns={"value": "value_in_unit"}).to_csv(
-                tmp / "datum.csv", index=False
+        with progress.stage("writing the tables"):
+            result.parameters().to_csv(tmp / "parameters.csv", index=False)
+            result.stations.to_csv(tmp / "stations.csv", index=False)
+            result.residuals.to_csv(tmp / "residuals.csv", index=False)
+            _write_order_selection(result, tmp)
+            if result.state is not None:
+                _save_state(result.state, tmp / "solver_state.npz")
+            if result.datum is not None:
+                result.datum.rename(columns={"value": "value_in_unit"}).to_csv(
+                    tmp / "datum.csv", index=False
+                )
+            comp = component_error_table(
+                em, result.theta, result.cov_theta, result.identifiable, component_points
             )
-        comp = component_error_table(
-            em, result.theta, result.cov_theta, result.identifiable, component_points
-        )
-        comp.to_csv(tmp / "component_errors.csv", index=False)
-        log.info("evaluating the volumetric error on the grid")
-        grid = volumetric_grid_table(machine, em, result.theta, result.cov_theta, grid_points)
-        grid.to_csv(tmp / "volumetric_grid.csv", index=False)
-        tables.__exit__(None, None, None)
+            comp.to_csv(tmp / "component_errors.csv", index=False)
+            log.info("evaluating the volumetric error on the grid")
+            grid = volumetric_grid_table(machine, em, result.theta, result.cov_theta, grid_points)
+            grid.to_csv(tmp / "volumetric_grid.csv", index=False)
         doc = _result_document(
             result, data_name=data_name, options=options, grid=grid, created=created
         )
@@ -1264,15 +1262,12 @@ def save_result(
             log.info("plotting")
             from volcal.outputs import plots as P
 
-            stage = progress.stage("plotting")
-            stage.__enter__()
-
-            _plot_component_errors(comp, em, tmp / "component_errors.png")
-            P.volumetric_slices(machine, em, result.theta, tmp / "volumetric_map.png")
-            P.residuals(result.residuals, tmp / "residuals.png")
-            P.residuals_vs_axes(result, tmp / "residuals_vs_axes.png")
-            P.correlations(result, tmp / "correlations.png")
-            stage.__exit__(None, None, None)
+            with progress.stage("plotting"):
+                _plot_component_errors(comp, em, tmp / "component_errors.png")
+                P.volumetric_slices(machine, em, result.theta, tmp / "volumetric_map.png")
+                P.residuals(result.residuals, tmp / "residuals.png")
+                P.residuals_vs_axes(result, tmp / "residuals_vs_axes.png")
+                P.correlations(result, tmp / "correlations.png")
         (tmp / "report.md").write_text(
             _report(
                 result,

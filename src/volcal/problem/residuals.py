@@ -364,7 +364,8 @@ class IdentificationProblem:
         return ca.reshape(ca.vec(G)[flat.tolist()], 3 * n_poses, nt)
 
     # ---- packing ------------------------------------------------------------------------
-    def pack_data(self, q: np.ndarray, t: np.ndarray, m: np.ndarray, w: np.ndarray) -> np.ndarray:
+    @staticmethod
+    def pack_data(q: np.ndarray, t: np.ndarray, m: np.ndarray, w: np.ndarray) -> np.ndarray:
         """Parameter vector p from q (N, n_axes), t (N, 3), readings m (N,), weights w (N,)."""
         return np.concatenate(
             [

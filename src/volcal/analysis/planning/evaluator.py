@@ -58,7 +58,7 @@ from volcal.measurement.budget import Budget, load_budget
 from volcal.measurement.instruments import get_instrument
 from volcal.model.errors import ErrorModel
 from volcal.model.machine import Machine
-from volcal.problem.residuals import Layout, NumpyCall, dense_mtimes
+from volcal.problem.residuals import IdentificationProblem, Layout, NumpyCall, dense_mtimes
 
 __all__ = ["PlanEvaluator", "Scorer", "CRITERIA", "Frozen"]
 
@@ -142,7 +142,8 @@ class PlanEvaluator:
         self._G_scaled = Gs * 1e3  # um per scaled unit
         self.n_eval = len(eq)
         self.frozen: Frozen | None = None
-        self.scorer: Scorer | None = None
+        #: the picklable numeric core; its parameterisation is set by freeze()
+        self.scorer = Scorer(self)
 
     # ---- the data vector (the scorer's, so both sides compute them one way) -----------
     def x(self, stations: np.ndarray) -> np.ndarray:
@@ -157,32 +158,11 @@ class PlanEvaluator:
 
     def p(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
         """The data vector: nominal readings, weights 1/sigma on selected poses, else 0."""
-        return self._unfrozen_scorer().p(stations, selected)
+        return self.scorer.p(stations, selected)
 
     def sigma(self, stations: np.ndarray) -> np.ndarray:
         """Standard uncertainty (mm) of every reading from the budget at these stations."""
-        return self._unfrozen_scorer().sigma(stations)
-
-    def _unfrozen_scorer(self) -> Scorer:
-        if self.scorer is None:
-            # before freeze(): a scorer without a parameterisation serves the data vector
-            sc = Scorer.__new__(Scorer)
-            sc.__dict__.update(
-                dict(
-                    n_stations=self.n_stations,
-                    dead_length_mm=self.dead_length_mm,
-                    points=self.points,
-                    dpdq=self.dpdq,
-                    station_of=self.station_of,
-                    pose_of=self.pose_of,
-                    q=self.q,
-                    t=self.t,
-                    budget=self.budget,
-                    machine_axes=self.machine,
-                )
-            )
-            return sc
-        return self.scorer
+        return self.scorer.sigma(stations)
 
     # ---- the parameterisation ----------------------------------------------------------
     def freeze(self, stations: np.ndarray, selected: np.ndarray | None = None) -> Frozen:
@@ -190,7 +170,6 @@ class PlanEvaluator:
         (:meth:`volcal.analysis.identify.Identifier.select_datum`, then the pivots of the
         null directions left); every later evaluation uses them."""
         ider, pr = self.identifier, self.problem
-        self.scorer = None
         x, p = self.x(stations), self.p(stations, selected)
         user_fixed = ider.station_fixed(np.zeros(self.n_stations, bool))
         ider.select_datum(x, p, user_fixed)
@@ -211,19 +190,17 @@ class PlanEvaluator:
         R = R / np.linalg.norm(R, axis=0)
         self._B = B - R @ np.linalg.lstsq(R, B, rcond=None)[0]
         self._theta_rows = np.flatnonzero(free < pr.n_theta)
-        self.scorer = Scorer(self)
+        self.scorer.set_frozen(free, Z, self._B, self._theta_rows)
         return self.frozen
 
     def information(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
         """Z^T J^T J Z (r, r) of a design, in the frozen parameterisation."""
-        assert self.scorer is not None, "call freeze() first"
         return self.scorer.information(stations, selected)
 
     def criterion(
         self, stations: np.ndarray, selected: np.ndarray | None = None, criterion: str = "I"
     ) -> float:
         """The criterion of a design (stations (K, 3) mm, selected poses)."""
-        assert self.scorer is not None, "call freeze() first"
         return self.scorer.value(self.information(stations, selected), criterion)
 
     def covariance(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
@@ -343,15 +320,13 @@ class PlanEvaluator:
 
 
 class Scorer:
-    """The numeric core of :class:`PlanEvaluator` once frozen: everything a criterion
+    """The numeric core of :class:`PlanEvaluator`: everything a criterion
     evaluation needs and nothing else, picklable (the Jacobian Function travels in
     CasADi's serialised form), so worker processes and Dask workers evaluate candidates
     with exactly the code of this process.  ``run_chunk((start, designs))`` scores a list
     of designs (stations (K, 3) mm, selected mask or None)."""
 
     def __init__(self, ev: PlanEvaluator, criterion: str = "I"):
-        fz = ev.frozen
-        assert fz is not None, "call freeze() first"
         pr = ev.problem
         self.criterion_name = criterion
         self.jac = pr.jacobian
@@ -363,10 +338,26 @@ class Scorer:
         self.points, self.dpdq = ev.points, ev.dpdq
         self.station_of, self.pose_of = ev.station_of, ev.pose_of
         self.q, self.t = ev.q, ev.t
-        self.budget, self.machine_axes = ev.budget, ev.machine
-        self.free, self.Z, self.B, self.theta_rows = fz.free, fz.Z, ev._B, ev._theta_rows
+        self.budget = ev.budget
+        self.axis_names = list(ev.machine.axis_names)
         self.n_eval = ev.n_eval
+        # the parameterisation, set by PlanEvaluator.freeze (set_frozen)
+        self.free: np.ndarray = np.zeros(0, int)
+        self.Z: np.ndarray = np.zeros((0, 0))
+        self.B: np.ndarray = np.zeros((0, 0))
+        self.theta_rows: np.ndarray = np.zeros(0, int)
         self._call: NumpyCall | None = None
+
+    def set_frozen(
+        self, free: np.ndarray, Z: np.ndarray, B: np.ndarray, theta_rows: np.ndarray
+    ) -> None:
+        """The free variables, the basis of the directions the datum leaves, the scaled
+        volumetric map B (3 n_eval, r) and the rows of Z that are error parameters."""
+        self.free, self.Z, self.B, self.theta_rows = free, Z, B, theta_rows
+
+    def _frozen(self) -> None:
+        if not len(self.free):
+            raise RuntimeError("call PlanEvaluator.freeze() first")
 
     def __getstate__(self) -> dict[str, Any]:
         d = dict(self.__dict__)
@@ -398,7 +389,7 @@ class Scorer:
         d = self.points - S
         grad = d / np.linalg.norm(d, axis=1, keepdims=True)
         var = combined_variance(
-            self.machine_axes, self.budget, self.lengths(stations), grad, self.dpdq
+            self.axis_names, self.budget, self.lengths(stations), grad, self.dpdq
         )
         return np.sqrt(var)
 
@@ -408,30 +399,44 @@ class Scorer:
         w = 1.0 / self.sigma(stations)
         if selected is not None:
             w = w * np.asarray(selected, bool)[self.pose_of]
-        return np.concatenate([self.q.ravel(), self.t.ravel(), self.lengths(stations), w])
+        return IdentificationProblem.pack_data(self.q, self.t, self.lengths(stations), w)
 
     def jacobian(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
         if self._call is None:
             self._call = NumpyCall(self.jac)
         return self._call(self.x_scaled(stations), self.p(stations, selected))[1]
 
+    def reduced_jacobian(
+        self, stations: np.ndarray, selected: np.ndarray | None = None
+    ) -> np.ndarray:
+        """J[:, free] Z: the whitened Jacobian in the frozen parameterisation (N, r)."""
+        self._frozen()
+        return self.jacobian(stations, selected)[:, self.free] @ self.Z
+
     def information(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
-        A = self.jacobian(stations, selected)[:, self.free] @ self.Z
+        A = self.reduced_jacobian(stations, selected)
         return A.T @ A
+
+    @staticmethod
+    def _factor(M: np.ndarray) -> np.ndarray | None:
+        """Cholesky factor of M, or None when the design lost a direction the reference
+        design determined (not positive definite, or numerically so)."""
+        try:
+            L = np.linalg.cholesky(M)
+        except np.linalg.LinAlgError:
+            return None
+        d = np.diag(L)
+        return L if d.min() > 1e-7 * d.max() else None
 
     def value(self, M: np.ndarray, criterion: str | None = None) -> float:
         """The criterion of an information matrix M (r, r) (module docstring)."""
         criterion = criterion or self.criterion_name
         if criterion.startswith("MC"):  # its expectation: the exchange and the checks use I
             criterion = "I"
-        try:
-            L = np.linalg.cholesky(M)
-        except np.linalg.LinAlgError:
+        L = self._factor(M)
+        if L is None:
             return float("inf")
         d = np.diag(L)
-        # a direction the reference design determined is (numerically) lost: no design
-        if d.min() <= 1e-7 * d.max():
-            return float("inf")
         if criterion == "I":
             X = sla.solve_triangular(L, self.B.T, lower=True)
             return float(np.sqrt(np.sum(X * X) / self.n_eval))
@@ -464,14 +469,9 @@ class Scorer:
         the rigid motion no multilateration sees.  Each trial draws the whitened reading
         errors (standard normal) and solves the linearised least-squares problem of the
         design with its Jacobian, so it converges to the I-criterion as the trials grow."""
-        A = self.jacobian(stations, selected)[:, self.free] @ self.Z
-        M = A.T @ A
-        try:
-            L = np.linalg.cholesky(M)
-        except np.linalg.LinAlgError:
-            return float("inf")
-        d = np.diag(L)
-        if d.min() <= 1e-7 * d.max():
+        A = self.reduced_jacobian(stations, selected)
+        L = self._factor(A.T @ A)
+        if L is None:
             return float("inf")
         rng = np.random.default_rng(self.mc_seed)
         E = rng.standard_normal((A.shape[0], self.mc_trials))

@@ -336,6 +336,13 @@ def _vec(d: Mapping[str, Any], key: str, where: str, n: int = 3) -> tuple[float,
     return out
 
 
+def _pair(v: Any, where: str, key: str) -> tuple[Any, Any]:
+    """Two corners or end points, ``[[x, y, z], [x, y, z]]`` (mm)."""
+    if not isinstance(v, (list, tuple)) or len(v) != 2:
+        raise InputError(f"{where}: '{key}' must be two points [[x, y, z], [x, y, z]] in mm")
+    return v[0], v[1]
+
+
 def _num(d: Mapping[str, Any], key: str, where: str, default: float | None = None) -> float:
     if key not in d:
         if default is None:
@@ -377,10 +384,15 @@ def constraints_from_dict(doc: Mapping[str, Any], where: str = "constraints") ->
         w = f"{where}.region[{k}]"
         name = str(r.get("name", f"region{k + 1}"))
         if "box" in r:
-            lo, hi = r["box"]
+            lo, hi = _pair(r["box"], w, "box")
             regions.append(Region.box(_vec({"v": lo}, "v", w), _vec({"v": hi}, "v", w), name=name))
         elif "polygon" in r:
-            v = np.asarray(r["polygon"], float)
+            try:
+                v = np.asarray(r["polygon"], float)
+            except (TypeError, ValueError):
+                raise InputError(
+                    f"{w}: 'polygon' must be a list of [x, y] pairs of numbers (mm)"
+                ) from None
             regions.append(
                 Region(v, _num(r, "low", w), _num(r, "high", w), str(r.get("up", "z")), name)
             )
@@ -392,7 +404,7 @@ def constraints_from_dict(doc: Mapping[str, Any], where: str = "constraints") ->
         name = str(o.get("name", f"obstacle{k + 1}"))
         mw = str(o.get("moves_with", "frame"))
         if "box" in o:
-            lo, hi = o["box"]
+            lo, hi = _pair(o["box"], w, "box")
             obstacles.append(
                 Obstacle(
                     "box",
@@ -403,7 +415,7 @@ def constraints_from_dict(doc: Mapping[str, Any], where: str = "constraints") ->
                 )
             )
         elif "cylinder" in o:
-            a, b = o["cylinder"]
+            a, b = _pair(o["cylinder"], w, "cylinder")
             obstacles.append(
                 Obstacle(
                     "cylinder",

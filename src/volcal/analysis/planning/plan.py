@@ -483,7 +483,14 @@ def plan(
         if len(S0) != n_stations:
             raise InputError(f"{len(S0)} stations given for n_stations = {n_stations}")
         bad = ~sampler.ok(S0)
-        if bad.any() and optimizer != "none":
+        if bad.any() and optimizer == "none":
+            raise InputError(
+                f"given station(s) {', '.join(f'S{k + 1}' for k in np.flatnonzero(bad))} "
+                f"cannot read every planned point: {sampler._why(S0[bad])}; move them or "
+                "let a search place them (optimizer gradient or ga)",
+                source="stations",
+            )
+        if bad.any():
             notes.append(
                 f"given station(s) {', '.join(f'S{k + 1}' for k in np.flatnonzero(bad))} "
                 "break a constraint; the search starts from feasible draws for them"
@@ -495,7 +502,6 @@ def plan(
         warnings.simplefilter("ignore")
         ev.freeze(S0, sel)
     scorer = ev.scorer
-    assert scorer is not None
     scorer.criterion_name = criterion
     start_value = scorer.score(S0, sel)
     S, searches = S0, []

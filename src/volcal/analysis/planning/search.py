@@ -321,14 +321,16 @@ def gradient_placement(
     weights are those of each start's stations (the budget's distance dependence is weak);
     the result is scored again with its own weights."""
     t0 = time.perf_counter()
-    assert ev.scorer is not None, "freeze the evaluator first"
+    if ev.frozen is None:
+        raise RuntimeError("freeze the evaluator first")
     K = ev.n_stations
     scorer = ev.scorer
     cons = sampler.constraints
     rng = np.random.default_rng(seed)
+    # the number of starts is not part of it: a search resumed with more starts goes on
+    # with the same random stream
     key = {
         "K": K,
-        "starts": starts,
         "seed": seed,
         "criterion": criterion,
         "problem": fingerprint,
@@ -374,52 +376,22 @@ def gradient_placement(
         results = [(float(v), S) for v, S in zip(state["values"], state["stations"])]
         history = state["meta"]["history"]
         rng.bit_generator.state = state["meta"]["rng"]
+    solvers: dict[tuple[int, ...], tuple[ca.Function, np.ndarray, np.ndarray]] = {}
     for j in range(len(done_starts), starts):
         S0 = (
             np.asarray(initial, float).reshape(K, 3)
             if (j == 0 and initial is not None)
             else sampler.draw(rng, K)
         )
-        # region of each station: fixed for this start (linear constraints)
-        A_rows, b_rows = [], []
-        for k in range(K):
-            if cons.regions:
-                A, b = cons.regions[_region_of(sampler, S0[k])].halfspaces()
-                Ak = np.zeros((len(A), 3 * K))
-                Ak[:, 3 * k : 3 * k + 3] = A
-                A_rows.append(Ak)
-                b_rows.append(b)
-        gg = [g_base]
-        lb = list(lbg)
-        ub = list(ubg)
-        if A_rows:
-            Aall = np.vstack(A_rows)
-            gg.append(ca.mtimes(ca.DM(Aall), s))
-            lb.append(np.full(len(Aall), -np.inf))
-            ub.append(np.concatenate(b_rows) - 1e-4)
-        p0 = ev.weights(S0, selected)
-        nlp = {"x": s, "p": pp, "f": fscale * f_sym(s, pp), "g": ca.vertcat(*gg)}
-        solver = ca.nlpsol(
-            "placement",
-            "ipopt",
-            nlp,
-            {
-                "ipopt.print_level": 0,
-                "print_time": False,
-                "ipopt.hessian_approximation": "limited-memory",
-                "ipopt.max_iter": max_iter,
-                "ipopt.tol": 1e-6,
-                "ipopt.acceptable_tol": 1e-4,
-                "ipopt.sb": "yes",
-                "ipopt.bound_relax_factor": 0.0,
-            },
-        )
-        sol = solver(
-            x0=S0.ravel(),
-            p=p0,
-            lbg=np.concatenate(lb) if lb else [],
-            ubg=np.concatenate(ub) if ub else [],
-        )
+        # region of each station: fixed for this start (linear constraints); one solver
+        # per assignment of stations to regions, built once and reused by later starts
+        regions = tuple(_region_of(sampler, S0[k]) for k in range(K)) if cons.regions else ()
+        if regions not in solvers:
+            solvers[regions] = _placement_solver(
+                s, pp, fscale * f_sym(s, pp), g_base, lbg, ubg, cons, regions, max_iter
+            )
+        solver, lb_all, ub_all = solvers[regions]
+        sol = solver(x0=S0.ravel(), p=ev.weights(S0, selected), lbg=lb_all, ubg=ub_all)
         n_eval += int(solver.stats().get("iter_count", 0)) + 1
         S = np.asarray(sol["x"]).reshape(K, 3)
         value = scorer.score(S, selected) if sampler.ok(S).all() else float("inf")
@@ -451,6 +423,43 @@ def gradient_placement(
         time.perf_counter() - t0,
         notes,
     )
+
+
+def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter):
+    """IPOPT on the station coordinates ``s`` with weights ``pp``: objective f, the smooth
+    reading constraints g_base and the half-spaces of each station's region ``regions``
+    (indices into ``cons.regions``).  Returns (solver, lbg, ubg)."""
+    K = s.shape[0] // 3
+    gg, lb, ub = [g_base], list(lbg), list(ubg)
+    if regions:
+        A_rows, b_rows = [], []
+        for k, r in enumerate(regions):
+            A, b = cons.regions[r].halfspaces()
+            Ak = np.zeros((len(A), 3 * K))
+            Ak[:, 3 * k : 3 * k + 3] = A
+            A_rows.append(Ak)
+            b_rows.append(b)
+        Aall = np.vstack(A_rows)
+        gg.append(ca.mtimes(ca.DM(Aall), s))
+        lb.append(np.full(len(Aall), -np.inf))
+        ub.append(np.concatenate(b_rows) - 1e-4)
+    solver = ca.nlpsol(
+        "placement",
+        "ipopt",
+        {"x": s, "p": pp, "f": f, "g": ca.vertcat(*gg)},
+        {
+            "ipopt.print_level": 0,
+            "print_time": False,
+            "ipopt.hessian_approximation": "limited-memory",
+            "ipopt.max_iter": max_iter,
+            "ipopt.tol": 1e-6,
+            "ipopt.acceptable_tol": 1e-4,
+            "ipopt.sb": "yes",
+            "ipopt.bound_relax_factor": 0.0,
+        },
+    )
+    cat = np.concatenate
+    return solver, (cat(lb) if lb else np.zeros(0)), (cat(ub) if ub else np.zeros(0))
 
 
 # ---- pose exchange ---------------------------------------------------------------------

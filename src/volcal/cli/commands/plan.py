@@ -128,7 +128,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from volcal.analysis.planning import plan
+    from volcal.analysis.planning import constraints_from_dict, plan
     from volcal.analysis.planning.setting import load_setting
     from volcal.base.exceptions import InputError
     from volcal.base.folders import check_out_dir
@@ -190,35 +190,35 @@ def run(args: argparse.Namespace) -> int:
         # one report per generation / start: long searches show life (volcal.base.progress)
         report.update(f"{stage}, step {step + 1}: criterion {best:.4g}")
 
-    stage = report.stage("planning")
-    stage.__enter__()
-    res = plan(
-        cfg["model"],
-        n_stations=int(cfg.get("stations", 4)),
-        tools=np.asarray(cfg["tools"], float) if "tools" in cfg else None,
-        readings=cfg.get("readings"),
-        minutes=cfg.get("minutes"),
-        seconds_per_reading=float(cfg.get("seconds_per_reading", 4.0)),
-        constraints=cfg.get("constraints", {}),
-        travel=cfg.get("travel"),
-        budget=cfg.get("budget", "paper002"),
-        degree=int(cfg.get("degree", 3)),
-        criterion=cfg.get("criterion", "I"),
-        optimizer=cfg.get("optimizer", "gradient"),
-        poses=cfg.get("poses", "exchange"),
-        stations=stations,
-        grid=int(cfg.get("grid", 6)),
-        seed=int(cfg.get("seed", 0)),
-        starts=int(cfg.get("starts", 6)),
-        population=int(cfg.get("population", 40)),
-        generations=int(cfg.get("generations", 30)),
-        rounds=int(cfg.get("rounds", 2)),
-        workers=None if args.workers == 0 else args.workers,
-        scheduler=args.dask,
-        checkpoint_dir=args.checkpoint,
-        progress=progress,
-    )
-    stage.__exit__(None, None, None)
+    with report.stage("planning"):
+        res = plan(
+            cfg["model"],
+            n_stations=int(cfg.get("stations", 4)),
+            tools=np.asarray(cfg["tools"], float) if "tools" in cfg else None,
+            readings=cfg.get("readings"),
+            minutes=cfg.get("minutes"),
+            seconds_per_reading=float(cfg.get("seconds_per_reading", 4.0)),
+            constraints=constraints_from_dict(
+                cfg.get("constraints", {}), where=f"{cfg.get('_source')}: [constraints]"
+            ),
+            travel=cfg.get("travel"),
+            budget=cfg.get("budget", "paper002"),
+            degree=int(cfg.get("degree", 3)),
+            criterion=cfg.get("criterion", "I"),
+            optimizer=cfg.get("optimizer", "gradient"),
+            poses=cfg.get("poses", "exchange"),
+            stations=stations,
+            grid=int(cfg.get("grid", 6)),
+            seed=int(cfg.get("seed", 0)),
+            starts=int(cfg.get("starts", 6)),
+            population=int(cfg.get("population", 40)),
+            generations=int(cfg.get("generations", 30)),
+            rounds=int(cfg.get("rounds", 2)),
+            workers=None if args.workers == 0 else args.workers,
+            scheduler=args.dask,
+            checkpoint_dir=args.checkpoint,
+            progress=progress,
+        )
     res.settings["setting_file"] = cfg.get("_source")
     res.settings["project_file"] = getattr(args, "project_file", None)
     out = write_plan(
