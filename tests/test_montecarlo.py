@@ -272,18 +272,21 @@ def test_mc_program_with_plots_and_stage_timings(tmp_path):
 
 
 def test_plot_process_reports_a_failed_plot(tmp_path):
-    from volcal.outputs.mc_plots import PlotProcess
+    from volcal.outputs.mc_plots import _plot_max_hist
+    from volcal.outputs.plot_process import PlotProcess
 
-    pp = PlotProcess.start()
+    pp = PlotProcess.start(workers=2)
     if pp is None:
         pytest.skip("no plotting process on this platform")
     try:
-        pp.draw("max_hist", np.linspace(1.0, 2.0, 50), tmp_path / "h.png")
+        pp.draw(_plot_max_hist, np.linspace(1.0, 2.0, 50), tmp_path / "h.png")
         pp.wait()
         assert (tmp_path / "h.png").is_file()
-        pp.draw("max_hist", np.linspace(1.0, 2.0, 50), tmp_path / "no" / "such" / "h.png")
+        pp.draw(_plot_max_hist, np.linspace(1.0, 2.0, 50), tmp_path / "h2.png")
+        pp.draw(_plot_max_hist, np.linspace(1.0, 2.0, 50), tmp_path / "no" / "such" / "h.png")
         with pytest.raises(RuntimeError, match="plotting failed"):
             pp.wait()
+        assert (tmp_path / "h2.png").is_file()  # the other child's figure still drawn
     finally:
         pp.close()
 

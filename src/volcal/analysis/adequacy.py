@@ -29,8 +29,9 @@ single station always draw a warning: lengths from one station cannot separate t
 station's position from the machine's errors, so even a passing ``chi2`` says little.
 
 :func:`assess` applies this to an identification result (``IdentificationResult`` or a
-result with the same ``residuals`` / ``conditions`` / ``machine``); :func:`plot_residuals_vs_axes`
-draws the normalised residuals against each axis position with binned means.
+result with the same ``residuals`` / ``conditions`` / ``machine``);
+:func:`volcal.plots.residuals_vs_axes` draws the normalised residuals against each axis
+position with the binned means of :func:`position_bins`.
 """
 
 from __future__ import annotations
@@ -38,7 +39,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -50,7 +50,8 @@ __all__ = [
     "Cause",
     "assess",
     "assess_residuals",
-    "plot_residuals_vs_axes",
+    "position_bins",
+    "format_p",
     "CONFIDENCE",
     "MAX_BINS",
     "OUTLIER_K",
@@ -177,7 +178,7 @@ def chi2_interval(dof: int, confidence: float = CONFIDENCE) -> tuple[float, floa
     )
 
 
-def _codes(values: np.ndarray, max_bins: int = MAX_BINS) -> tuple[np.ndarray, np.ndarray]:
+def position_bins(values: np.ndarray, max_bins: int = MAX_BINS) -> tuple[np.ndarray, np.ndarray]:
     """Bin index per reading and the bin centres: the distinct positions when there are at
     most ``max_bins`` of them, else quantile bins (ties kept together)."""
     v = np.asarray(values, float)
@@ -210,7 +211,7 @@ def _axis_structure(
     ss_st, k_st = _within_ss(z, station)
     out = []
     for name, unit in zip(positions.columns, units):
-        code, centres = _codes(positions[name].to_numpy(float))
+        code, centres = position_bins(positions[name].to_numpy(float))
         if len(centres) < 2:
             continue
         cell = station.astype(np.int64) * (len(centres) + 1) + code
@@ -389,7 +390,7 @@ def assess_residuals(
                     shares["structure"],
                     f"structure against axis {best.axis}: the residuals' binned means over its "
                     f"position explain {100 * best.explained_share:.0f} % of the residual sum "
-                    f"of squares (F = {best.f:.3g}, {_fmt_p(best)}, {best.n_bins} position "
+                    f"of squares (F = {best.f:.3g}, {format_p(best)}, {best.n_bins} position "
                     f"bins); the error model cannot follow an error motion of {best.axis} "
                     "(raise its degree, use a basis that fits, e.g. a Fourier series for a "
                     "rotary axis, or look for an error the model does not have)",
@@ -458,7 +459,7 @@ def assess_residuals(
     )
 
 
-def _fmt_p(s: AxisStructure) -> str:
+def format_p(s: AxisStructure) -> str:
     return f"p = {s.p_value:.2g}" if s.log10_p > -300 else "p < 1e-300"
 
 
@@ -515,97 +516,3 @@ def assess(result: Any) -> Adequacy:
     except (AttributeError, TypeError):  # pragma: no cover - slotted or frozen results
         pass
     return ad
-
-
-# --------------------------------------------------------------------------------------
-# plot
-
-
-def plot_residuals_vs_axes(
-    residuals: pd.DataFrame,
-    axis_names: Sequence[str],
-    units: Sequence[str],
-    path: str | Path | None,
-    adequacy: Adequacy | None = None,
-    max_points: int = 4000,
-):
-    """Normalised residuals against each axis position (one panel per axis), with the
-    binned means per station (lines) and the binned RMS over all stations (black); at
-    most ``max_points`` readings are drawn (an even subsample), the binned statistics use
-    all of them.  Matplotlib's object API on the Agg canvas (no pyplot)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    z = residuals["normalised_residual"].to_numpy(float)
-    rej = (
-        np.asarray(residuals["rejected"], bool)
-        if "rejected" in residuals
-        else np.zeros(len(z), bool)
-    )
-    keep = np.isfinite(z) & ~rej
-    names = [a for a in axis_names if a in residuals.columns]
-    unit_of = dict(zip(axis_names, units))
-    st = (
-        residuals["station"].astype(str).to_numpy()
-        if "station" in residuals
-        else np.full(len(z), "all")
-    )
-    by_axis = {s.axis: s for s in (adequacy.structure if adequacy else ())}
-    n = max(len(names), 1)
-    ncol = min(n, 3)
-    nrow = int(math.ceil(n / ncol))
-    # a fixed layout: constrained layout doubles the drawing time of this figure
-    fig = Figure(figsize=(4.2 * ncol, 3.0 * nrow + 0.6))
-    FigureCanvasAgg(fig)
-    panels = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
-    idx = np.flatnonzero(keep)
-    step = max(1, int(math.ceil(len(idx) / max_points)))
-    sub = idx[::step]
-    for ax, name in zip(panels, names):
-        x = residuals[name].to_numpy(float)
-        ax.plot(x[sub], z[sub], ".", color="0.65", markersize=2)
-        code, centres = _codes(x[keep])
-        zk, sk = z[keep], st[keep]
-        for sid in dict.fromkeys(sk):
-            m = sk == sid
-            cnt = np.bincount(code[m], minlength=len(centres))
-            mean = np.bincount(code[m], weights=zk[m], minlength=len(centres))
-            ok = cnt > 0
-            ax.plot(centres[ok], mean[ok] / cnt[ok], "-", linewidth=1.0, alpha=0.9)
-        cnt = np.bincount(code, minlength=len(centres))
-        rms = np.sqrt(np.bincount(code, weights=zk**2, minlength=len(centres)) / np.maximum(cnt, 1))
-        ok = cnt > 0
-        ax.plot(centres[ok], rms[ok], "k--", linewidth=1.2, label="binned RMS")
-        ax.axhline(0.0, color="0.3", linewidth=0.6)
-        u = unit_of.get(name, "")
-        ax.set_xlabel(f"{name} position ({u})" if u else name)
-        ax.set_ylabel("normalised residual")
-        s = by_axis.get(name)
-        ax.set_title(f"axis {name}" + (f": F = {s.f:.3g}, {_fmt_p(s)}" if s else ""), fontsize=9)
-        ax.grid(True, alpha=0.3)
-    for ax in panels[len(names) :]:
-        ax.set_visible(False)
-    if names:
-        panels[0].legend(fontsize=7, loc="upper right")
-    head = (
-        "Normalised residuals (residual / sigma) against axis position; lines: binned "
-        "means per station"
-    )
-    if adequacy is not None:
-        head += (
-            f"\nchi2/dof {adequacy.chi2_per_dof:.4g}, 99.9 % interval "
-            f"[{adequacy.interval[0]:.4g}, {adequacy.interval[1]:.4g}]: {adequacy.verdict}"
-        )
-    fig.suptitle(head, fontsize=10)
-    top = 1.0 - 0.6 / fig.get_figheight()
-    fig.subplots_adjust(
-        left=0.07 if ncol > 1 else 0.15,
-        right=0.98,
-        bottom=0.1 / nrow + 0.05,
-        top=top - 0.05 / nrow,
-        wspace=0.3,
-        hspace=0.45,
-    )
-    if path is not None:
-        fig.savefig(path, dpi=100)
-    return fig

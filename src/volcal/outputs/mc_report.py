@@ -29,7 +29,8 @@ import numpy as np
 import pandas as pd
 
 from volcal.analysis.uncertainty.montecarlo import MCResult, quantity_table
-from volcal.outputs.mc_plots import PlotProcess, _figure, _plot_max_hist, _plot_volumetric_U
+from volcal.outputs.mc_plots import _figure, _plot_max_hist, _plot_volumetric_U
+from volcal.outputs.plot_process import PlotProcess
 
 __all__ = ["write_mc_outputs", "default_quantities", "plot_contributions"]
 
@@ -136,8 +137,8 @@ def write_mc_outputs(
             )
             args_h = (mc.norm_um().max(axis=1), out / "max_volumetric.png")
             if plotter is not None:
-                plotter.draw("volumetric_U", *args_u)
-                plotter.draw("max_hist", *args_h)
+                plotter.draw(_plot_volumetric_U, *args_u)
+                plotter.draw(_plot_max_hist, *args_h)
             else:
                 _plot_volumetric_U(*args_u)
                 _plot_max_hist(*args_h)

@@ -68,7 +68,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -83,6 +83,9 @@ from volcal.base.units import REPORT
 from volcal.model.errors import ErrorForm, ErrorModel
 from volcal.model.machine import Machine
 from volcal.model.spec import MachineSpec, machine_from_dict, spec_to_dict
+
+if TYPE_CHECKING:
+    from volcal.outputs.plot_process import PlotProcess
 
 log = logging.getLogger(__name__)
 
@@ -648,25 +651,6 @@ def _load_state(path: Path) -> SolverState:
 
 
 # --------------------------------------------------------------------------------------
-# plots (matplotlib's object API with the Agg canvas: no pyplot, no global state)
-
-
-def _figure(w: float, h: float):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(w, h), layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _plot_component_errors(table: pd.DataFrame, em: ErrorModel, path: Path) -> None:
-    from volcal.outputs.plots import component_errors
-
-    component_errors(table, em, path)
-
-
-# --------------------------------------------------------------------------------------
 # report
 
 
@@ -1193,6 +1177,16 @@ def check_out_dir(out_dir: str | Path) -> Path:
     return _check(out_dir, RESULT_FILES + OPTIONAL_FILES, "an identification", marker="result.json")
 
 
+#: relative drawing times of the plots (to share them between plotting processes)
+_PLOT_COST = {
+    "component_errors.png": 3.0,
+    "residuals_vs_axes.png": 2.0,
+    "volumetric_map.png": 1.5,
+    "residuals.png": 1.5,
+    "correlations.png": 1.5,
+}
+
+
 def save_result(
     result: IdentificationResult,
     out_dir: str | Path,
@@ -1203,6 +1197,7 @@ def save_result(
     grid_points: int = GRID_POINTS,
     component_points: int = COMPONENT_POINTS,
     force: bool | None = None,
+    plotter: PlotProcess | None = None,
 ) -> Path:
     """Write the result folder (see the module docstring) and return its path.
 
@@ -1216,6 +1211,9 @@ def save_result(
     ``out_dir`` that is neither empty nor a previous result raises :class:`InputError`;
     a previous result is replaced unless ``force`` is False (see
     :func:`volcal.base.folders.check_out_dir`; the command line needs ``--force``).
+    plotter: a :class:`volcal.outputs.plot_process.PlotProcess` started early (the
+    command line does) that draws the plots while this process writes the rest; the
+    folder is renamed into place only once every plot is written.
     """
     t0 = time.perf_counter()
     from volcal.base.folders import write_folder
@@ -1230,6 +1228,20 @@ def save_result(
     def writer(tmp: Path) -> None:
         em, machine = result.error_model, result.machine
         created = datetime.now(UTC).isoformat(timespec="seconds")
+        comp = component_error_table(
+            em, result.theta, result.cov_theta, result.identifiable, component_points
+        )
+        requests = []
+        if plots:
+            from volcal.outputs import plots as P
+
+            with progress.stage("plotting"):
+                # the figures' data first: the plotting children (when there are some)
+                # draw them while this process writes the tables and the report
+                requests = P.plot_requests(result, comp)
+                if plotter is not None:
+                    for name, draw, data in requests:
+                        plotter.draw(draw, data, tmp / name, cost=_PLOT_COST.get(name, 1.0))
         log.info("writing the result tables (temporary folder %s)", tmp)
         with progress.stage("writing the tables"):
             result.parameters().to_csv(tmp / "parameters.csv", index=False)
@@ -1242,9 +1254,6 @@ def save_result(
                 result.datum.rename(columns={"value": "value_in_unit"}).to_csv(
                     tmp / "datum.csv", index=False
                 )
-            comp = component_error_table(
-                em, result.theta, result.cov_theta, result.identifiable, component_points
-            )
             comp.to_csv(tmp / "component_errors.csv", index=False)
             log.info("evaluating the volumetric error on the grid")
             grid = volumetric_grid_table(machine, em, result.theta, result.cov_theta, grid_points)
@@ -1252,22 +1261,12 @@ def save_result(
         doc = _result_document(
             result, data_name=data_name, options=options, grid=grid, created=created
         )
-        # seconds per stage of this process so far (the plots come after: a benchmark
-        # takes their cost from a run without them)
+        # seconds per stage of this process so far (a benchmark takes the plots' cost
+        # from a run without them)
         doc["timings_s"] = progress.timings()
         (tmp / "result.json").write_text(
             json.dumps(_json_safe(doc), indent=1, allow_nan=False) + "\n", encoding="utf-8"
         )
-        if plots:
-            log.info("plotting")
-            from volcal.outputs import plots as P
-
-            with progress.stage("plotting"):
-                _plot_component_errors(comp, em, tmp / "component_errors.png")
-                P.volumetric_slices(machine, em, result.theta, tmp / "volumetric_map.png")
-                P.residuals(result.residuals, tmp / "residuals.png")
-                P.residuals_vs_axes(result, tmp / "residuals_vs_axes.png")
-                P.correlations(result, tmp / "correlations.png")
         (tmp / "report.md").write_text(
             _report(
                 result,
@@ -1281,6 +1280,14 @@ def save_result(
             ),
             encoding="utf-8",
         )
+        if plots:
+            log.info("plotting")
+            with progress.stage("plotting"):
+                if plotter is not None:
+                    plotter.wait()
+                else:
+                    for name, draw, data in requests:
+                        draw(data, tmp / name)
 
     out = write_folder(
         out_dir,

@@ -195,6 +195,22 @@ def _inside(path: Path, folder: Path) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
+    plotter = None
+    if not args.no_plots:
+        # first, before the numerics are imported: two children that import matplotlib
+        # on the other core while this process reads and solves, then draw the plots two
+        # at a time while this one writes the report
+        from volcal.outputs.plot_process import PlotProcess
+
+        plotter = PlotProcess.start(workers=2)
+    try:
+        return _run(args, plotter)
+    finally:
+        if plotter is not None:
+            plotter.close()
+
+
+def _run(args: argparse.Namespace, plotter) -> int:
     from volcal.analysis.adequacy import assess
     from volcal.analysis.identify import identify
     from volcal.base.exceptions import InputError
@@ -284,7 +300,14 @@ def run(args: argparse.Namespace) -> int:
         "project_file": getattr(args, "project_file", None),
         "columns": args.columns,
     }
-    path = save_result(res, out, data_name=str(args.data), plots=not args.no_plots, options=options)
+    path = save_result(
+        res,
+        out,
+        data_name=str(args.data),
+        plots=not args.no_plots,
+        options=options,
+        plotter=plotter,
+    )
     meta = json.loads((path / "result.json").read_text(encoding="utf-8"))
     adequacy = assess(res)  # computed once per result (kept on it), as in the report
     if not getattr(args, "quiet", False):

@@ -234,9 +234,10 @@ def run(args: argparse.Namespace) -> int:
         # first: a child process that imports matplotlib while this one computes, and
         # draws the plots while this one writes the tables
         with stages("plotting process start"):
-            from volcal.outputs.mc_plots import PlotProcess
+            from volcal.outputs import mc_plots
+            from volcal.outputs.plot_process import PlotProcess, warm_up
 
-            plotter = PlotProcess.start()
+            plotter = PlotProcess.start(warm=(warm_up, mc_plots.warm_up))
     try:
         return _run(args, stages, t_run, started, plotter)
     finally:

@@ -1,0 +1,185 @@
+"""Processes that draw PNG plots while the parent computes (``volcal identify``, ``volcal mc``).
+
+Matplotlib costs a third of a second to import and its drawing is pure Python: on the
+critical path of a short run it is most of the time.  :class:`PlotProcess` forks children
+at the start of a command, before the parent imports the numerics; each imports matplotlib
+and draws a throw-away figure (fonts, text layout caches, the PNG writer) on the other core
+while the parent reads, solves and writes.  The parent then sends ``(function, args)``
+requests: the function is a module-level drawing function (pickled by its name) and the
+arguments are plain data (numpy arrays, numbers, strings, paths), so a child never imports
+pandas, scipy or the solver.  With two children the figures of one result are drawn two at
+a time.
+
+The parent waits for every figure before it renames its result folder into place, so the
+folder stays all-or-nothing.  Fork only (Linux); :meth:`PlotProcess.start` returns None
+elsewhere and the caller draws in its own process.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from typing import Any
+
+__all__ = ["PlotProcess", "warm_up"]
+
+
+def warm_up() -> None:
+    """Import matplotlib's Agg canvas and draw one small figure with the artists the plots
+    use (text, lines, an image, a filled band, arrows, a colour bar) into memory: the
+    first figure of a process costs twice the later ones."""
+    import io
+
+    import numpy as np
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(3, 2))
+    FigureCanvasAgg(fig)
+    ax1, ax2 = fig.subplots(1, 2)
+    x = np.linspace(0.0, 1.0, 5)
+    ax1.plot(x, x, ".", label="a", rasterized=True)
+    ax1.fill_between(x, x - 0.1, x + 0.1, alpha=0.2, linewidth=0)
+    ax1.legend(fontsize=7)
+    ax1.set_title("warm-up", fontsize=9)
+    im = ax2.imshow(np.eye(3), cmap="viridis")
+    ax2.quiver([0.0], [0.0], [1.0], [1.0])
+    fig.colorbar(im, ax=ax2, label="c")
+    fig.suptitle("warm-up")
+    fig.savefig(io.BytesIO(), dpi=50)
+
+
+def _serve(conn, parent: int, warm: tuple[Callable[[], None], ...]) -> None:  # pragma: no cover
+    """A plotting child: warm up (while the parent computes), then draw on request,
+    ``(function, args)`` -> ``("ok" | "error", text)``, until None."""
+    import traceback
+
+    from volcal.base.processes import watch_parent
+
+    watch_parent(parent)
+    # below the parent while both compute: the parent's reading and solving is the
+    # critical path, the warm-up only has to end before the first figure is asked for
+    try:
+        os.nice(10)
+    except OSError:  # pragma: no cover
+        pass
+    for w in warm:
+        try:
+            w()
+        except Exception:  # a real failure is reported with the first request
+            pass
+    # no cyclic garbage collection while drawing: matplotlib allocates tens of thousands
+    # of objects per figure and the collector's passes cost a quarter of the drawing
+    # time; a child draws a handful of figures and exits
+    import gc
+
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg is None:
+            return
+        func, args = msg
+        try:
+            func(*args)
+            conn.send(("ok", ""))
+        except Exception:
+            conn.send(("error", traceback.format_exc()))
+
+
+class PlotProcess:
+    """Children (``fork``) that import matplotlib now and draw figures later.
+
+    ``draw(func, *args)`` sends a request to the child with the least work queued
+    (``cost``: the caller's estimate, any unit); :meth:`wait` returns when every figure
+    asked for is written.  Use :meth:`start`, which returns None where fork is not safe.
+    """
+
+    def __init__(self, procs: list, conns: list) -> None:
+        self._procs, self._conns = procs, conns
+        self._pending = [0] * len(conns)
+        self._queued = [0.0] * len(conns)
+
+    @classmethod
+    def start(
+        cls, workers: int = 1, warm: tuple[Callable[[], None], ...] = (warm_up,)
+    ) -> PlotProcess | None:
+        """Fork ``workers`` plotting children (at least one; fewer when the machine has
+        fewer cores), each running ``warm`` first.  None but on Linux."""
+        import multiprocessing as mp
+        import sys
+
+        # fork is safe on Linux only (macOS frameworks are not fork-safe)
+        if not sys.platform.startswith("linux") or "fork" not in mp.get_all_start_methods():
+            return None
+        workers = max(1, min(int(workers), os.cpu_count() or 1))
+        if env_workers := os.environ.get("VOLCAL_PLOT_WORKERS"):
+            workers = max(1, int(env_workers))
+        ctx = mp.get_context("fork")
+        procs, conns = [], []
+        for i in range(workers):
+            here, there = ctx.Pipe()
+            proc = ctx.Process(
+                target=_serve,
+                args=(there, os.getpid(), tuple(warm)),
+                name=f"volcal-plots-{i}",
+                daemon=True,
+            )
+            proc.start()
+            there.close()
+            procs.append(proc)
+            conns.append(here)
+        return cls(procs, conns)
+
+    @property
+    def workers(self) -> int:
+        return len(self._conns)
+
+    def draw(self, func: Callable[..., Any], *args: Any, cost: float = 1.0) -> None:
+        """Ask for ``func(*args)`` (a module-level function; plain-data arguments)."""
+        i = min(range(len(self._conns)), key=lambda k: self._queued[k])
+        self._conns[i].send((func, args))
+        self._pending[i] += 1
+        self._queued[i] += cost
+
+    def wait(self, timeout: float = 600.0) -> None:
+        """Wait for every figure asked for; a failed figure, or none for ``timeout``
+        seconds, raises RuntimeError."""
+        from multiprocessing.connection import wait as wait_any
+
+        errors: list[str] = []
+        while any(self._pending):
+            busy = [c for c, n in zip(self._conns, self._pending) if n]
+            ready = wait_any(busy, timeout)
+            if not ready:
+                raise RuntimeError(f"no plot from the plotting process in {timeout:g} s")
+            for c in ready:
+                i = self._conns.index(c)
+                try:
+                    status, text = c.recv()
+                except (EOFError, OSError):
+                    raise RuntimeError("the plotting process ended unexpectedly") from None
+                self._pending[i] -= 1
+                if status != "ok":
+                    errors.append(text)
+        self._queued = [0.0] * len(self._conns)
+        if errors:
+            raise RuntimeError("plotting failed:\n" + "\n".join(errors))
+
+    def close(self) -> None:
+        """End the plotting children (after their figures, or at once on an error)."""
+        for c in self._conns:
+            try:
+                c.send(None)
+            except (OSError, ValueError):
+                pass
+            c.close()
+        for p, n in zip(self._procs, self._pending):
+            p.join(timeout=2.0 if not n else 0.0)
+            if p.is_alive():
+                p.terminate()
+                p.join(timeout=2.0)
