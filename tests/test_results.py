@@ -210,17 +210,21 @@ def test_result_json_is_strict_json_and_round_trips(case):
 # atomic writing
 
 
-def test_a_failure_mid_write_leaves_no_folder(case, tmp_path, monkeypatch):
-    def boom(*args, **kwargs):
-        raise RuntimeError("plot failed")
+def _write_png(data, path):
+    Path(path).write_bytes(b"png")
 
+
+def _fail_draw(data, path):
+    raise RuntimeError("plot failed")
+
+
+def test_a_failure_mid_write_leaves_no_folder(case, tmp_path, monkeypatch):
     # the component plot (slow) is stubbed; the failure comes after the tables, result.json
     # and one plot are in the temporary folder
-    monkeypatch.setattr(results, "_plot_component_errors",
-                        lambda table, em, path: Path(path).write_bytes(b"png"))
-    from volcal.outputs import plots
+    from volcal.outputs import figures
 
-    monkeypatch.setattr(plots, "volumetric_slices", boom)
+    monkeypatch.setattr(figures, "draw_component_errors", _write_png)
+    monkeypatch.setattr(figures, "draw_volumetric_slices", _fail_draw)
     out = tmp_path / "new"
     with pytest.raises(RuntimeError, match="plot failed"):
         save_result(case["res"], out)
@@ -483,3 +487,23 @@ def test_identify_cli_solver_failure_exits_1(case, tmp_path, monkeypatch, capsys
                     str(out)], monkeypatch)
     assert code == 1 and "Maximum_Iterations_Exceeded" in capsys.readouterr().err
     assert not out.exists() and os.listdir(tmp_path) == []
+
+
+def test_a_plot_failing_in_the_plotting_process_leaves_no_folder(case, tmp_path, monkeypatch):
+    """With the plots drawn by plotting children (as ``volcal identify`` does), a figure
+    that fails there fails the write: nothing is renamed into place, and the error names
+    the failure."""
+    from volcal.outputs import figures
+    from volcal.outputs.plot_process import PlotProcess
+
+    monkeypatch.setattr(figures, "draw_residuals", _fail_draw)
+    pp = PlotProcess.start(workers=2)
+    if pp is None:
+        pytest.skip("no plotting process on this platform")
+    try:
+        with pytest.raises(RuntimeError, match="plot failed"):
+            save_result(case["res"], tmp_path / "new", plotter=pp)
+    finally:
+        pp.close()
+    assert list(tmp_path.iterdir()) == []
+

@@ -57,3 +57,44 @@ def test_gauss_newton_steps_keep_the_datum_and_the_held_variables():
     assert np.max(np.abs(C @ Z[:pr.n_theta])) < 1e-12
     xs = project_feasible(pr, rng.normal(size=pr.n_x), fixed)
     assert np.max(np.abs(C @ xs[:pr.n_theta])) < 1e-10
+
+
+@pytest.mark.parametrize(
+    "model,instrument",
+    [(m, "tracker") for m in MODELS] + [("mcv754_wxyzt", "multilaser")],
+)
+def test_dense_jacobian_is_the_problems_jacobian(model, instrument):
+    """The identification assembles J in numpy from its factors (d(point)/d(theta) per pose,
+    d(r)/d(point, station, globals) per reading) instead of through CasADi's sparse product:
+    it must equal the CasADi Function's J and the central differences of the residual."""
+    from volcal.measurement.instruments import get_instrument
+    from volcal.problem.residuals import DenseJacobian
+
+    five = model in ("trunnion_ac", "head_bc")
+    machine, em, _, sim = simulated(model, grid=2 if five else 3)
+    meas = load_measurements(sim.measurements, machine.spec)
+    ider = Identifier(machine, em, Layout.from_measurements(meas),
+                      instrument=get_instrument(instrument))
+    pr = ider.problem
+    rng = np.random.default_rng(3)
+    xs = rng.normal(size=pr.n_x)
+    xs[pr.n_theta:] += pr.to_scaled(pr.pack_x(np.zeros(pr.n_theta), np.zeros(
+        (len(meas.station_ids), pr.instrument.n_station_params)), None))[pr.n_theta:]
+    # stations about 1.5 m away so that every length is well defined
+    n_ps = pr.instrument.n_station_params
+    for k in range(len(meas.station_ids)):
+        xs[pr.n_theta + n_ps * k: pr.n_theta + n_ps * k + 3] += 1.5e6 * rng.uniform(-1, 1, 3)
+    p = pr.pack_data(meas.q_internal, meas.tool, meas.length, 1.0 / meas.sigma
+                     if np.isfinite(meas.sigma).all() else np.ones(len(meas)))
+    r_np, J_np = DenseJacobian(pr)(xs, p)
+    r_ca, J_ca = (np.asarray(v.full()) for v in pr.jacobian(xs, p))
+    assert np.allclose(r_np, r_ca.ravel(), rtol=0, atol=1e-12 * max(1.0, np.abs(r_ca).max()))
+    scale = np.abs(J_ca).max()
+    assert np.max(np.abs(J_np - J_ca)) <= 1e-12 * scale
+    # and against central differences of the residual Function, 12 random columns
+    cols = rng.choice(pr.n_x, 12, replace=False)
+    for j in cols:
+        h = np.zeros(pr.n_x)
+        h[j] = 1e-3
+        fd = (np.asarray(pr.residual(xs + h, p)) - np.asarray(pr.residual(xs - h, p))).ravel()
+        assert np.max(np.abs(fd / 2e-3 - J_np[:, j])) <= 1e-6 * max(scale, 1.0), (model, j)

@@ -56,7 +56,7 @@ from volcal.model.datum import condition_table, null_space, select_conditions
 from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.model.machine import Machine
 from volcal.model.spec import MachineSpec
-from volcal.problem.residuals import IdentificationProblem, Layout, NumpyCall
+from volcal.problem.residuals import DenseJacobian, IdentificationProblem, Layout
 from volcal.problem.strategies import (
     ClassicPipeline,
     PhasedStrategy,
@@ -409,7 +409,7 @@ class Identifier:
         key = (np.asarray(x, float).tobytes(), np.asarray(p, float).tobytes())
         if getattr(self, "_jac_key", None) != key:
             if getattr(self, "_jac_call", None) is None:
-                self._jac_call = NumpyCall(self.problem.jacobian)
+                self._jac_call = DenseJacobian(self.problem)
             r, J = self._jac_call(self.problem.to_scaled(x), p)
             r = r.ravel()
             r.flags.writeable = J.flags.writeable = False  # shared: read-only
@@ -585,14 +585,13 @@ def axis_sensitivity(
     """(nominal points (N, 3) mm, d(point)/d(axis) (n_axes, N, 3) in mm per mm or per rad)
     at poses q (N, n_axes; mm, rad) and tool offsets t (N, 3) mm, by forward differences
     of the nominal chain (step 1e-6 mm or rad)."""
-    p0, _, _ = machine.evaluate(q, t, np.zeros(machine.n_errors))
+    p0 = machine.nominal_points(q, t)
     out = np.zeros((machine.n_axes,) + p0.shape)
     h = 1e-6
     for k in range(machine.n_axes):
         dq = np.zeros_like(q)
         dq[:, k] = h
-        p1, _, _ = machine.evaluate(q + dq, t, np.zeros(machine.n_errors))
-        out[k] = (p1 - p0) / h
+        out[k] = (machine.nominal_points(q + dq, t) - p0) / h
     return p0, out
 
 
@@ -708,7 +707,7 @@ def initial_instrument(
             notes.append(f"stations table entries without readings ignored: {', '.join(unused)}")
     missing = np.isnan(est[:, 0])
     if missing.any():
-        p0, _, _ = machine.evaluate(meas.q_internal, meas.tool, np.zeros(machine.n_errors))
+        p0 = machine.nominal_points(meas.q_internal, meas.tool)
         sel = np.isin(meas.station_index, np.flatnonzero(missing))
         ids = [meas.station_ids[k] for k in np.flatnonzero(missing)]
         local = {k: i for i, k in enumerate(np.flatnonzero(missing))}

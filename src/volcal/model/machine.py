@@ -179,6 +179,18 @@ class Machine:
                 q[..., k] = np.deg2rad(q[..., k])
         return q
 
+    def nominal_points(self, q: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Nominal tool points (N, 3) mm at axis positions q (N, n_axes; mm, rad) with tool
+        offsets t (N, 3) or (3,) mm.  The chain is evaluated once per distinct pose (a
+        measurement repeats each pose once per station) and without the error Jacobian
+        that :meth:`evaluate` returns, which at 3 x 10^4 readings is 20 MB per call."""
+        q = np.atleast_2d(np.asarray(q, float))
+        n = q.shape[0]
+        t = np.broadcast_to(np.asarray(t, float), (n, 3))
+        uniq, inv = np.unique(np.hstack([q, t]), axis=0, return_inverse=True)
+        (p,) = self._call("nominal", len(uniq))(uniq[:, : self.n_axes].T, uniq[:, self.n_axes :].T)
+        return np.reshape(p, (3, len(uniq))).T[inv.ravel()]
+
     def evaluate(self, q: np.ndarray, t: np.ndarray, e: np.ndarray, *, exact: bool = False):
         """Batch evaluation. q: (N, n_axes) internal units; t: (N, 3) or (3,); e: (N, n_err)
         or (n_err,). Returns (p, dp, J) as arrays (N, 3), (N, 3), (N, 3, n_err)."""

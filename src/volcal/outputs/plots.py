@@ -137,17 +137,15 @@ def volumetric_slices_data(
     g1 = np.linspace(ax1.travel[0], ax1.travel[1], n)
     g2 = np.linspace(ax2.travel[0], ax2.travel[1], n)
     G1, G2 = np.meshgrid(g1, g2, indexing="ij")
-    # every slice in one evaluation of the model
-    qs = []
+    # one slice at a time: the field Jacobian of a slice is (n * n, 3, parameters)
+    d_all = []
     for _, fixed in slices:
         q = np.tile([fixed.get(a.name, ref[a.name]) for a in spec.axes], (n * n, 1)).astype(float)
         q[:, spec.axis_names.index(ax1.name)] = G1.ravel()
         q[:, spec.axis_names.index(ax2.name)] = G2.ravel()
-        qs.append(q)
-    q = np.vstack(qs)
-    t = np.zeros((len(q), 3)) if tool is None else np.tile(tool, (len(q), 1))
-    pred = predict_volumetric(machine, error_model, theta, None, machine.axis_to_internal(q), t)
-    d_all = pred[_VOL].to_numpy().reshape(len(slices), n, n, 3)
+        t = np.zeros((n * n, 3)) if tool is None else np.tile(tool, (n * n, 1))
+        pred = predict_volumetric(machine, error_model, theta, None, machine.axis_to_internal(q), t)
+        d_all.append(pred[_VOL].to_numpy().reshape(n, n, 3))
     c1, c2 = "xyz".index(ax1.direction[-1]), "xyz".index(ax2.direction[-1])
     out = []
     for (title, _), d in zip(slices, d_all):

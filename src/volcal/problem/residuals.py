@@ -19,6 +19,7 @@ Fixing a variable is done with equal bounds, again without rebuild.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import casadi as ca
 import numpy as np
@@ -124,7 +125,7 @@ class IdentificationProblem:
     C_all: np.ndarray = field(init=False, repr=False)
     datum_active: np.ndarray = field(init=False, repr=False)
     residual: ca.Function = field(init=False, repr=False)
-    jacobian: ca.Function = field(init=False, repr=False)
+    jacobian_parts: ca.Function = field(init=False, repr=False)
     nlp: dict = field(init=False, repr=False)
     hess_lag: ca.Function = field(init=False, repr=False)
 
@@ -225,7 +226,6 @@ class IdentificationProblem:
             ],
         )
         Gs = self._stack_poses(G, Np, nt)  # (3 n_poses, nt), shared with the Hessian
-        J_th = ca.mtimes(D, Gs)
         # station and global columns: one nonzero per row per variable
         rr = np.concatenate([ar] * (n_ps + n_g))
         cc = np.concatenate(
@@ -237,9 +237,21 @@ class IdentificationProblem:
             ca.Sparsity.triplet(N, self.n_x, rr.tolist(), cc.tolist()),
             ca.vec(rows)[self._csc_order(N, self.n_x, rr, cc, src)],
         )
-        J = ca.horzcat(J_th, J_rest[:, nt:])
+        Jr = J_rest[:, nt:]
         self.residual = ca.Function("residual", [xs, p], [r_val], ["x", "p"], ["r"])
-        self.jacobian = ca.Function("jacobian", [xs, p], [r, J], ["x", "p"], ["r", "J"])
+        # The whole Jacobian J = [D G_stack | J_rest] is built only when asked for
+        # (:attr:`jacobian`): its sparsity pattern alone holds N n_theta indices (50 MB at
+        # 3 x 10^4 readings, several times over through its products and transpose).  The
+        # solvers and the analyses use its factors: J^T r and J^T J below, and the dense J
+        # assembled in numpy from the factors (:class:`DenseJacobian`).
+        self._jacobian_graph = (xs, p, r, D, Gs, Jr)
+        self.jacobian_parts = ca.Function(
+            "jacobian_parts",
+            [xs, p],
+            [r, ca.densify(Gs), rows],
+            ["x", "p"],
+            ["r", "G", "rows"],
+        )
 
         self.conditions = candidate_conditions(em, em.datum)
         self.C_all = (
@@ -251,11 +263,14 @@ class IdentificationProblem:
         gvec = ca.mtimes(ca.DM(Cs), xs[: em.n_params]) if self.C_all.shape[0] else ca.MX(0, 1)
         self.nlp = {"x": xs, "p": p, "f": 0.5 * ca.sumsqr(r_val), "g": gvec}
         # gradient of 0.5 ||r||^2 from the explicit Jacobian: J^T r, instead of reverse AD
-        # through the map (which cost half of a small solve)
+        # through the map (which cost half of a small solve), through J's factors:
+        # J^T r = [G_stack^T (D^T r); J_rest^T r]
+        Dt = D.T
+        Jt_r = ca.vertcat(ca.mtimes(Gs.T, ca.mtimes(Dt, r)), ca.mtimes(Jr.T, r))
         self.grad_f = ca.Function(
             "nlp_grad_f",
             [xs, p],
-            [0.5 * ca.sumsqr(r), ca.mtimes(J.T, r)],
+            [0.5 * ca.sumsqr(r), Jt_r],
             ["x", "p"],
             ["f", "grad_f_x"],
         )
@@ -269,8 +284,6 @@ class IdentificationProblem:
         #   H_rr = J_rest^T J_rest             one nonzero per row per variable
         # so the flops are 3 n_poses n_theta^2 (not N n_theta^2), all in CasADi: the
         # Function can be expanded, serialised and code-generated.
-        Dt = D.T
-        Jr = J_rest[:, nt:]
         right = ca.densify(ca.horzcat(ca.mtimes(ca.mtimes(Dt, D), Gs), ca.mtimes(Dt, Jr)))
         H_top = dense_mtimes(Gs.T, right)  # [H_tt | H_tr] in one product
         H_tt, H_tr = H_top[:, :nt], H_top[:, nt:]
@@ -285,7 +298,7 @@ class IdentificationProblem:
         )
         #: H = J^T J alone (for the Gauss-Newton solver and the analyses)
         self.gram = ca.Function(
-            "gram", [xs, p], [r, ca.mtimes(J.T, r), ca.densify(H)], ["x", "p"], ["r", "g", "H"]
+            "gram", [xs, p], [r, Jt_r, ca.densify(H)], ["x", "p"], ["r", "g", "H"]
         )
 
         self.names = list(em.param_names)
@@ -296,6 +309,16 @@ class IdentificationProblem:
             self.units += ["mm"] * n_ps
         self.names += list(ins.global_param_names)
         self.units += list(ins.global_param_units)
+
+    @cached_property
+    def jacobian(self) -> ca.Function:
+        """``(x, p) -> (r, J)``: the whitened residuals and their Jacobian wrt the scaled
+        variables, as one CasADi Function (for code generation and symbolic use, e.g. the
+        planning criteria); built on first use.  Numerically, :class:`DenseJacobian` gives
+        the same J from :attr:`jacobian_parts` at a fraction of the memory."""
+        xs, p, r, D, Gs, Jr = self._jacobian_graph
+        J = ca.horzcat(ca.mtimes(D, Gs), Jr)
+        return ca.Function("jacobian", [xs, p], [r, J], ["x", "p"], ["r", "J"])
 
     def fingerprint(self) -> str:
         """A hash of the problem's structure: unknowns (names), the datum candidates, the
@@ -399,3 +422,39 @@ class IdentificationProblem:
     def station_slice(self) -> slice:
         nps, ns = self.instrument.n_station_params, self.layout.n_stations
         return slice(self.n_theta, self.n_theta + nps * ns)
+
+
+class DenseJacobian:
+    """``(x_scaled, p) -> (r, J)`` as numpy arrays: the problem's whitened residuals (N,)
+    and dense Jacobian (N, n_x) wrt the scaled variables, assembled from
+    :attr:`IdentificationProblem.jacobian_parts` (the poses' d(point)/d(theta), each
+    reading's d(r)/d(point, station, globals)).  The same numbers as
+    ``problem.jacobian`` without its sparsity pattern of N n_theta indices.  Not
+    thread-safe: one object per thread."""
+
+    def __init__(self, problem: IdentificationProblem) -> None:
+        self._call = NumpyCall(problem.jacobian_parts)
+        lay = problem.layout
+        self._pose = np.asarray(lay.poses[0], np.intp)
+        st = np.asarray(lay.station_index, np.intp)
+        self._nt, self._n_x = problem.n_theta, problem.n_x
+        n_ps = problem.instrument.n_station_params
+        n_st = lay.n_stations
+        # column of every station / global derivative row, per reading
+        self._rest_cols = [problem.n_theta + n_ps * st + k for k in range(n_ps)] + [
+            np.full(len(st), problem.n_theta + n_ps * n_st + j)
+            for j in range(problem.instrument.n_global_params)
+        ]
+
+    def __call__(self, xs: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, G, rows = self._call(xs, p)
+        N, nt = len(self._pose), self._nt
+        Gp = G.reshape(-1, 3, nt)  # (n_poses, 3, nt): row 3 k + c of G_stack
+        J = np.zeros((N, self._n_x))
+        Jt = J[:, :nt]
+        for c in range(3):  # J_theta = sum_c d(r)/d(p_c) * d(p_c)/d(theta) of its pose
+            Jt += rows[c][:, None] * Gp[self._pose, c, :]
+        ar = np.arange(N)
+        for k, cols in enumerate(self._rest_cols):
+            J[ar, cols] = rows[3 + k]
+        return np.asarray(r).ravel(), J

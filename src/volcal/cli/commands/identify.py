@@ -200,6 +200,8 @@ def run(args: argparse.Namespace) -> int:
         # first, before the numerics are imported: two children that import matplotlib
         # on the other core while this process reads and solves, then draw the plots two
         # at a time while this one writes the report
+        import numpy  # noqa: F401  (this process needs it anyway; the children inherit it)
+
         from volcal.outputs.plot_process import PlotProcess
 
         plotter = PlotProcess.start(workers=2)
