@@ -419,3 +419,29 @@ def test_cli_basis_and_degree_auto(xfyz_case, tmp_path, monkeypatch, capsys):
         code = volcal.cli.main.main(["identify", "--model", "xfyz", "--data", str(data), "--out",
                                 str(tmp_path / "bad"), "--no-plots", *argv])
         assert code == 2 and needle in capsys.readouterr().err, argv
+
+
+@pytest.mark.parametrize("model", ["mcv754_wxyzt", "trunnion_ac", "head_bc"])
+def test_values_and_apply_basis_equal_the_dense_basis(model):
+    """ErrorModel.values and apply_basis work column by column without forming B(q)
+    (N, n_errors, n_params); they must equal the products with the dense basis, for every
+    family of basis (Legendre, Fourier on full-turn axes, B-splines, hats)."""
+    from volcal.model.errors import ErrorForm, ErrorModel
+    from volcal.model.machine import Machine
+
+    machine = Machine.from_model(model)
+    rng = np.random.default_rng(5)
+    lo = np.array([a.travel[0] for a in machine.spec.axes], float)
+    hi = np.array([a.travel[1] for a in machine.spec.axes], float)
+    q = machine.axis_to_internal(lo + rng.uniform(size=(40, len(lo))) * (hi - lo))
+    first = machine.spec.axes[0].name
+    for forms, default in (
+        (None, ErrorForm("poly", 3)),
+        ({first: ErrorForm("bspline", segments=4)}, ErrorForm("poly", 2)),
+    ):
+        em = ErrorModel(machine.spec, forms, default=default)
+        B = em.basis(q)
+        th = rng.normal(size=em.n_params)
+        A = rng.normal(size=(len(q), 3, em.n_errors))
+        assert np.allclose(em.values(q, th), np.einsum("nkp,p->nk", B, th), atol=1e-12)
+        assert np.allclose(em.apply_basis(A, q), A @ B, atol=1e-12)

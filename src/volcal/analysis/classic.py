@@ -114,7 +114,7 @@ def classic_pipeline(
     q_pts, t_pts, p0_pts = meas.q_internal[first][ok], meas.tool[first][ok], p_nom[first][ok]
     dev = (ml.points[ok] - p0_pts).ravel()
     _, _, Je = machine.evaluate(q_pts, t_pts, zeros)
-    G = np.einsum("nik,nkp->nip", Je, em.basis(q_pts)).reshape(-1, em.n_params)
+    G = em.apply_basis(Je, q_pts).reshape(-1, em.n_params)
     A = np.hstack([G, rigid_columns(p0_pts)])
     scale = np.r_[solver_scale(em.param_units), solver_scale(["mm"] * 3 + ["rad"] * 3)]
     As = A * scale

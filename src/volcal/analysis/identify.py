@@ -235,7 +235,7 @@ def field_jacobian(
     tool = np.zeros((len(q), 3)) if tool is None else np.broadcast_to(tool, (len(q), 3))
     e = em.values(q, theta)
     p0, dp, Je = machine.evaluate(q, tool, e)
-    return p0, dp, np.matmul(Je, em.basis(q))  # (N, 3, n_errors) @ (N, n_errors, n_params)
+    return p0, dp, em.apply_basis(Je, q)  # (N, 3, n_errors) @ (N, n_errors, n_params)
 
 
 def predict_volumetric(

@@ -314,9 +314,34 @@ class ErrorModel:
                 col += 1
         return B
 
+    def _columns(self, q: np.ndarray):
+        """(error index, parameter index, basis column (N,)) of every parameter at poses q
+        (N, n_axes) internal units; each error's columns evaluated once."""
+        col = 0
+        for k, s in enumerate(self.errors):
+            for c in self._basis_columns(k, q[:, self._axis_index[s.axis]]):
+                yield k, col, np.broadcast_to(np.asarray(c, float), (q.shape[0],))
+                col += 1
+
     def values(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """Error values e (N, n_errors) at poses q (N, n_axes) for parameters theta."""
-        return np.einsum("nkp,p->nk", self.basis(q), np.asarray(theta, float))
+        q = np.atleast_2d(np.asarray(q, float))
+        theta = np.asarray(theta, float)
+        e = np.zeros((q.shape[0], self.n_errors))
+        for k, j, c in self._columns(q):
+            e[:, k] += theta[j] * c
+        return e
+
+    def apply_basis(self, A: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """``A @ basis(q)`` for A (N, m, n_errors) (e.g. d(point)/d(errors)): (N, m,
+        n_params), without forming the basis (N, n_errors, n_params), whose entries are
+        zero but for each error's own parameters (34 MB for a thousand points)."""
+        q = np.atleast_2d(np.asarray(q, float))
+        A = np.asarray(A, float)
+        out = np.empty(A.shape[:2] + (self.n_params,))
+        for k, j, c in self._columns(q):
+            np.multiply(A[:, :, k], c[:, None], out=out[:, :, j])
+        return out
 
     def values_function(self) -> ca.Function:
         """CasADi ``e = values(q[n_axes], theta[n_params])``, built once and reused."""

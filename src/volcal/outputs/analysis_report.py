@@ -742,7 +742,7 @@ def _volumetric(
         out[c] = pred[c].to_numpy()
     out["u_total_um"] = np.sqrt(out["u_dx_um"] ** 2 + out["u_dy_um"] ** 2 + out["u_dz_um"] ** 2)
     # uncertainty of |d| where |d| is well above its uncertainty (else not linearisable)
-    G = np.einsum("nik,nkp->nip", Je, em.basis(q))
+    G = em.apply_basis(Je, q)
     d = pred[["dx_um", "dy_um", "dz_um"]].to_numpy()
     nrm = np.linalg.norm(d, axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -78,9 +78,7 @@ def _point_model(
         p0, G = _point_model(machine, error_model, np.asarray(q)[first], np.asarray(t)[first])
         return p0[idx], G[idx]
     p0, _, Je = machine.evaluate(q, t, np.zeros(machine.n_errors))
-    B = error_model.basis(q)
-    G = np.einsum("nik,nkp->nip", Je, B)
-    return p0, G
+    return p0, error_model.apply_basis(Je, q)
 
 
 @dataclass
