@@ -15,12 +15,16 @@ OMP_NUM_THREADS, MKL_NUM_THREADS):
   sparse analytic Jacobian, trf + LSMR, covariance, a CSV), given start stations 1 mm from
   the truth (volcal computes its own start values from the data).
 
-Whole-process wall time and peak resident memory (``os.wait4``) are measured from outside;
-the stages come from each side's own timings (scipy: the script's JSON; volcal: the stage
-record in result.json, ``timings_s``, of the run without plots; volcal's plots are the
-difference of its two whole-process times, its start-up the rest).  The best of ``--repeat`` runs is kept.  Prints a
-side-by-side table with the fitted scaling exponent of each column (log-log slope over the
-sizes), writes benchmarks/results/compare_scipy.csv and compare_scipy.png.
+Measured from outside: whole-process wall time, CPU time of the process tree, and peak
+memory two ways: the largest process's resident set (``os.wait4``) and the sum over the
+process and its children (volcal draws its plots in two child processes) of their
+proportional set sizes, sampled every 20 ms in one more, untimed run.  The stages come
+from each side's own timings (scipy: the script's JSON; volcal: the stage record in
+result.json, ``timings_s``, of the run without plots; volcal's plots are the difference of
+its two whole-process times, its start-up the rest).  The best of ``--repeat`` runs is
+kept.  Prints side-by-side tables with the fitted scaling exponent of each column
+(log-log slope over the sizes), writes benchmarks/results/compare_scipy.csv and
+compare_scipy.png.
 """
 
 from __future__ import annotations
@@ -48,10 +52,21 @@ def make_data(n_readings: int, folder: Path, seed: int = 0) -> tuple[Path, Path,
 
     ex = example("mcv754")
     per_pose = len(ex.tools) * len(ex.stations)
-    n_poses = max(n_readings // per_pose, 8)
-    k = max(2, round(n_poses ** (1 / 3)))
-    plan = grid_plan(ex.machine.spec, {"X": k + 1, "Y": k, "Z": max(k - 1, 2)})
-    plan = _clear_plan(ex.machine, plan, ex.tools, ex.stations, 50.0)
+    target = max(n_readings / per_pose, 8)
+    # the grid (about as many positions per axis as the travels are long) whose poses
+    # clear of the stations come closest to the number asked for
+    best = None
+    for nz in range(2, 40):
+        for ny in range(nz, nz + 3):
+            for nx in range(ny, ny + 3):
+                if nx * ny * nz > 2.5 * target + 8:
+                    continue
+                g = grid_plan(ex.machine.spec, {"X": nx, "Y": ny, "Z": nz})
+                g = _clear_plan(ex.machine, g, ex.tools, ex.stations, 50.0)
+                err = abs(np.log(max(len(g), 1) / target))
+                if best is None or err < best[0]:
+                    best = (err, g)
+    plan = best[1]
     sim = simulate(ex.machine, ex.error_model, ex.theta_true, ex.stations, plan, ex.tools,
                    ex.budget, seed)
     data = folder / "data.csv"
@@ -65,20 +80,71 @@ def make_data(n_readings: int, folder: Path, seed: int = 0) -> tuple[Path, Path,
     return data, stations, len(sim.measurements)
 
 
-def _run(cmd: list[str], threads: int) -> tuple[float, float, int]:
-    """(wall s, peak RSS MiB, exit code) of a whole process."""
+def _tree_pss_mib(root: int) -> float:
+    """Proportional set size (MiB) of a process and all its descendants: shared pages
+    (a forked child's inherited libraries) counted once, split between their users."""
+    kids: dict[int, list[int]] = {}
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        kids.setdefault(ppid, []).append(int(d))
+    total, todo = 0.0, [root]
+    while todo:
+        pid = todo.pop()
+        todo += kids.get(pid, [])
+        try:
+            with open(f"/proc/{pid}/smaps_rollup") as fh:
+                for line in fh:
+                    if line.startswith("Pss:"):
+                        total += int(line.split()[1]) / 1024.0
+                        break
+        except OSError:
+            continue
+    return total
+
+
+def _run(cmd: list[str], threads: int, sample: bool = False) -> dict:
+    """Wall time (s), CPU time of the process and its children (s), peak resident memory
+    of the largest process (MiB, ``os.wait4``) and, with ``sample``, the peak total PSS
+    of the process tree sampled every 20 ms (MiB; sampling takes CPU, so it runs in a
+    separate, untimed repetition) of a whole process."""
+    import threading
+
     env = dict(os.environ)
     for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         env[v] = str(threads)
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    peak = [0.0]
+    done = threading.Event()
+
+    def sampler() -> None:
+        while not done.wait(0.02):
+            peak[0] = max(peak[0], _tree_pss_mib(proc.pid))
+
+    th = threading.Thread(target=sampler, daemon=True) if sample else None
+    if th is not None:
+        th.start()
     _, status, ru = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
+    done.set()
+    if th is not None:
+        th.join()
     proc.returncode = os.waitstatus_to_exitcode(status)
     err = proc.stderr.read().decode() if proc.stderr else ""
     if proc.returncode != 0:
         raise RuntimeError(f"{cmd[0]} failed ({proc.returncode}): {err[-2000:]}")
-    return wall, ru.ru_maxrss / 1024.0, proc.returncode
+    return {
+        "wall": wall,
+        "cpu": ru.ru_utime + ru.ru_stime,
+        "rss": ru.ru_maxrss / 1024.0,
+        "pss": peak[0] if sample else float("nan"),
+    }
 
 
 def measure(n: int, threads: int, repeat: int, work: Path) -> dict:
@@ -88,40 +154,54 @@ def measure(n: int, threads: int, repeat: int, work: Path) -> dict:
     volcal_exe = str(Path(sys.executable).parent / "volcal")
     row: dict = {"readings": N, "threads": threads}
     best: dict[str, tuple] = {}
+    pss: dict[str, float] = {}
+    tim = folder / "timings.json"
+    cmds = {}
+    for label, extra in (("volcal", []), ("volcal_no_plots", ["--no-plots"])):
+        out = folder / f"out_{label}"
+        cmds[label] = (
+            [volcal_exe, "-q", "identify", "--model", "mcv754_wxyzt", "--data", str(data),
+             "--out", str(out), "--force", *extra],
+            out,
+        )
+    cmds["scipy"] = (
+        [sys.executable, str(HERE / "scipy_reference.py"), str(data), str(stations),
+         "--model", "mcv754_wxyzt", "--out", str(folder / "scipy.csv"), "--timings", str(tim)],
+        None,
+    )
     for _ in range(repeat):
-        for label, extra in (("volcal", []), ("volcal_no_plots", ["--no-plots"])):
-            out = folder / f"out_{label}"
-            cmd = [volcal_exe, "-q", "identify", "--model", "mcv754_wxyzt", "--data",
-                   str(data), "--out", str(out), "--force", *extra]
-            wall, rss, _ = _run(cmd, threads)
-            doc = json.loads((out / "result.json").read_text())
-            solve = sum(ph["seconds"] for ph in doc["phases"])
-            if label not in best or wall < best[label][0]:
-                best[label] = (wall, rss, solve, doc.get("timings_s", {}))
-        tim = folder / "timings.json"
-        cmd = [sys.executable, str(HERE / "scipy_reference.py"), str(data), str(stations),
-               "--model", "mcv754_wxyzt", "--out", str(folder / "scipy.csv"),
-               "--timings", str(tim)]
-        wall, rss, _ = _run(cmd, threads)
-        t = json.loads(tim.read_text())
-        if "scipy" not in best or wall < best["scipy"][0]:
-            best["scipy"] = (wall, rss, t["solve"], t)
+        for label, (cmd, out) in cmds.items():
+            m = _run(cmd, threads)
+            if out is not None:
+                doc = json.loads((out / "result.json").read_text())
+                solve, st = sum(ph["seconds"] for ph in doc["phases"]), doc.get("timings_s", {})
+            else:
+                t = json.loads(tim.read_text())
+                solve, st = t["solve"], t
+            if label not in best or m["wall"] < best[label][0]["wall"]:
+                best[label] = (m, solve, st)
+    # the whole process tree's memory, in one more (untimed) run each
+    for label, (cmd, _) in cmds.items():
+        pss[label] = _run(cmd, threads, sample=True)["pss"]
     for label in ("volcal", "volcal_no_plots"):
-        wall, rss, solve, _ = best[label]
-        row[f"{label}_s"] = wall
-        row[f"{label}_MiB"] = rss
+        m, solve, _ = best[label]
+        row[f"{label}_s"] = m["wall"]
+        row[f"{label}_cpu_s"] = m["cpu"]
+        row[f"{label}_MiB"] = m["rss"]
+        row[f"{label}_tree_MiB"] = pss[label]
         row[f"{label}_solve_s"] = solve
     # volcal's stages (its own record in result.json, run without plots); the plots are
     # the difference of the two whole-process times; start-up and imports the rest
-    st = best["volcal_no_plots"][3]
+    st = best["volcal_no_plots"][2]
     for key, name in VOLCAL_STAGES.items():
         row[f"volcal_{key}_s"] = sum(v for k, v in st.items() if k in name)
     row["volcal_plots_s"] = max(row["volcal_s"] - row["volcal_no_plots_s"], 0.0)
     row["volcal_startup_s"] = max(
         row["volcal_no_plots_s"] - sum(row[f"volcal_{k}_s"] for k in VOLCAL_STAGES), 0.0
     )
-    wall, rss, solve, t = best["scipy"]
-    row["scipy_s"], row["scipy_MiB"], row["scipy_solve_s"] = wall, rss, solve
+    m, solve, t = best["scipy"]
+    row["scipy_s"], row["scipy_cpu_s"], row["scipy_MiB"] = m["wall"], m["cpu"], m["rss"]
+    row["scipy_tree_MiB"], row["scipy_solve_s"] = pss["scipy"], solve
     for k in ("imports", "read", "model", "setup", "covariance", "write"):
         row[f"scipy_{k}_s"] = t[k]
     row["ratio_whole"] = row["volcal_s"] / row["scipy_s"]
@@ -189,11 +269,19 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(measure(n, th, a.repeat, Path(tmp)))
     df = pd.DataFrame(rows)
     cols = ["volcal_s", "volcal_no_plots_s", "scipy_s", "volcal_solve_s", "scipy_solve_s",
-            "volcal_MiB", "scipy_MiB"]
+            "volcal_MiB", "scipy_MiB", "volcal_tree_MiB"]
     show = ["readings", "threads", "volcal_s", "volcal_no_plots_s", "scipy_s", "ratio_whole",
-            "volcal_solve_s", "scipy_solve_s", "ratio_solve", "volcal_MiB", "scipy_MiB"]
+            "ratio_whole_no_plots", "volcal_solve_s", "scipy_solve_s", "ratio_solve"]
+    mem = ["readings", "threads", "volcal_MiB", "volcal_tree_MiB", "volcal_no_plots_MiB",
+           "scipy_MiB", "scipy_tree_MiB", "volcal_cpu_s", "volcal_no_plots_cpu_s",
+           "scipy_cpu_s"]
     with pd.option_context("display.width", 200, "display.float_format", "{:.3g}".format):
+        print("whole process, wall seconds (best of the repeats):")
         print(df[show].to_string(index=False))
+        print("\npeak memory, MiB: *_MiB the largest process (wait4 maxrss), *_tree_MiB the "
+              "sum over the process and its children\n(PSS, sampled every 20 ms; volcal's "
+              "plotting children included); CPU seconds of the whole process tree:")
+        print(df[mem].to_string(index=False))
     for th, part in df.groupby("threads"):
         ex = exponents(part, cols)
         if ex:

@@ -1,10 +1,11 @@
 """Processes that draw PNG plots while the parent computes (``volcal identify``, ``volcal mc``).
 
 Matplotlib costs a third of a second to import and its drawing is pure Python: on the
-critical path of a short run it is most of the time.  :class:`PlotProcess` forks children
-at the start of a command, before the parent imports the numerics; each imports matplotlib
+critical path of a short run it is most of the time.  :class:`PlotProcess` forks a child
+at the start of a command, before the parent imports the numerics; it imports matplotlib
 and draws a throw-away figure (fonts, text layout caches, the PNG writer) on the other core
-while the parent reads, solves and writes.  The parent then sends ``(function, args)``
+while the parent reads, solves and writes, then forks the other plotting children from its
+warmed-up self (one import of matplotlib, not one per child).  The parent then sends ``(function, args)``
 requests: the function is a module-level drawing function (pickled by its name) and the
 arguments are plain data (numpy arrays, numbers, strings, paths), so a child never imports
 pandas, scipy or the solver.  With two children the figures of one result are drawn two at
@@ -49,11 +50,31 @@ def warm_up() -> None:
     fig.savefig(io.BytesIO(), dpi=50)
 
 
-def _serve(conn, parent: int, warm: tuple[Callable[[], None], ...]) -> None:  # pragma: no cover
-    """A plotting child: warm up (while the parent computes), then draw on request,
-    ``(function, args)`` -> ``("ok" | "error", text)``, until None."""
+def _serve_requests(conn) -> None:  # pragma: no cover - runs in a child
+    """Draw on request, ``(function, args)`` -> ``("ok" | "error", text)``, until None."""
     import traceback
 
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg is None:
+            return
+        func, args = msg
+        try:
+            func(*args)
+            conn.send(("ok", ""))
+        except Exception:
+            conn.send(("error", traceback.format_exc()))
+
+
+def _zygote(  # pragma: no cover - runs in a child
+    conns: list, parent: int, warm: tuple[Callable[[], None], ...]
+) -> None:
+    """The first plotting child: warm up (while the parent computes), then fork the other
+    plotting children from its warmed-up self (matplotlib imported once, its pages
+    shared copy-on-write), and serve ``conns[0]`` while they serve the others."""
     from volcal.base.processes import watch_parent
 
     watch_parent(parent)
@@ -76,19 +97,64 @@ def _serve(conn, parent: int, warm: tuple[Callable[[], None], ...]) -> None:  # 
     gc.collect()
     gc.freeze()
     gc.disable()
-    while True:
-        try:
-            msg = conn.recv()
-        except (EOFError, OSError):
-            return
-        if msg is None:
-            return
-        func, args = msg
-        try:
-            func(*args)
-            conn.send(("ok", ""))
-        except Exception:
-            conn.send(("error", traceback.format_exc()))
+    kids = []
+    for i in range(1, len(conns)):
+        pid = os.fork()
+        if pid == 0:  # another plotting child, ending with this one (PR_SET_PDEATHSIG)
+            code = 0
+            try:
+                watch_parent(os.getppid())
+                for k, c in enumerate(conns):
+                    if k != i:
+                        c.close()
+                _serve_requests(conns[i])
+            except BaseException:
+                code = 1
+            finally:
+                os._exit(code)
+        kids.append(pid)
+        conns[i].close()
+    try:
+        _serve_requests(conns[0])
+    finally:
+        for pid in kids:
+            try:
+                os.waitpid(pid, 0)
+            except ChildProcessError:
+                pass
+
+
+class _Sender:
+    """Sends requests to one plotting child from a thread: a request larger than the pipe's
+    buffer would otherwise block this process until the child, maybe still importing
+    matplotlib, reads it."""
+
+    def __init__(self, conn) -> None:
+        import queue
+        import threading
+
+        self.conn = conn
+        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self.error: BaseException | None = None
+        self._t = threading.Thread(target=self._run, name="volcal-plot-sender", daemon=True)
+        self._t.start()
+
+    def _run(self) -> None:
+        while True:
+            msg = self._q.get()
+            try:
+                self.conn.send(msg)
+            except BaseException as exc:  # reported by PlotProcess.wait
+                self.error = exc
+            if msg is None:
+                return
+
+    def send(self, msg) -> None:
+        self._q.put(msg)
+
+    def close(self, timeout: float) -> None:
+        self._q.put(None)
+        self._t.join(timeout)
 
 
 class PlotProcess:
@@ -99,8 +165,9 @@ class PlotProcess:
     asked for is written.  Use :meth:`start`, which returns None where fork is not safe.
     """
 
-    def __init__(self, procs: list, conns: list) -> None:
-        self._procs, self._conns = procs, conns
+    def __init__(self, proc, conns: list) -> None:
+        self._proc, self._conns = proc, conns
+        self._senders = [_Sender(c) for c in conns]
         self._pending = [0] * len(conns)
         self._queued = [0.0] * len(conns)
 
@@ -108,8 +175,8 @@ class PlotProcess:
     def start(
         cls, workers: int = 1, warm: tuple[Callable[[], None], ...] = (warm_up,)
     ) -> PlotProcess | None:
-        """Fork ``workers`` plotting children (at least one; fewer when the machine has
-        fewer cores), each running ``warm`` first.  None but on Linux."""
+        """Start ``workers`` plotting children (at least one; at most one per core): the
+        first forks now and runs ``warm``, then forks the others.  None but on Linux."""
         import multiprocessing as mp
         import sys
 
@@ -117,23 +184,18 @@ class PlotProcess:
         if not sys.platform.startswith("linux") or "fork" not in mp.get_all_start_methods():
             return None
         workers = max(1, min(int(workers), os.cpu_count() or 1))
-        if env_workers := os.environ.get("VOLCAL_PLOT_WORKERS"):
-            workers = max(1, int(env_workers))
         ctx = mp.get_context("fork")
-        procs, conns = [], []
-        for i in range(workers):
-            here, there = ctx.Pipe()
-            proc = ctx.Process(
-                target=_serve,
-                args=(there, os.getpid(), tuple(warm)),
-                name=f"volcal-plots-{i}",
-                daemon=True,
-            )
-            proc.start()
+        pairs = [ctx.Pipe() for _ in range(workers)]
+        proc = ctx.Process(
+            target=_zygote,
+            args=([there for _, there in pairs], os.getpid(), tuple(warm)),
+            name="volcal-plots",
+            daemon=True,
+        )
+        proc.start()
+        for _, there in pairs:
             there.close()
-            procs.append(proc)
-            conns.append(here)
-        return cls(procs, conns)
+        return cls(proc, [here for here, _ in pairs])
 
     @property
     def workers(self) -> int:
@@ -142,7 +204,7 @@ class PlotProcess:
     def draw(self, func: Callable[..., Any], *args: Any, cost: float = 1.0) -> None:
         """Ask for ``func(*args)`` (a module-level function; plain-data arguments)."""
         i = min(range(len(self._conns)), key=lambda k: self._queued[k])
-        self._conns[i].send((func, args))
+        self._senders[i].send((func, args))
         self._pending[i] += 1
         self._queued[i] += cost
 
@@ -153,6 +215,9 @@ class PlotProcess:
 
         errors: list[str] = []
         while any(self._pending):
+            for snd in self._senders:
+                if snd.error is not None:
+                    raise RuntimeError(f"could not send a plot request: {snd.error}")
             busy = [c for c, n in zip(self._conns, self._pending) if n]
             ready = wait_any(busy, timeout)
             if not ready:
@@ -172,14 +237,12 @@ class PlotProcess:
 
     def close(self) -> None:
         """End the plotting children (after their figures, or at once on an error)."""
+        for snd in self._senders:
+            snd.close(timeout=2.0)
         for c in self._conns:
-            try:
-                c.send(None)
-            except (OSError, ValueError):
-                pass
             c.close()
-        for p, n in zip(self._procs, self._pending):
-            p.join(timeout=2.0 if not n else 0.0)
-            if p.is_alive():
-                p.terminate()
-                p.join(timeout=2.0)
+        busy = any(self._pending)
+        self._proc.join(timeout=2.0 if not busy else 0.0)
+        if self._proc.is_alive():  # the others end with it (PR_SET_PDEATHSIG)
+            self._proc.terminate()
+            self._proc.join(timeout=2.0)

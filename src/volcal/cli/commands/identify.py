@@ -206,10 +206,14 @@ def run(args: argparse.Namespace) -> int:
 
         plotter = PlotProcess.start(workers=2)
     try:
-        return _run(args, plotter)
+        code = _run(args, plotter)
     finally:
         if plotter is not None:
             plotter.close()
+    # everything is written and closed: skip the interpreter's teardown (0.1 s of freeing
+    # modules; see volcal.cli.main._exit_now)
+    args.exit_now = True
+    return code
 
 
 def _run(args: argparse.Namespace, plotter) -> int:
