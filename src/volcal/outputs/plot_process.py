@@ -5,11 +5,11 @@ critical path of a short run it is most of the time.  :class:`PlotProcess` forks
 at the start of a command, before the parent imports the numerics; it imports matplotlib
 and draws a throw-away figure (fonts, text layout caches, the PNG writer) on the other core
 while the parent reads, solves and writes, then forks the other plotting children from its
-warmed-up self (one import of matplotlib, not one per child).  The parent then sends ``(function, args)``
-requests: the function is a module-level drawing function (pickled by its name) and the
-arguments are plain data (numpy arrays, numbers, strings, paths), so a child never imports
-pandas, scipy or the solver.  With two children the figures of one result are drawn two at
-a time.
+warmed-up self (one import of matplotlib, not one per child).  The parent then sends
+``(function, args)`` requests: the function is a module-level drawing function (pickled by
+its name) and the arguments are plain data (numpy arrays, numbers, strings, paths), so a
+child never imports pandas, scipy or the solver.  With two children the figures of one
+result are drawn two at a time.
 
 The parent waits for every figure before it renames its result folder into place, so the
 folder stays all-or-nothing.  Fork only (Linux); :meth:`PlotProcess.start` returns None
