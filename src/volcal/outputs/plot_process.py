@@ -223,9 +223,9 @@ class PlotProcess:
             if not ready:
                 raise RuntimeError(f"no plot from the plotting process in {timeout:g} s")
             for c in ready:
-                i = self._conns.index(c)
+                i = self._conns.index(c)  # one of ours: a Connection
                 try:
-                    status, text = c.recv()
+                    status, text = self._conns[i].recv()
                 except (EOFError, OSError):
                     raise RuntimeError("the plotting process ended unexpectedly") from None
                 self._pending[i] -= 1
