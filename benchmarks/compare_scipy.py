@@ -108,6 +108,25 @@ def _tree_pss_mib(root: int) -> float:
     return total
 
 
+#: a minimal launcher (python -S: no site, no imports but os/time/json/sys) that runs the
+#: measured command and reports its wall time and resources.  Measuring from the benchmark
+#: process itself would be wrong: a child's peak resident set starts at its parent's size
+#: at fork (before exec), and this process holds numpy, pandas and the simulated data.
+_LAUNCHER = """
+import json, os, sys, time
+t0 = time.perf_counter()
+pid = os.fork()
+if pid == 0:
+    fd = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(fd, 1)
+    os.execvp(sys.argv[1], sys.argv[1:])
+_, status, ru = os.wait4(pid, 0)
+wall = time.perf_counter() - t0
+print(json.dumps({"wall": wall, "cpu": ru.ru_utime + ru.ru_stime, "rss": ru.ru_maxrss / 1024.0,
+                  "code": os.waitstatus_to_exitcode(status)}))
+"""
+
+
 def _run(cmd: list[str], threads: int, sample: bool = False) -> dict:
     """Wall time (s), CPU time of the process and its children (s), peak resident memory
     of the largest process (MiB, ``os.wait4``) and, with ``sample``, the peak total PSS
@@ -118,8 +137,8 @@ def _run(cmd: list[str], threads: int, sample: bool = False) -> dict:
     env = dict(os.environ)
     for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         env[v] = str(threads)
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen([sys.executable, "-S", "-c", _LAUNCHER, *cmd], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     peak = [0.0]
     done = threading.Event()
 
@@ -130,21 +149,18 @@ def _run(cmd: list[str], threads: int, sample: bool = False) -> dict:
     th = threading.Thread(target=sampler, daemon=True) if sample else None
     if th is not None:
         th.start()
-    _, status, ru = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
+    out, err = proc.communicate()
     done.set()
     if th is not None:
         th.join()
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    err = proc.stderr.read().decode() if proc.stderr else ""
-    if proc.returncode != 0:
-        raise RuntimeError(f"{cmd[0]} failed ({proc.returncode}): {err[-2000:]}")
-    return {
-        "wall": wall,
-        "cpu": ru.ru_utime + ru.ru_stime,
-        "rss": ru.ru_maxrss / 1024.0,
-        "pss": peak[0] if sample else float("nan"),
-    }
+    try:
+        m = json.loads(out.decode().strip().splitlines()[-1])
+    except (IndexError, ValueError):
+        raise RuntimeError(f"{cmd[0]}: the launcher failed: {err.decode()[-2000:]}") from None
+    if m["code"] != 0:
+        raise RuntimeError(f"{cmd[0]} failed ({m['code']}): {err.decode()[-2000:]}")
+    m["pss"] = peak[0] if sample else float("nan")
+    return m
 
 
 def measure(n: int, threads: int, repeat: int, work: Path) -> dict:

@@ -234,6 +234,15 @@ class _Raw:
     rows: np.ndarray  # spreadsheet row of each body row
 
 
+def _blank_cells(col: pd.Series) -> np.ndarray:
+    """:func:`_is_blank` of every cell of a column read as text (strings; NaN or None where
+    a short row has no cell), vectorised."""
+    if col.dtype != object and not pd.api.types.is_string_dtype(col):
+        return np.asarray(col.isna(), bool)
+    text = col.str.strip()  # NaN for cells that are not strings
+    return np.asarray(col.isna(), bool) | np.asarray(text.eq("").fillna(False), bool)
+
+
 def _is_blank(v: Any) -> bool:
     if v is None:
         return True
@@ -320,11 +329,14 @@ def _read_raw(source: str | Path | pd.DataFrame, name: str | None, what: str) ->
     body.columns = range(body.shape[1])
     rows = np.arange(body.shape[0], dtype=int) + 2
     # fully blank lines (often trailing) are skipped; the row numbers stay those of the file
-    keep = ~body.apply(lambda c: c.map(_is_blank)).all(axis=1).to_numpy()
+    blank = np.ones((body.shape[0], 1), bool)
+    if body.shape[1]:
+        blank = np.column_stack([_blank_cells(body[c]) for c in body.columns])
+    keep = ~blank.all(axis=1)
     body = body.loc[keep].reset_index(drop=True)
     rows = rows[keep]
     # unnamed columns that are empty throughout (trailing separators) are dropped
-    drop = [k for k, h in enumerate(header_cells) if h == "" and body[k].map(_is_blank).all()]
+    drop = [k for k, h in enumerate(header_cells) if h == "" and _blank_cells(body[k]).all()]
     if drop:
         body = body.drop(columns=drop)
         header_cells = [h for k, h in enumerate(header_cells) if k not in drop]
