@@ -289,10 +289,12 @@ class StructuredLSQ:
         self.R = np.asarray(np.linalg.qr(A, mode="r"))
         self._J0 = J0
         if check:
-            import casadi  # noqa: F401  (only to fail clearly if unavailable)
+            from volcal.problem.residuals import DenseJacobian
 
+            # the problem's own Jacobian (from its CasADi factors; equal to
+            # ``problem.jacobian``, tests/test_solvers.py) against this engine's
             xs = problem.to_scaled(self.x_hat)
-            r_ca, J_ca = (v.full() for v in problem.jacobian(xs, p))
+            r_ca, J_ca = DenseJacobian(problem)(xs, p)
             r_me = self.residuals(self.x_hat[None, :], meas[None, :])[0]
             g_ca = J_ca.T @ r_ca.ravel()
             g_me = self.gradient(self.x_hat[None, :], meas[None, :])[0]

@@ -235,9 +235,9 @@ def run(args: argparse.Namespace) -> int:
         # draws the plots while this one writes the tables
         with stages("plotting process start"):
             from volcal.outputs import mc_plots
-            from volcal.outputs.plot_process import PlotProcess, warm_up
+            from volcal.outputs.plot_process import PlotProcess
 
-            plotter = PlotProcess.start(warm=(warm_up, mc_plots.warm_up))
+            plotter = PlotProcess.start(warm=(mc_plots.warm_up,))
     try:
         return _run(args, stages, t_run, started, plotter)
     finally:
