@@ -12,6 +12,8 @@ from typing import BinaryIO, Literal
 
 import numpy as np
 
+from volcal.outputs.figures import save
+
 __all__ = ["warm_up"]
 
 
@@ -46,7 +48,7 @@ def _plot_volumetric_U(
         f"{np.max(u_norm):.2f} um)",
         fontsize=10,
     )
-    fig.savefig(path, dpi=110)
+    save(fig, path, dpi=110)
 
 
 def _plot_max_hist(mx: np.ndarray, path: Path | BinaryIO) -> None:
@@ -62,7 +64,7 @@ def _plot_max_hist(mx: np.ndarray, path: Path | BinaryIO) -> None:
     ax.set_xlabel("largest volumetric error over the evaluation poses (um)")
     ax.set_ylabel("trials")
     ax.set_title(f"{len(mx)} trials; 95 % interval [{lo:.2f}, {hi:.2f}] um")
-    fig.savefig(path, dpi=110)
+    save(fig, path, dpi=110)
 
 
 def warm_up() -> None:
