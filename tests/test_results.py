@@ -507,3 +507,22 @@ def test_a_plot_failing_in_the_plotting_process_leaves_no_folder(case, tmp_path,
         pp.close()
     assert list(tmp_path.iterdir()) == []
 
+
+
+def test_plots_drawn_by_the_plotting_processes_equal_those_drawn_here(case, tmp_path):
+    """The plotting children draw from the same data with the same code: every PNG is
+    byte for byte the one this process draws without them."""
+    from volcal.outputs.plot_process import PlotProcess
+
+    here = save_result(case["res"], tmp_path / "here")
+    pp = PlotProcess.start(workers=2)
+    if pp is None:
+        pytest.skip("no plotting process on this platform")
+    try:
+        there = save_result(case["res"], tmp_path / "there", plotter=pp)
+    finally:
+        pp.close()
+    pngs = sorted(p.name for p in here.glob("*.png"))
+    assert len(pngs) == 5 and pngs == sorted(p.name for p in there.glob("*.png"))
+    for name in pngs:
+        assert (here / name).read_bytes() == (there / name).read_bytes(), name
