@@ -129,6 +129,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=HERE / "results" / "mc_whole_process.txt")
     ap.add_argument("--no-write", action="store_true", help="print only")
     args = ap.parse_args(argv)
+    # byte-compiled modules, as an installed copy has them (see compare_scipy.compile_volcal)
+    import compileall
+
+    import volcal
+
+    compileall.compile_dir(Path(volcal.__file__).parent, quiet=1)
 
     exe = args.exe.split() if args.exe else volcal_exe()
     configs = [(m, w) for w in args.workers for m in args.modes]
