@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import platform
 import subprocess
 import sys
 import tempfile
@@ -295,6 +296,12 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"  {n} readings, {th} BLAS thread(s) ...", file=sys.stderr, flush=True)
                 rows.append(measure(n, th, a.repeat, Path(tmp)))
     df = pd.DataFrame(rows)
+    lines: list[str] = []
+
+    def say(text: str = "") -> None:
+        print(text)
+        lines.append(text)
+
     cols = ["volcal_s", "volcal_no_plots_s", "scipy_s", "volcal_solve_s", "scipy_solve_s",
             "volcal_MiB", "scipy_MiB", "volcal_tree_MiB"]
     show = ["readings", "threads", "volcal_s", "volcal_no_plots_s", "scipy_s", "ratio_whole",
@@ -303,31 +310,36 @@ def main(argv: list[str] | None = None) -> int:
            "scipy_MiB", "scipy_tree_MiB", "volcal_cpu_s", "volcal_no_plots_cpu_s",
            "scipy_cpu_s"]
     with pd.option_context("display.width", 200, "display.float_format", "{:.3g}".format):
-        print("whole process, wall seconds (best of the repeats):")
-        print(df[show].to_string(index=False))
-        print("\npeak memory, MiB: *_MiB the largest process (wait4 maxrss), *_tree_MiB the "
+        say("whole process, wall seconds (best of the repeats):")
+        say(df[show].to_string(index=False))
+        say("\npeak memory, MiB: *_MiB the largest process (wait4 maxrss), *_tree_MiB the "
               "sum over the process and its children\n(PSS, sampled every 20 ms; volcal's "
               "plotting children included); CPU seconds of the whole process tree:")
-        print(df[mem].to_string(index=False))
+        say(df[mem].to_string(index=False))
     for th, part in df.groupby("threads"):
         ex = exponents(part, cols)
         if ex:
-            print(f"scaling exponents ({th} thread(s)): "
+            say(f"scaling exponents ({th} thread(s)): "
                   + ", ".join(f"{k} {v:.2f}" for k, v in ex.items()))
     stage_cols = [c for c in df.columns if c.endswith("_s") and (
         c.startswith("volcal_") and c[7:-2] in (*VOLCAL_STAGES, "solve", "plots", "startup")
         or c.startswith("scipy_") and c[6:-2] in ("imports", "read", "model", "setup",
                                                    "solve", "covariance", "write"))]
     for th, part in df.groupby("threads"):
-        print(f"\nper stage, seconds, volcal / scipy script ({th} thread(s)); volcal's "
+        say(f"\nper stage, seconds, volcal / scipy script ({th} thread(s)); volcal's "
               "start-up includes the interpreter and imports:")
-        print(stage_table(part))
+        say(stage_table(part))
         ex = exponents(part, stage_cols)
         if ex:
-            print(f"stage scaling exponents ({th} thread(s)): "
+            say(f"stage scaling exponents ({th} thread(s)): "
                   + ", ".join(f"{k[:-2]} {v:.2f}" for k, v in ex.items()))
     a.out.mkdir(parents=True, exist_ok=True)
     df.to_csv(a.out / "compare_scipy.csv", index=False)
+    (a.out / "compare_scipy.txt").write_text(
+        f"python benchmarks/compare_scipy.py {' '.join(argv or sys.argv[1:])}".rstrip()
+        + f"\n{platform.platform()}, {os.cpu_count()} CPUs, Python {platform.python_version()}"
+        + "\n\n" + "\n".join(lines) + "\n"
+    )
     try:
         import matplotlib
 
