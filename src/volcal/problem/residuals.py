@@ -157,12 +157,14 @@ class IdentificationProblem:
         qs, ts, ths = ca.SX.sym("q", n_ax), ca.SX.sym("t", 3), ca.SX.sym("theta", nt)
         e = em.values_function()(qs, ths * ca.DM(sc[:nt]))
         point = m["tool_point_exact" if self.exact else "tool_point"](qs, ts, e)[0]
+        # d(point)/d(theta) transposed (nt x 3): mapped over the poses it gives
+        # [G_0^T | G_1^T | ...] = G_stack^T, so G_stack is one transpose (no index list)
         f_pose = ca.Function(
             "pose",
             [qs, ts, ths],
-            [point, ca.jacobian(point, ths)],
+            [point, ca.jacobian(point, ths).T],
             ["q", "t", "theta"],
-            ["p", "dp_dtheta"],
+            ["p", "dp_dtheta_T"],
             {"cse": True},
         )
         # the point alone: the objective and the residuals need no derivative (an MX call
@@ -206,7 +208,7 @@ class IdentificationProblem:
         Np = len(first)
         sel = ca.DM(ca.Sparsity.triplet(n_st, N, [int(i) for i in st_idx], list(range(N))), 1.0)
         S = ca.mtimes(ca.reshape(sp, n_ps, n_st), sel)
-        P, G = f_pose.map(Np)(Q[:, first.tolist()], T[:, first.tolist()], th)
+        P, GT = f_pose.map(Np)(Q[:, first.tolist()], T[:, first.tolist()], th)
         Pr = P[:, pose_idx.tolist()]  # the point of every reading
         r_row, rows = f_read.map(N)(Pr, S, g, meas.T, w.T)
         r = r_row.T
@@ -225,7 +227,7 @@ class IdentificationProblem:
                 self._csc_order(N, 3 * Np, np.repeat(ar, 3), cols, np.arange(3 * N))
             ],
         )
-        Gs = self._stack_poses(G, Np, nt)  # (3 n_poses, nt), shared with the Hessian
+        Gs = GT.T  # G_stack (3 n_poses, nt), shared with the Hessian
         # station and global columns: one nonzero per row per variable
         rr = np.concatenate([ar] * (n_ps + n_g))
         cc = np.concatenate(
@@ -266,7 +268,7 @@ class IdentificationProblem:
         # through the map (which cost half of a small solve), through J's factors:
         # J^T r = [G_stack^T (D^T r); J_rest^T r]
         Dt = D.T
-        Jt_r = ca.vertcat(ca.mtimes(Gs.T, ca.mtimes(Dt, r)), ca.mtimes(Jr.T, r))
+        Jt_r = ca.vertcat(ca.mtimes(GT, ca.mtimes(Dt, r)), ca.mtimes(Jr.T, r))
         self.grad_f = ca.Function(
             "nlp_grad_f",
             [xs, p],
@@ -285,7 +287,7 @@ class IdentificationProblem:
         # so the flops are 3 n_poses n_theta^2 (not N n_theta^2), all in CasADi: the
         # Function can be expanded, serialised and code-generated.
         right = ca.densify(ca.horzcat(ca.mtimes(ca.mtimes(Dt, D), Gs), ca.mtimes(Dt, Jr)))
-        H_top = dense_mtimes(Gs.T, right)  # [H_tt | H_tr] in one product
+        H_top = dense_mtimes(GT, right)  # [H_tt | H_tr] in one product
         H_tt, H_tr = H_top[:, :nt], H_top[:, nt:]
         H_rr = ca.mtimes(Jr.T, Jr)
         H = ca.blockcat([[H_tt, H_tr], [H_tr.T, H_rr]])
@@ -372,19 +374,6 @@ class IdentificationProblem:
         matrix built from triplets (rr, cc) whose values sit at positions src."""
         order = np.lexsort((rr, cc))
         return np.asarray(src)[order].tolist()
-
-    @staticmethod
-    def _stack_poses(G: ca.MX, n_poses: int, nt: int) -> ca.MX:
-        """(3, n_poses * nt) [G_0 | G_1 | ...] -> (3 n_poses, nt) [G_0; G_1; ...]."""
-        # column-major: vec(G) runs G_0 col 0, G_0 col 1, ...; reshape to (3, nt, n_poses)
-        # then bring the pose index in front of the component index
-        idx = (
-            np.arange(3)[None, :, None]
-            + 3 * np.arange(nt)[None, None, :]
-            + 3 * nt * np.arange(n_poses)[:, None, None]
-        )  # (n_poses, 3, nt)
-        flat = idx.transpose(2, 0, 1).reshape(-1)  # column-major order of the result
-        return ca.reshape(ca.vec(G)[flat.tolist()], 3 * n_poses, nt)
 
     # ---- packing ------------------------------------------------------------------------
     @staticmethod
