@@ -167,7 +167,9 @@ class PlotProcess:
 
     def __init__(self, proc, conns: list) -> None:
         self._proc, self._conns = proc, conns
-        self._senders = [_Sender(c) for c in conns]
+        # the sending threads start with the first request: a command that forks worker
+        # processes meanwhile (volcal mc) then forks while this process has one thread
+        self._senders: list[_Sender] = []
         self._pending = [0] * len(conns)
         self._queued = [0.0] * len(conns)
 
@@ -203,6 +205,8 @@ class PlotProcess:
 
     def draw(self, func: Callable[..., Any], *args: Any, cost: float = 1.0) -> None:
         """Ask for ``func(*args)`` (a module-level function; plain-data arguments)."""
+        if not self._senders:
+            self._senders = [_Sender(c) for c in self._conns]
         i = min(range(len(self._conns)), key=lambda k: self._queued[k])
         self._senders[i].send((func, args))
         self._pending[i] += 1
