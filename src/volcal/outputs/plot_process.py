@@ -51,7 +51,10 @@ def warm_up() -> None:
 
 
 def _serve_requests(conn) -> None:  # pragma: no cover - runs in a child
-    """Draw on request, ``(function, args)`` -> ``("ok" | "error", text)``, until None."""
+    """Draw on request, ``(function, args)`` -> ``("ok" | "error", text)``, until None;
+    after each answer, the figure's garbage is collected (the collector is off while
+    drawing: 6 ms here instead of a quarter of the drawing time, and 15-20 MB less)."""
+    import gc
     import traceback
 
     while True:
@@ -67,6 +70,7 @@ def _serve_requests(conn) -> None:  # pragma: no cover - runs in a child
             conn.send(("ok", ""))
         except Exception:
             conn.send(("error", traceback.format_exc()))
+        gc.collect()
 
 
 def _zygote(  # pragma: no cover - runs in a child
