@@ -34,7 +34,8 @@ def constrained_covariance(
     # pseudo-inverse via SVD: exact for full rank, and never explodes on a near-null direction
     from volcal.analysis.identifiability import _r_factor
 
-    R = _r_factor(Jf * d) @ Z
+    Jf *= d  # Jf is a copy (fancy indexing): scaled in place, then factorised in place
+    R = _r_factor(Jf) @ Z
     _, s, Vt = np.linalg.svd(R, full_matrices=False)
     keep = s > max(Jf.shape) * np.finfo(float).eps * (s[0] if len(s) else 0)
     Minv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]

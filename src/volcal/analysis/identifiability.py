@@ -103,11 +103,12 @@ def _describe(v: np.ndarray, names: list[str], lead: int, rel: float = 1e-3) -> 
 
 def _r_factor(A: np.ndarray) -> np.ndarray:
     """R of a QR factorisation (square, n x n); LAPACK geqrf through SciPy, which is much
-    faster than numpy's mode='r' on tall matrices."""
+    faster than numpy's mode='r' on tall matrices.  A tall ``A`` is overwritten (the
+    callers pass a temporary: no second copy of the tall matrix)."""
     m, n = A.shape
     if m <= n:
         return np.vstack([A, np.zeros((n - m, n))]) if m < n else A.copy()
-    return sla.qr(A, mode="r", check_finite=False)[0][:n]
+    return sla.qr(A, mode="r", overwrite_a=True, check_finite=False)[0][:n]
 
 
 @dataclass

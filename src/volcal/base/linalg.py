@@ -16,7 +16,8 @@ def scale_columns(
     J = np.asarray(J, float)
     fixed = np.zeros(J.shape[1], bool) if fixed is None else np.asarray(fixed, bool)
     free = np.flatnonzero(~fixed)
-    Jf = J[:, free]
+    Jf = J[:, free]  # a copy: scaled in place (one tall array, not two)
     norms = np.linalg.norm(Jf, axis=0)
     d = 1.0 / np.where(norms == 0, 1.0, norms)
-    return free, norms, d, Jf * d
+    Jf *= d
+    return free, norms, d, Jf

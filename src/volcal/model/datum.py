@@ -135,7 +135,11 @@ def null_space(
     m, n = np.shape(J)
     free, _, d, A = scale_columns(J, fixed)
     # one QR of the tall matrix, then the SVD of its small R factor
-    R = sla.qr(A, mode="r", check_finite=False)[0][: len(free)] if m > len(free) else A
+    R = (
+        sla.qr(A, mode="r", overwrite_a=True, check_finite=False)[0][: len(free)]
+        if m > len(free)
+        else A
+    )
     _, s, Vt = np.linalg.svd(R, full_matrices=True)
     s_full = np.zeros(len(free))
     s_full[: len(s)] = s
