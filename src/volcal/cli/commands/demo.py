@@ -46,9 +46,12 @@ def run_demo(
     strategy: str = "joint",
     example_name: str = "mcv754",
     plots: bool = True,
+    plotter=None,
 ) -> DemoSummary:
     """Simulate the bundled example, identify it, analyse it and write everything to
-    ``out_dir`` (``simulation/``, ``identification/``, ``truth_comparison.csv``)."""
+    ``out_dir`` (``simulation/``, ``identification/``, ``truth_comparison.csv``);
+    ``plotter``: a :class:`volcal.outputs.plot_process.PlotProcess` that draws the plots
+    (else they are drawn here)."""
     from volcal.analysis.identify import identify, rigid_fit
     from volcal.base.folders import check_out_dir, write_folder
     from volcal.measurement.simulate import example, save_simulation
@@ -104,6 +107,7 @@ def run_demo(
             data_name="simulation/measurements.csv",
             plots=plots,
             force=True,
+            plotter=plotter,
         )
         table.to_csv(tmp / "truth_comparison.csv", index=False)
 
@@ -147,7 +151,25 @@ def _adequacy_line(res) -> str:
 
 
 def _handler(args: argparse.Namespace) -> int:
-    s = run_demo(args.out, seed=args.seed, strategy=args.strategy, plots=not args.no_plots)
+    plotter = None
+    if not args.no_plots:
+        # as volcal identify: plotting children that import matplotlib meanwhile
+        import numpy  # noqa: F401  (the children inherit it)
+
+        from volcal.outputs.plot_process import PlotProcess
+
+        plotter = PlotProcess.start(workers=2)
+    try:
+        s = run_demo(
+            args.out,
+            seed=args.seed,
+            strategy=args.strategy,
+            plots=not args.no_plots,
+            plotter=plotter,
+        )
+    finally:
+        if plotter is not None:
+            plotter.close()
     if not args.quiet:
         print(f"volcal demo: MCV 754 example, {s.n_readings} simulated length readings")
         print(f"  solver status            {s.status}")
