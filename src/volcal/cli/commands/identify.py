@@ -286,6 +286,9 @@ def _run(args: argparse.Namespace, plotter) -> int:
         columns=args.columns,
     )
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
+    from volcal.base.processes import return_freed_memory
+
+    return_freed_memory()  # the solve's freed work memory, before the plotting processes draw
     options = {
         "model": args.model,
         "strategy": args.strategy,
