@@ -78,9 +78,7 @@ def test_dense_jacobian_is_the_problems_jacobian(model, instrument):
     pr = ider.problem
     rng = np.random.default_rng(3)
     xs = rng.normal(size=pr.n_x)
-    xs[pr.n_theta:] += pr.to_scaled(pr.pack_x(np.zeros(pr.n_theta), np.zeros(
-        (len(meas.station_ids), pr.instrument.n_station_params)), None))[pr.n_theta:]
-    # stations about 1.5 m away so that every length is well defined
+    # stations about 1.5 m away (scaled units of 1 um) so that every length is well defined
     n_ps = pr.instrument.n_station_params
     for k in range(len(meas.station_ids)):
         xs[pr.n_theta + n_ps * k: pr.n_theta + n_ps * k + 3] += 1.5e6 * rng.uniform(-1, 1, 3)

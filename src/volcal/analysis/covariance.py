@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg as sla
 
+from volcal.base.linalg import scale_columns
+
 
 def constrained_covariance(
     J: np.ndarray, C: np.ndarray | None = None, *, fixed: np.ndarray | None = None
@@ -20,11 +22,8 @@ def constrained_covariance(
     J = np.asarray(J, float)
     n = J.shape[1]
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
-    free = np.flatnonzero(~fixed)
-    Jf = J[:, free]
-    # scale columns for a well-conditioned inverse, undo afterwards
-    norms = np.linalg.norm(Jf, axis=0)
-    d = 1.0 / np.where(norms > 0, norms, 1.0)
+    # columns scaled to unit norm for a well-conditioned inverse, undone afterwards
+    free, _, d, Jf = scale_columns(J, fixed)
     if C is not None and len(C):
         Cf = np.asarray(C, float)[:, free] * d
         Cf = Cf[np.linalg.norm(Cf, axis=1) > 0]
@@ -34,10 +33,10 @@ def constrained_covariance(
     # pseudo-inverse via SVD: exact for full rank, and never explodes on a near-null direction
     from volcal.analysis.identifiability import _r_factor
 
-    Jf *= d  # Jf is a copy (fancy indexing): scaled in place, then factorised in place
-    R = _r_factor(Jf) @ Z
+    m = Jf.shape[0]
+    R = _r_factor(Jf) @ Z  # factorises the scaled copy in place
     _, s, Vt = np.linalg.svd(R, full_matrices=False)
-    keep = s > max(Jf.shape) * np.finfo(float).eps * (s[0] if len(s) else 0)
+    keep = s > max(m, len(free)) * np.finfo(float).eps * (s[0] if len(s) else 0)
     Minv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
     cov_s = Z @ Minv @ Z.T
     cov = np.full((n, n), np.nan)

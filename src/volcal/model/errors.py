@@ -335,7 +335,8 @@ class ErrorModel:
     def apply_basis(self, A: np.ndarray, q: np.ndarray) -> np.ndarray:
         """``A @ basis(q)`` for A (N, m, n_errors) (e.g. d(point)/d(errors)): (N, m,
         n_params), without forming the basis (N, n_errors, n_params), whose entries are
-        zero but for each error's own parameters (34 MB for a thousand points)."""
+        zero but for each error's own parameters (18 MB for the declared set of the bundled
+        example, 1,056 points)."""
         q = np.atleast_2d(np.asarray(q, float))
         A = np.asarray(A, float)
         out = np.empty(A.shape[:2] + (self.n_params,))

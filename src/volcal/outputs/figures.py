@@ -26,7 +26,6 @@ __all__ = [
     "draw_residuals",
     "draw_residuals_vs_axes",
     "draw_correlations",
-    "DRAW",
 ]
 
 DPI = 100
@@ -262,13 +261,3 @@ def draw_correlations(data: dict[str, Any], path: Target = None, max_labels: int
     )
     fig.subplots_adjust(left=0.12, right=0.84, bottom=0.12, top=0.94)
     return save(fig, path)
-
-
-#: the result folder's plots: file name -> drawing function
-DRAW = {
-    "component_errors.png": draw_component_errors,
-    "volumetric_map.png": draw_volumetric_slices,
-    "residuals.png": draw_residuals,
-    "residuals_vs_axes.png": draw_residuals_vs_axes,
-    "correlations.png": draw_correlations,
-}

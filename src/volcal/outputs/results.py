@@ -1177,16 +1177,6 @@ def check_out_dir(out_dir: str | Path) -> Path:
     return _check(out_dir, RESULT_FILES + OPTIONAL_FILES, "an identification", marker="result.json")
 
 
-#: relative drawing times of the plots (to share them between plotting processes)
-_PLOT_COST = {
-    "component_errors.png": 3.0,
-    "residuals_vs_axes.png": 2.0,
-    "volumetric_map.png": 1.5,
-    "residuals.png": 1.5,
-    "correlations.png": 1.5,
-}
-
-
 def save_result(
     result: IdentificationResult,
     out_dir: str | Path,
@@ -1240,8 +1230,8 @@ def save_result(
                 # draw them while this process writes the tables and the report
                 requests = P.plot_requests(result, comp)
                 if plotter is not None:
-                    for name, draw, data in requests:
-                        plotter.draw(draw, data, tmp / name, cost=_PLOT_COST.get(name, 1.0))
+                    for name, draw, data, cost in requests:
+                        plotter.draw(draw, data, tmp / name, cost=cost)
         log.info("writing the result tables (temporary folder %s)", tmp)
         with progress.stage("writing the tables"):
             result.parameters().to_csv(tmp / "parameters.csv", index=False)
@@ -1286,7 +1276,7 @@ def save_result(
                 if plotter is not None:
                     plotter.wait()
                 else:
-                    for name, draw, data in requests:
+                    for name, draw, data, _ in requests:
                         draw(data, tmp / name)
 
     out = write_folder(
