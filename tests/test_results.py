@@ -218,6 +218,10 @@ def _fail_draw(data, path):
     raise RuntimeError("plot failed")
 
 
+def _die_draw(data, path):
+    os._exit(3)  # a plotting child killed mid-figure (out of memory, a signal)
+
+
 def test_a_failure_mid_write_leaves_no_folder(case, tmp_path, monkeypatch):
     # the component plot (slow) is stubbed; the failure comes after the tables, result.json
     # and one plot are in the temporary folder
@@ -508,6 +512,25 @@ def test_a_plot_failing_in_the_plotting_process_leaves_no_folder(case, tmp_path,
     assert list(tmp_path.iterdir()) == []
 
 
+
+def test_a_plotting_process_that_dies_fails_the_write_and_leaves_no_folder(
+    case, tmp_path, monkeypatch
+):
+    """A plotting child that ends without answering (killed mid-figure) is an error the
+    parent reports, not a wait forever; nothing is renamed into place."""
+    from volcal.outputs import figures
+    from volcal.outputs.plot_process import PlotProcess
+
+    monkeypatch.setattr(figures, "draw_correlations", _die_draw)
+    pp = PlotProcess.start(workers=2)
+    if pp is None:
+        pytest.skip("no plotting process on this platform")
+    try:
+        with pytest.raises(RuntimeError, match="ended unexpectedly"):
+            save_result(case["res"], tmp_path / "new", plotter=pp)
+    finally:
+        pp.close()
+    assert list(tmp_path.iterdir()) == []
 
 def test_plots_drawn_by_the_plotting_processes_equal_those_drawn_here(case, tmp_path):
     """The plotting children draw from the same data with the same code: every PNG is
