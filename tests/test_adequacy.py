@@ -105,6 +105,10 @@ def test_outliers_are_flagged_as_outliers(xfyz):
     assert o["n_beyond_5_robust"] >= len(bad) and o["n_beyond_5_sigma"] >= len(bad)
     assert o["max_abs"] > 50 and o["excess_kurtosis"] > 10
     assert ad.causes[0].numbers["n_beyond_5_robust"] == o["n_beyond_5_robust"]
+    # what result.json keeps reads back as the same verdict (causes, structure and all)
+    from volcal.analysis.adequacy import Adequacy
+
+    assert Adequacy.from_dict(json.loads(json.dumps(ad.to_dict()))) == ad
 
 
 @pytest.mark.parametrize("scale", [1 / 3, 3.0])

@@ -93,7 +93,10 @@ def poor(demo):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the single tool offset is warned about
         res = identify(example("mcv754").machine, m, degree=1)
-    return save_result(res, demo["tmp"] / "poor", data_name="one_tool.csv", plots=False)
+    folder = save_result(res, demo["tmp"] / "poor", data_name="one_tool.csv", plots=False)
+    # the same result with its plots, for the report's drawing of the plots it lacks
+    save_result(res, demo["tmp"] / "poor_plotted", data_name="one_tool.csv")
+    return folder
 
 
 # --------------------------------------------------------------------------------------
@@ -146,15 +149,44 @@ def test_report_is_self_contained_with_every_section(demo, monkeypatch, capsys):
 
 
 def test_an_inadequate_fit_says_so_in_a_red_banner(poor):
-    html = hr.html_report(poor)
+    html = hr.html_report(poor, plots=False)
     banner = html.split('id="adequacy-verdict"')[1].split("</div>")[0]
     assert 'class="banner bad"' in html.split('id="adequacy-verdict"')[0][-80:]
     assert 'data-verdict="inadequate"' in banner
     assert "does NOT fit the data" in banner and "Likely cause" in banner
     assert "not identifiable from these data" in html and "EAZ_0" in html
     assert "not identifiable</td>" in html  # their std cell in the parameters table
-    assert 'id="plots"' not in html and "<img" not in html  # no plots were written
+    assert 'id="plots"' not in html and "<img" not in html  # plots=False
     assert "one_tool.csv" in html
+
+
+def test_the_plots_a_folder_lacks_are_drawn_from_the_saved_result(
+    poor, demo, tmp_path, monkeypatch, capsys
+):
+    """A result written without plots (``volcal identify --no-plots``) gets them in its
+    report, drawn from the saved tables: byte for byte the PNGs save_result draws for the
+    same result (an inadequate fit with unidentifiable parameters: dashed lines, no
+    bands), in the same order; the folder is only read.  ``--no-plots`` leaves them out."""
+    before = folder_hashes(poor)
+    out = tmp_path / "report.html"
+    assert run_cli(["report", "--result", str(poor), "--out", str(out)], monkeypatch) == 0
+    assert folder_hashes(poor) == before
+    html = out.read_text(encoding="utf-8")
+    images = [v for t, a, v in parse(html).refs if t == "img"]
+    plotted = demo["tmp"] / "poor_plotted"
+    names = [n for n in hr.PLOT_FILES if (plotted / n).is_file()]
+    assert len(names) == 5 and len(images) == 5
+    prefix = "data:image/png;base64,"
+    for name, src in zip(names, images):
+        assert src.startswith(prefix)
+        assert base64.b64decode(src[len(prefix):]) == (plotted / name).read_bytes(), name
+    # and the same images as the report of the folder that has them
+    assert images == [v for t, a, v in parse(hr.html_report(plotted)).refs if t == "img"]
+
+    out2 = tmp_path / "bare.html"
+    assert run_cli(["report", "--result", str(poor), "--out", str(out2), "--no-plots"],
+                   monkeypatch) == 0
+    assert "<img" not in out2.read_text(encoding="utf-8")
 
 
 def test_text_is_escaped(demo):

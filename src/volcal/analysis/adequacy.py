@@ -155,6 +155,24 @@ class Adequacy:
         d["adequate"] = self.adequate
         return d
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Adequacy:
+        """The inverse of :meth:`to_dict` (a saved result's ``adequacy``)."""
+        return cls(
+            verdict=str(d["verdict"]),
+            chi2_per_dof=float(d["chi2_per_dof"]),
+            dof=int(d["dof"]),
+            interval=(float(d["interval"][0]), float(d["interval"][1])),
+            n_readings=int(d["n_readings"]),
+            n_stations=int(d["n_stations"]),
+            causes=tuple(Cause(**c) for c in d.get("causes", ())),
+            structure=tuple(AxisStructure(**s) for s in d.get("structure", ())),
+            outliers=dict(d.get("outliers", {})),
+            budget_factor=float(d["budget_factor"]),
+            warnings=tuple(d.get("warnings", ())),
+            message=str(d["message"]),
+        )
+
     def lines(self) -> list[str]:
         """The message and the warnings, one per line."""
         return [self.message, *self.warnings]

@@ -188,6 +188,48 @@ def _caption(name: str) -> str:
     return words[:1].upper() + words[1:]
 
 
+def _png_bytes_uri(data: bytes) -> str:
+    return "data:image/png;base64," + base64.b64encode(data).decode("ascii")
+
+
+def _drawn_plots(res: LoadedResult, names: list[str]) -> dict[str, bytes]:
+    """The result plots ``names`` (of :data:`PLOT_FILES`) drawn from the saved result, as
+    PNG bytes: the figures ``volcal identify`` draws, from the same data (a folder
+    written with ``--no-plots``)."""
+    import io
+
+    from volcal.base import progress
+    from volcal.outputs.plots import saved_plot_requests
+
+    out: dict[str, bytes] = {}
+    with progress.stage("drawing the plots the result folder lacks"):
+        for name, draw, data, _cost in saved_plot_requests(res):
+            if name in names:
+                buf = io.BytesIO()
+                draw(data, buf)
+                out[name] = buf.getvalue()
+    return out
+
+
+def _plots(res: LoadedResult, draw_missing: bool) -> list[dict[str, str]]:
+    """The plots section: every plot of the result folder (:func:`_plot_names`) and, with
+    ``draw_missing``, the result plots it lacks, drawn from the saved result."""
+    folder = res.path
+    names = _plot_names(folder)
+    missing = [n for n in PLOT_FILES if n not in names] if draw_missing else []
+    drawn = _drawn_plots(res, missing) if missing else {}
+    order = [n for n in PLOT_FILES if n in names or n in drawn]
+    order += [n for n in names if n not in PLOT_FILES]
+    return [
+        {
+            "name": n,
+            "caption": _caption(n),
+            "src": _png_bytes_uri(drawn[n]) if n in drawn else _png_data_uri(folder / n),
+        }
+        for n in order
+    ]
+
+
 def _plot_names(folder: Path) -> list[str]:
     """The plots of the folder: the known ones in their order, then any other PNG the
     manifest lists (a file volcal did not write is never embedded)."""
@@ -513,12 +555,18 @@ def _environment() -> jinja2.Environment:
 
 
 def html_report(
-    result_dir: Path, *, compensation_dir: Path | None = None, title: str | None = None
+    result_dir: Path,
+    *,
+    compensation_dir: Path | None = None,
+    title: str | None = None,
+    plots: bool = True,
 ) -> str:
     """The report of the result folder ``result_dir`` as one self-contained HTML document.
 
     compensation_dir: a folder written by ``volcal compensate`` from this result (its
-    summary is added); title: the document title (default: the model's name).  Raises
+    summary is added); title: the document title (default: the model's name); plots: embed
+    the folder's plots, and draw from the saved result those it lacks (a result written
+    with ``--no-plots``; about a second); False: no plots section.  Raises
     :class:`InputError` naming the folder when it is missing or not a result (or the
     compensation folder is not an export for the same model).
     """
@@ -532,10 +580,6 @@ def html_report(
     folder = res.path
     residuals = _read_table(folder, "residuals.csv")
     grid = _read_table(folder, "volumetric_grid.csv")
-    plots = [
-        {"name": n, "caption": _caption(n), "src": _png_data_uri(folder / n)}
-        for n in _plot_names(folder)
-    ]
     context = {
         "header": _header(res, title, compensation_dir),
         "model": _model(res),
@@ -545,7 +589,7 @@ def html_report(
         "unid": _unidentifiable(res),
         "uncertainty": _uncertainty(res, grid),
         "parameters": _parameters(res),
-        "plots": plots,
+        "plots": _plots(res, draw_missing=True) if plots else [],
         "compensation": comp,
     }
     return _environment().get_template(TEMPLATE).render(context)
@@ -642,9 +686,10 @@ def write_report(
     compensation_dir: Path | None = None,
     pdf: bool = False,
     title: str | None = None,
+    plots: bool = True,
 ) -> Path:
     """Write the report of ``result_dir`` (see :func:`html_report`) to ``out_file`` and
-    return the path written (``title``: see :func:`html_report`).
+    return the path written (``title``, ``plots``: see :func:`html_report`).
 
     With ``pdf`` the document is printed to PDF by a headless Chromium and written to
     ``out_file`` with the suffix ``.pdf``; without one installed :class:`InputError` says
@@ -672,7 +717,9 @@ def write_report(
                 "chromium-browser and google-chrome on the PATH); install Chromium or "
                 "write the HTML report and print it from a browser"
             )
-    html = html_report(Path(result_dir), compensation_dir=compensation_dir, title=title)
+    html = html_report(
+        Path(result_dir), compensation_dir=compensation_dir, title=title, plots=plots
+    )
     if browser is not None:
         _atomic_write(out, lambda tmp: _print_pdf(browser, html, tmp))
     else:

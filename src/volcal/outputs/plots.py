@@ -20,6 +20,7 @@ folder's plots can be drawn in a plotting child process (:func:`plot_requests`).
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -39,6 +40,7 @@ __all__ = [
     "residuals_vs_axes_data",
     "correlations_data",
     "plot_requests",
+    "saved_plot_requests",
 ]
 
 _VOL = ["dx_um", "dy_um", "dz_um"]
@@ -377,14 +379,30 @@ def correlations(result: Any, path: Target = None, max_labels: int = 60):
 # the result folder
 
 
-def plot_requests(result: Any, component_table: pd.DataFrame) -> list[tuple[str, Any, dict, float]]:
+def plot_requests(
+    result: Any,
+    component_table: pd.DataFrame,
+    *,
+    residuals: pd.DataFrame | None = None,
+    adequacy: Any = "assess",
+) -> list[tuple[str, Any, dict, float]]:
     """The result folder's plots as ``(file name, drawing function, data, cost)``, the
     most expensive first; cost: the relative drawing time (measured on the example), by
     which :class:`volcal.outputs.plot_process.PlotProcess` shares them between its
-    children."""
+    children.
+
+    result: an identification result, or a saved one (:func:`saved_plot_requests`);
+    component_table: :func:`volcal.outputs.results.component_error_table`; residuals and
+    adequacy: the residual table and model adequacy (default ``result.residuals`` and
+    :func:`volcal.analysis.adequacy.assess` of the result; None: no adequacy test in the
+    residual plot's title)."""
     from volcal.analysis.adequacy import assess
 
     spec = result.machine.spec
+    if residuals is None:
+        residuals = result.residuals
+    if isinstance(adequacy, str) and adequacy == "assess":
+        adequacy = assess(result)
     # costs: seconds to draw each on the bundled example (warm matplotlib, one core)
     return [
         (
@@ -404,12 +422,30 @@ def plot_requests(result: Any, component_table: pd.DataFrame) -> list[tuple[str,
             "residuals_vs_axes.png",
             F.draw_residuals_vs_axes,
             residuals_vs_axes_data(
-                result.residuals,
+                residuals,
                 spec.axis_names,
                 [_unit(spec, a) for a in spec.axis_names],
-                adequacy=assess(result),
+                adequacy=adequacy,
             ),
             0.09,
         ),
-        ("residuals.png", F.draw_residuals, residuals_data(result.residuals), 0.09),
+        ("residuals.png", F.draw_residuals, residuals_data(residuals), 0.09),
     ]
+
+
+def saved_plot_requests(saved: Any) -> list[tuple[str, Any, dict, float]]:
+    """:func:`plot_requests` of a saved result (:func:`volcal.outputs.results.
+    load_result`), from its folder's tables (``component_errors.csv``,
+    ``residuals.csv``) and saved adequacy test: the same data, so the same figures, as
+    ``volcal identify`` draws (a result written with ``--no-plots`` can get its plots
+    later, e.g. in ``volcal report``)."""
+    from volcal.analysis.adequacy import Adequacy
+
+    folder = Path(saved.path)
+    ad = saved.meta.get("adequacy")
+    return plot_requests(
+        saved,
+        pd.read_csv(folder / "component_errors.csv"),
+        residuals=pd.read_csv(folder / "residuals.csv"),
+        adequacy=Adequacy.from_dict(ad) if ad else None,
+    )

@@ -181,7 +181,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         metavar="DIR",
         help="output folder (created; a previous result folder is replaced with --force)",
     )
-    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument(
+        "--no-plots",
+        action="store_true",
+        help="skip the PNG plots (0.4 s; `volcal report` draws them later from the result)",
+    )
     p.set_defaults(func=run)
     return p
 

@@ -9,10 +9,11 @@ Examples::
 The report holds the model, the data summary, the datum in force, the identification with
 its model adequacy verdict (a fit that does not fit says so in a red banner), what the
 data do not determine, the uncertainties, every parameter (six significant digits), the
-plots of the result folder and, with ``--compensation``, the summary of a ``volcal
-compensate`` export.  It is one file: CSS inline, plots embedded as data URIs, no script,
-no external address.  Everything is read from the folders; nothing is identified again.
-See :mod:`volcal.outputs.html_report`.
+plots of the result folder (those it lacks, e.g. written with ``volcal identify
+--no-plots``, are drawn from the saved result: the same figures) and, with
+``--compensation``, the summary of a ``volcal compensate`` export.  It is one file: CSS
+inline, plots embedded as data URIs, no script, no external address.  Everything is
+read from the folders; nothing is identified again.  See :mod:`volcal.outputs.html_report`.
 
 ``--pdf`` prints it to PDF (``--out`` with the suffix ``.pdf``) through a headless
 Chromium (chromium, chromium-browser or google-chrome on the PATH).  The input folders are
@@ -64,6 +65,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         action="store_true",
         help="print to PDF with a headless Chromium; the output gets the suffix .pdf",
     )
+    p.add_argument(
+        "--no-plots",
+        action="store_true",
+        help="leave the plots out (by default the result folder's plots are embedded and "
+        "those it lacks are drawn from the saved result)",
+    )
     p.set_defaults(func=run)
     return p
 
@@ -94,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
         compensation_dir=args.compensation,
         pdf=args.pdf,
         title=args.title,
+        plots=not args.no_plots,
     )
     if not getattr(args, "quiet", False):
         print(f"wrote {written} ({written.stat().st_size / 1024:.0f} kB)")
