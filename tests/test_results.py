@@ -493,44 +493,35 @@ def test_identify_cli_solver_failure_exits_1(case, tmp_path, monkeypatch, capsys
     assert not out.exists() and os.listdir(tmp_path) == []
 
 
-def test_a_plot_failing_in_the_plotting_process_leaves_no_folder(case, tmp_path, monkeypatch):
-    """With the plots drawn by plotting children (as ``volcal identify`` does), a figure
-    that fails there fails the write: nothing is renamed into place, and the error names
-    the failure."""
-    from volcal.outputs import figures
-    from volcal.outputs.plot_process import PlotProcess
-
-    monkeypatch.setattr(figures, "draw_residuals", _fail_draw)
-    pp = PlotProcess.start(workers=2)
-    if pp is None:
-        pytest.skip("no plotting process on this platform")
-    try:
-        with pytest.raises(RuntimeError, match="plot failed"):
-            save_result(case["res"], tmp_path / "new", plotter=pp)
-    finally:
-        pp.close()
-    assert list(tmp_path.iterdir()) == []
-
-
-
-def test_a_plotting_process_that_dies_fails_the_write_and_leaves_no_folder(
-    case, tmp_path, monkeypatch
+@pytest.mark.parametrize(
+    "figure, draw, message",
+    [
+        ("draw_residuals", _fail_draw, "(?s)plotting failed:.*plot failed"),
+        ("draw_correlations", _die_draw, "ended unexpectedly"),
+    ],
+    ids=["fails", "dies"],
+)
+def test_a_plot_failing_in_the_plotting_process_leaves_no_folder(
+    case, tmp_path, monkeypatch, figure, draw, message
 ):
-    """A plotting child that ends without answering (killed mid-figure) is an error the
-    parent reports, not a wait forever; nothing is renamed into place."""
+    """With the plots drawn by plotting children (as ``volcal identify`` does), a figure
+    that fails there, or a child that ends without answering (killed mid-figure), fails
+    the write with an error that says so (not a wait forever): nothing is renamed into
+    place."""
     from volcal.outputs import figures
     from volcal.outputs.plot_process import PlotProcess
 
-    monkeypatch.setattr(figures, "draw_correlations", _die_draw)
+    monkeypatch.setattr(figures, figure, draw)
     pp = PlotProcess.start(workers=2)
     if pp is None:
         pytest.skip("no plotting process on this platform")
     try:
-        with pytest.raises(RuntimeError, match="ended unexpectedly"):
+        with pytest.raises(RuntimeError, match=message):
             save_result(case["res"], tmp_path / "new", plotter=pp)
     finally:
         pp.close()
     assert list(tmp_path.iterdir()) == []
+
 
 def test_plots_drawn_by_the_plotting_processes_equal_those_drawn_here(case, tmp_path):
     """The plotting children draw from the same data with the same code: every PNG is
