@@ -35,7 +35,7 @@ from collections.abc import Callable, Iterable, Mapping
 from datetime import UTC, datetime
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jinja2
 import numpy as np
@@ -51,9 +51,12 @@ from volcal.outputs.results import (
     load_result,
 )
 
+if TYPE_CHECKING:
+    from volcal.outputs.plot_process import PlotProcess
+
 log = logging.getLogger(__name__)
 
-__all__ = ["html_report", "write_report", "find_browser", "TEMPLATE"]
+__all__ = ["html_report", "write_report", "find_browser", "missing_plots", "TEMPLATE"]
 
 TEMPLATE_DIR = Path(__file__).parent / "templates" / "report"
 TEMPLATE = "report.html.j2"
@@ -192,10 +195,18 @@ def _png_bytes_uri(data: bytes) -> str:
     return "data:image/png;base64," + base64.b64encode(data).decode("ascii")
 
 
-def _drawn_plots(res: LoadedResult, names: list[str]) -> dict[str, bytes]:
+def missing_plots(result_dir: Path) -> list[str]:
+    """The result plots (:data:`PLOT_FILES`) the folder lacks, e.g. written with
+    ``volcal identify --no-plots``: the report draws them."""
+    return [n for n in PLOT_FILES if not (Path(result_dir) / n).is_file()]
+
+
+def _drawn_plots(
+    res: LoadedResult, names: list[str], plotter: PlotProcess | None = None
+) -> dict[str, bytes]:
     """The result plots ``names`` (of :data:`PLOT_FILES`) drawn from the saved result, as
-    PNG bytes: the figures ``volcal identify`` draws, from the same data (a folder
-    written with ``--no-plots``)."""
+    PNG bytes: the figures ``volcal identify`` draws, from the same data.  With a
+    ``plotter`` its children draw them, two at a time, into a temporary folder."""
     import io
 
     from volcal.base import progress
@@ -203,21 +214,31 @@ def _drawn_plots(res: LoadedResult, names: list[str]) -> dict[str, bytes]:
 
     out: dict[str, bytes] = {}
     with progress.stage("drawing the plots the result folder lacks"):
-        for name, draw, data, _cost in saved_plot_requests(res):
-            if name in names:
+        requests = [r for r in saved_plot_requests(res) if r[0] in names]
+        if plotter is None:
+            for name, draw, data, _cost in requests:
                 buf = io.BytesIO()
                 draw(data, buf)
                 out[name] = buf.getvalue()
+            return out
+        with tempfile.TemporaryDirectory(prefix="volcal-report-") as tmp:
+            for name, draw, data, cost in requests:
+                plotter.draw(draw, data, Path(tmp) / name, cost=cost)
+            plotter.wait()
+            for name, *_ in requests:
+                out[name] = (Path(tmp) / name).read_bytes()
     return out
 
 
-def _plots(res: LoadedResult, draw_missing: bool) -> list[dict[str, str]]:
+def _plots(
+    res: LoadedResult, draw_missing: bool, plotter: PlotProcess | None = None
+) -> list[dict[str, str]]:
     """The plots section: every plot of the result folder (:func:`_plot_names`) and, with
     ``draw_missing``, the result plots it lacks, drawn from the saved result."""
     folder = res.path
     names = _plot_names(folder)
     missing = [n for n in PLOT_FILES if n not in names] if draw_missing else []
-    drawn = _drawn_plots(res, missing) if missing else {}
+    drawn = _drawn_plots(res, missing, plotter) if missing else {}
     order = [n for n in PLOT_FILES if n in names or n in drawn]
     order += [n for n in names if n not in PLOT_FILES]
     return [
@@ -560,13 +581,15 @@ def html_report(
     compensation_dir: Path | None = None,
     title: str | None = None,
     plots: bool = True,
+    plotter: PlotProcess | None = None,
 ) -> str:
     """The report of the result folder ``result_dir`` as one self-contained HTML document.
 
     compensation_dir: a folder written by ``volcal compensate`` from this result (its
     summary is added); title: the document title (default: the model's name); plots: embed
     the folder's plots, and draw from the saved result those it lacks (a result written
-    with ``--no-plots``; about a second); False: no plots section.  Raises
+    with ``--no-plots``; about a second); False: no plots section; plotter: plotting
+    processes (:class:`volcal.outputs.plot_process.PlotProcess`) that draw them.  Raises
     :class:`InputError` naming the folder when it is missing or not a result (or the
     compensation folder is not an export for the same model).
     """
@@ -589,7 +612,7 @@ def html_report(
         "unid": _unidentifiable(res),
         "uncertainty": _uncertainty(res, grid),
         "parameters": _parameters(res),
-        "plots": _plots(res, draw_missing=True) if plots else [],
+        "plots": _plots(res, draw_missing=True, plotter=plotter) if plots else [],
         "compensation": comp,
     }
     return _environment().get_template(TEMPLATE).render(context)
@@ -687,9 +710,10 @@ def write_report(
     pdf: bool = False,
     title: str | None = None,
     plots: bool = True,
+    plotter: PlotProcess | None = None,
 ) -> Path:
     """Write the report of ``result_dir`` (see :func:`html_report`) to ``out_file`` and
-    return the path written (``title``, ``plots``: see :func:`html_report`).
+    return the path written (``title``, ``plots``, ``plotter``: see :func:`html_report`).
 
     With ``pdf`` the document is printed to PDF by a headless Chromium and written to
     ``out_file`` with the suffix ``.pdf``; without one installed :class:`InputError` says
@@ -718,7 +742,11 @@ def write_report(
                 "write the HTML report and print it from a browser"
             )
     html = html_report(
-        Path(result_dir), compensation_dir=compensation_dir, title=title, plots=plots
+        Path(result_dir),
+        compensation_dir=compensation_dir,
+        title=title,
+        plots=plots,
+        plotter=plotter,
     )
     if browser is not None:
         _atomic_write(out, lambda tmp: _print_pdf(browser, html, tmp))

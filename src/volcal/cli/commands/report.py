@@ -77,7 +77,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from volcal.base.exceptions import InputError
-    from volcal.outputs.html_report import find_browser, write_report
+    from volcal.outputs.html_report import find_browser, missing_plots, write_report
 
     out: Path = args.out.with_suffix(".pdf") if args.pdf else args.out
     if out.is_dir():
@@ -95,14 +95,26 @@ def run(args: argparse.Namespace) -> int:
             "HTML report and print it from a browser",
             source="--pdf",
         )
-    written = write_report(
-        args.result,
-        args.out,
-        compensation_dir=args.compensation,
-        pdf=args.pdf,
-        title=args.title,
-        plots=not args.no_plots,
-    )
+    plotter = None
+    if not args.no_plots and args.result.is_dir() and missing_plots(args.result):
+        # plots to draw: two children import matplotlib while this process reads the
+        # result, then draw the figures two at a time
+        from volcal.outputs.plot_process import PlotProcess
+
+        plotter = PlotProcess.start(workers=2)
+    try:
+        written = write_report(
+            args.result,
+            args.out,
+            compensation_dir=args.compensation,
+            pdf=args.pdf,
+            title=args.title,
+            plots=not args.no_plots,
+            plotter=plotter,
+        )
+    finally:
+        if plotter is not None:
+            plotter.close()
     if not getattr(args, "quiet", False):
         print(f"wrote {written} ({written.stat().st_size / 1024:.0f} kB)")
     return 0
