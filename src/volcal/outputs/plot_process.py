@@ -19,10 +19,11 @@ elsewhere and the caller draws in its own process.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
-__all__ = ["PlotProcess", "warm_up"]
+__all__ = ["PlotProcess", "plotting", "warm_up"]
 
 
 def warm_up() -> None:
@@ -254,3 +255,24 @@ class PlotProcess:
         if self._proc.is_alive():  # the others end with it (PR_SET_PDEATHSIG)
             self._proc.terminate()
             self._proc.join(timeout=2.0)
+
+
+@contextmanager
+def plotting(
+    enabled: bool = True, workers: int = 2, warm: tuple[Callable[[], None], ...] = (warm_up,)
+) -> Iterator[PlotProcess | None]:
+    """``with plotting(not args.no_plots) as plotter:`` the plotting children of a command
+    (:meth:`PlotProcess.start`; None when not ``enabled`` or not on Linux), closed at the
+    end whatever happens.  Enter it first, before the numerics are imported: numpy is
+    imported here (the command needs it anyway) so that the children inherit it, and they
+    import matplotlib on the other core meanwhile."""
+    plotter = None
+    if enabled:
+        import numpy  # noqa: F401
+
+        plotter = PlotProcess.start(workers=workers, warm=warm)
+    try:
+        yield plotter
+    finally:
+        if plotter is not None:
+            plotter.close()

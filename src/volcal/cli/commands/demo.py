@@ -151,15 +151,10 @@ def _adequacy_line(res) -> str:
 
 
 def _handler(args: argparse.Namespace) -> int:
-    plotter = None
-    if not args.no_plots:
-        # as volcal identify: plotting children that import matplotlib meanwhile
-        import numpy  # noqa: F401  (the children inherit it)
+    from volcal.outputs.plot_process import plotting
 
-        from volcal.outputs.plot_process import PlotProcess
-
-        plotter = PlotProcess.start(workers=2)
-    try:
+    # as volcal identify: plotting children that import matplotlib meanwhile
+    with plotting(not args.no_plots) as plotter:
         s = run_demo(
             args.out,
             seed=args.seed,
@@ -167,9 +162,6 @@ def _handler(args: argparse.Namespace) -> int:
             plots=not args.no_plots,
             plotter=plotter,
         )
-    finally:
-        if plotter is not None:
-            plotter.close()
     if not args.quiet:
         print(f"volcal demo: MCV 754 example, {s.n_readings} simulated length readings")
         print(f"  solver status            {s.status}")

@@ -199,21 +199,13 @@ def _inside(path: Path, folder: Path) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    plotter = None
-    if not args.no_plots:
-        # first, before the numerics are imported: two children that import matplotlib
-        # on the other core while this process reads and solves, then draw the plots two
-        # at a time while this one writes the report
-        import numpy  # noqa: F401  (this process needs it anyway; the children inherit it)
+    from volcal.outputs.plot_process import plotting
 
-        from volcal.outputs.plot_process import PlotProcess
-
-        plotter = PlotProcess.start(workers=2)
-    try:
+    # first, before the numerics are imported: two children that import matplotlib on the
+    # other core while this process reads and solves, then draw the plots two at a time
+    # while this one writes the report
+    with plotting(not args.no_plots) as plotter:
         code = _run(args, plotter)
-    finally:
-        if plotter is not None:
-            plotter.close()
     # everything is written and closed: skip the interpreter's teardown (0.1 s of freeing
     # modules; see volcal.cli.main._exit_now)
     args.exit_now = True

@@ -229,20 +229,19 @@ def run(args: argparse.Namespace) -> int:
     stages = Stages()
     if started is not None:
         stages.add("start-up (interpreter, command line)", started)
-    plotter = None
-    if not args.no_plots:
+    from contextlib import ExitStack
+
+    with ExitStack() as closing:
         # first: a child process that imports matplotlib while this one computes, and
         # draws the plots while this one writes the tables
         with stages("plotting process start"):
             from volcal.outputs import mc_plots
-            from volcal.outputs.plot_process import PlotProcess
+            from volcal.outputs.plot_process import plotting
 
-            plotter = PlotProcess.start(warm=(mc_plots.warm_up,))
-    try:
+            plotter = closing.enter_context(
+                plotting(not args.no_plots, workers=1, warm=(mc_plots.warm_up,))
+            )
         return _run(args, stages, t_run, started, plotter)
-    finally:
-        if plotter is not None:
-            plotter.close()
 
 
 def _run(args: argparse.Namespace, stages, t_run: float, started: float | None, plotter) -> int:

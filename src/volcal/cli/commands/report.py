@@ -95,14 +95,12 @@ def run(args: argparse.Namespace) -> int:
             "HTML report and print it from a browser",
             source="--pdf",
         )
-    plotter = None
-    if not args.no_plots and args.result.is_dir() and missing_plots(args.result):
-        # plots to draw: two children import matplotlib while this process reads the
-        # result, then draw the figures two at a time
-        from volcal.outputs.plot_process import PlotProcess
+    from volcal.outputs.plot_process import plotting
 
-        plotter = PlotProcess.start(workers=2)
-    try:
+    # plots to draw: two children import matplotlib while this process reads the result,
+    # then draw the figures two at a time
+    draws = not args.no_plots and args.result.is_dir() and bool(missing_plots(args.result))
+    with plotting(draws) as plotter:
         written = write_report(
             args.result,
             args.out,
@@ -112,9 +110,6 @@ def run(args: argparse.Namespace) -> int:
             plots=not args.no_plots,
             plotter=plotter,
         )
-    finally:
-        if plotter is not None:
-            plotter.close()
     if not getattr(args, "quiet", False):
         print(f"wrote {written} ({written.stat().st_size / 1024:.0f} kB)")
     return 0
