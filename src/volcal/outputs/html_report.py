@@ -180,7 +180,7 @@ def _png_data_uri(path: Path) -> str:
     data = path.read_bytes()
     if not data.startswith(b"\x89PNG\r\n\x1a\n"):
         raise InputError("not a PNG image", source=str(path))
-    return "data:image/png;base64," + base64.b64encode(data).decode("ascii")
+    return _png_bytes_uri(data)
 
 
 def _caption(name: str) -> str:
@@ -237,7 +237,7 @@ def _plots(
     ``draw_missing``, the result plots it lacks, drawn from the saved result."""
     folder = res.path
     names = _plot_names(folder)
-    missing = [n for n in PLOT_FILES if n not in names] if draw_missing else []
+    missing = missing_plots(folder) if draw_missing else []
     drawn = _drawn_plots(res, missing, plotter) if missing else {}
     order = [n for n in PLOT_FILES if n in names or n in drawn]
     order += [n for n in names if n not in PLOT_FILES]
