@@ -162,6 +162,14 @@ class GaussNewtonSolver:
                 rho = (f - f_new) / pred if pred > 0 else 0.0
                 mu = mu * max(1 / 3, 1 - (2 * rho - 1) ** 3) if mu else 0.0
                 f = f_new
+            elif pred < flat:
+                # the local model promises less than the rounding level of f: the step
+                # only measures the rounding of the residuals (their sum differs in the
+                # last digits between evaluations); damping cannot help, the iteration has
+                # converged.  Without this test a fit at its minimum with steps just above
+                # step_tol raised the damping until max_iter, a Jacobian each.
+                status = "Solve_Succeeded"
+                break
             else:
                 mu = max(2 * mu, 1e-6) if mu else 1e-6
                 if mu > 1e12:
