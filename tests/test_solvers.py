@@ -127,3 +127,17 @@ def test_gauss_newton_stops_where_the_sum_of_squares_is_at_its_rounding_level(mo
     out = res.outcomes[-1]
     assert res.success and out.polish_steps <= 2, out.polish_steps
     assert _rel(exact.theta, res.theta) < 1e-9
+
+
+def test_gauss_newton_never_calls_a_step_it_cannot_take_convergence(monkeypatch):
+    """From the start values, far from the minimum, with every trial step judged worse
+    (here: f cannot be evaluated there), the damping grows until the steps are tiny and
+    promise almost nothing; that is a failure to say, neither convergence at the rounding
+    level of f nor a solution "to an acceptable level" (both were reported before)."""
+    from volcal.base.exceptions import SolverError
+    from volcal.solve.gauss_newton import GaussNewtonSolver
+
+    machine, em, _, sim = simulated("mcv754_wxyzt", grid=3)
+    monkeypatch.setattr(GaussNewtonSolver, "objective", lambda self, xs, p: float("nan"))
+    with pytest.raises(SolverError, match="Search_Direction|Maximum_Iterations"):
+        identify(machine, sim.measurements, error_model=em, solver="gauss-newton")

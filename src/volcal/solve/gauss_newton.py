@@ -141,6 +141,7 @@ class GaussNewtonSolver:
         max_iter = self.max_iter if max_iter is None else max_iter
         status, it = "Maximum_Iterations_Exceeded", 0
         f, size = float("nan"), float("inf")
+        accepted = False  # whether the last trial step was taken
         for it in range(1, max_iter + 1):  # noqa: B007  (the count is reported)
             f, dx, kkt, pred = (v.full() for v in step(xs, p, Z, mu))
             f, dx, pred = f.item(), dx.ravel(), pred.item()
@@ -150,24 +151,34 @@ class GaussNewtonSolver:
                 break
             size = float(np.max(np.abs(dx))) if dx.size else 0.0
             if size <= self.step_tol:
-                status = "Solve_Succeeded"  # the Gauss-Newton step is at rounding level
-                break
+                if mu == 0:
+                    status = "Solve_Succeeded"  # the Gauss-Newton step is at rounding level
+                    break
+                # a damped step is small also because of its damping: judge convergence
+                # on the undamped step (a stuck iteration then keeps failing, and says so)
+                mu = 0.0
+                continue
             f_new = self.objective(xs + dx, p)
             # below the rounding level of f (flat directions of a large-residual fit) the
             # sum of squares cannot judge a step; the gradient-based model still can
             flat = 1e-13 * max(f, 1.0)
-            if np.isfinite(f_new) and (f_new < f or (pred < flat and f_new <= f + flat)):
+            accepted = bool(
+                np.isfinite(f_new) and (f_new < f or (pred < flat and f_new <= f + flat))
+            )
+            if accepted:
                 xs = xs + dx
                 # Nielsen's rule: relax the damping when the model predicted well
                 rho = (f - f_new) / pred if pred > 0 else 0.0
                 mu = mu * max(1 / 3, 1 - (2 * rho - 1) ** 3) if mu else 0.0
                 f = f_new
-            elif pred < flat:
-                # the local model promises less than the rounding level of f: the step
-                # only measures the rounding of the residuals (their sum differs in the
-                # last digits between evaluations); damping cannot help, the iteration has
-                # converged.  Without this test a fit at its minimum with steps just above
-                # step_tol raised the damping until max_iter, a Jacobian each.
+            elif mu == 0 and pred < flat:
+                # the undamped Gauss-Newton model promises less than the rounding level of
+                # f: the step only measures the rounding of the residuals (their sum
+                # differs in the last digits between evaluations); damping cannot help,
+                # the iteration has converged.  Without this test a fit at its minimum with
+                # steps just above step_tol raised the damping until max_iter, a Jacobian
+                # each.  (A damped step's small promise says nothing: a large damping
+                # shrinks any step, so the test is for mu = 0 only.)
                 status = "Solve_Succeeded"
                 break
             else:
@@ -176,7 +187,9 @@ class GaussNewtonSolver:
                     status = "Search_Direction_Becomes_Too_Small"
                     break
         else:
-            if size <= 1e-6:  # 1e-6 um: far below any uncertainty, not at rounding level
+            # 1e-6 um: far below any uncertainty, not at rounding level; only for a step
+            # that was taken (a rejected step can be tiny merely because it is damped)
+            if size <= 1e-6 and accepted:
                 status = "Solved_To_Acceptable_Level"
         x = pr.from_scaled(xs)
         ok = status in ("Solve_Succeeded", "Solved_To_Acceptable_Level") and bool(
