@@ -42,6 +42,7 @@ import scipy.linalg as sla
 from volcal.analysis.identifiability import Identifiability, _describe, scaled_constrained_svd
 from volcal.base.units import report_factors
 from volcal.model.errors import Datum
+from volcal.outputs.figures import figure
 
 log = logging.getLogger(__name__)
 
@@ -421,18 +422,9 @@ class AnalysisReport:
 # plots (matplotlib object API, Agg canvas)
 
 
-def _figure(w: float, h: float):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(w, h), layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
 def plot_singular_values(rep: AnalysisReport, path: Path) -> None:
     s = rep.singular_values
-    fig = _figure(7, 4)
+    fig = figure(7, 4, layout="constrained")
     ax = fig.subplots()
     idx = np.arange(1, len(s) + 1)
     ok = s > rep.tol
@@ -457,7 +449,7 @@ def plot_singular_values(rep: AnalysisReport, path: Path) -> None:
 def plot_correlation(R: pd.DataFrame, path: Path) -> None:
     n = len(R)
     size = min(14.0, max(5.0, 0.14 * n + 2))
-    fig = _figure(size + 1.2, size)
+    fig = figure(size + 1.2, size, layout="constrained")
     ax = fig.subplots()
     im = ax.imshow(R.to_numpy(), cmap="RdBu_r", vmin=-1, vmax=1, interpolation="nearest")
     fig.colorbar(im, ax=ax, shrink=0.7, label="correlation")
@@ -470,7 +462,7 @@ def plot_correlation(R: pd.DataFrame, path: Path) -> None:
 
 
 def plot_uncertainty_map(vol: pd.DataFrame, path: Path) -> None:
-    fig = _figure(8, 6.5)
+    fig = figure(8, 6.5, layout="constrained")
     ax = fig.add_subplot(projection="3d")
     P = vol[["x_mm", "y_mm", "z_mm"]].to_numpy()
     sc = ax.scatter(*P.T, c=vol["u_total_um"].to_numpy(), cmap="viridis", s=25)

@@ -8,25 +8,13 @@ pandas or the solver.  Figures use the Agg canvas directly (no pyplot).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import BinaryIO, Literal
+from typing import BinaryIO
 
 import numpy as np
 
-from volcal.outputs.figures import save
+from volcal.outputs.figures import figure, save
 
 __all__ = ["warm_up"]
-
-
-def _figure(w: float, h: float, layout: Literal["constrained"] | None = "constrained"):
-    """A figure on the Agg canvas (no pyplot, no GUI backend); ``layout=None`` for figures
-    that place their axes themselves (the constrained layout costs a third of a small
-    figure's drawing time)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(w, h), layout=layout)
-    FigureCanvasAgg(fig)
-    return fig
 
 
 def _plot_volumetric_U(
@@ -34,7 +22,7 @@ def _plot_volumetric_U(
 ) -> None:
     """U(|d|) (M,) at the evaluation poses' nominal points (M, 3), |d| up to max_norm
     (arrays only: drawn here or in :class:`PlotProcess`)."""
-    fig = _figure(8, 6.5, layout=None)
+    fig = figure(8, 6.5)
     # axes placed by hand where the constrained layout put them
     ax = fig.add_axes((0.0, 0.0, 0.86, 0.93), projection="3d")
     sc = ax.scatter(*np.asarray(points).T, c=u_norm, cmap="viridis", s=25)
@@ -52,7 +40,7 @@ def _plot_volumetric_U(
 
 
 def _plot_max_hist(mx: np.ndarray, path: Path | BinaryIO) -> None:
-    fig = _figure(6, 4, layout=None)
+    fig = figure(6, 4)
     fig.subplots_adjust(left=0.12, right=0.97, bottom=0.13, top=0.92)
     ax = fig.subplots()
     # one filled outline (the same picture as 60 bars, one artist instead of 60)

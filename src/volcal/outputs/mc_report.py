@@ -29,7 +29,8 @@ import numpy as np
 import pandas as pd
 
 from volcal.analysis.uncertainty.montecarlo import MCResult, quantity_table
-from volcal.outputs.mc_plots import _figure, _plot_max_hist, _plot_volumetric_U
+from volcal.outputs.figures import figure
+from volcal.outputs.mc_plots import _plot_max_hist, _plot_volumetric_U
 from volcal.outputs.plot_process import PlotProcess
 
 __all__ = ["write_mc_outputs", "default_quantities", "plot_contributions"]
@@ -81,7 +82,7 @@ def plot_contributions(
     """Expanded uncertainty (k = 2) per quantity: all sources, and each source alone
     (paper 002 Fig. 5 form).  table: quantity, unit, source, u; total: name, unit, U."""
     units = [u for u in ("um", "urad") if (total["unit"] == u).any()]
-    fig = _figure(13, 4.2 * max(1, len(units)))
+    fig = figure(13, 4.2 * max(1, len(units)), layout="constrained")
     axes = fig.subplots(max(1, len(units)), 1, squeeze=False)[:, 0]
     sources = list(dict.fromkeys(table["source"]))
     for ax, unit in zip(axes, units):
