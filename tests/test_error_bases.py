@@ -425,7 +425,8 @@ def test_cli_basis_and_degree_auto(xfyz_case, tmp_path, monkeypatch, capsys):
 def test_values_and_apply_basis_equal_the_dense_basis(model):
     """ErrorModel.values and apply_basis work column by column without forming B(q)
     (N, n_errors, n_params); they must equal the products with the dense basis, for every
-    family of basis (Legendre, Fourier on full-turn axes, B-splines, hats)."""
+    family of basis (Legendre, Fourier on full-turn axes, B-splines, tables of hat
+    functions, constants)."""
     from volcal.model.errors import ErrorForm, ErrorModel
     from volcal.model.machine import Machine
 
@@ -434,10 +435,18 @@ def test_values_and_apply_basis_equal_the_dense_basis(model):
     lo = np.array([a.travel[0] for a in machine.spec.axes], float)
     hi = np.array([a.travel[1] for a in machine.spec.axes], float)
     q = machine.axis_to_internal(lo + rng.uniform(size=(40, len(lo))) * (hi - lo))
-    first = machine.spec.axes[0].name
+    first, second = machine.spec.axes[0], machine.spec.axes[1]
+    knots = tuple(np.linspace(second.travel[0], second.travel[1], 5))
     for forms, default in (
-        (None, ErrorForm("poly", 3)),
-        ({first: ErrorForm("bspline", segments=4)}, ErrorForm("poly", 2)),
+        (None, ErrorForm("poly", 3)),  # Fourier on the full-turn axes of the 5-axis models
+        (
+            {
+                first.name: ErrorForm("bspline", segments=4),
+                second.name: ErrorForm("table", knots=knots),
+            },
+            ErrorForm("poly", 2),
+        ),
+        (None, ErrorForm("constant")),
     ):
         em = ErrorModel(machine.spec, forms, default=default)
         B = em.basis(q)
