@@ -238,6 +238,13 @@ def _project_defaults(parser: argparse.ArgumentParser, argv: list[str]) -> str |
             f"{', '.join(sub.choices)}",
             source=str(path),
         )
+    not_tables = sorted(k for k, v in doc.items() if not isinstance(v, dict))
+    if not_tables:
+        raise InputError(
+            f"'{not_tables[0]}' must be a table of settings ([{not_tables[0]}] with one "
+            "key per option), got a single value",
+            source=str(path),
+        )
     command = next((a for a in argv if a in sub.choices), None)
     if command is None or command not in doc:
         return str(path)
