@@ -12,8 +12,8 @@ benchmarks/results/memory.txt):
 
 :func:`check_memory` refuses a run whose estimate exceeds the memory available
 (the smaller of ``MemAvailable`` in /proc/meminfo and the room left under the control
-group's limit, plus what this process already holds) with the estimate and the limit, instead of the kernel ending the process
-(the OOM killer) minutes later.
+group's limit, plus what this process already holds) with the estimate and the limit,
+instead of the kernel ending the process (the OOM killer) minutes later.
 """
 
 from __future__ import annotations
