@@ -208,7 +208,7 @@ def test_identify_warns_on_the_terminal_when_the_model_does_not_fit(xfyz, tmp_pa
     assert len(warns) == 1 and "budget" in warns[0].getMessage()
     printed = capsys.readouterr().out
     assert "model adequacy           INADEQUATE" in printed
-    assert "grid over X, Y, Z, tool offset 0" in printed
+    assert "grid over X, Y, Z, tool offset (0, 0, 0) mm" in printed
 
 
 # --------------------------------------------------------------------------------------

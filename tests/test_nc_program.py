@@ -249,7 +249,13 @@ def check_program(
             stops_at.append(row)
             station, tool = plan["station"].iloc[row], int(plan["tool"].iloc[row])
             c = e.comment.lower()
-            assert f"station {str(station).lower()}" in c and f"offset {tool}" in c, e.comment
+            # the tool offset by its value when the plan has it, else by its number
+            if "tool_x_mm" in plan:
+                v = plan[["tool_x_mm", "tool_y_mm", "tool_z_mm"]].iloc[row]
+                what = "tool offset " + ", ".join(f"{x:g}" for x in v) + " mm"
+            else:
+                what = f"tool number {tool}"
+            assert f"station {str(station).lower()}" in c and what in c, e.comment
         elif e.kind == "move" and e.comment.lower() == "safe pose":
             safe_moves.append((j, e))
         elif e.kind == "move":
