@@ -252,9 +252,7 @@ def counter(
             from tqdm.auto import tqdm
         else:  # the plain terminal bar, whose import skips tqdm.auto's asyncio machinery
             from tqdm.std import tqdm
-        bar = tqdm(
-            total=total, desc=desc, unit=unit, initial=initial, leave=False, file=stream
-        )
+        bar = tqdm(total=total, desc=desc, unit=unit, initial=initial, leave=False, file=stream)
     c = Counter(total, desc, unit, initial, stream, interval, bar)
     try:
         yield c

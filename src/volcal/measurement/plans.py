@@ -484,7 +484,8 @@ def measurement_plan_from_csv(
         bad = np.flatnonzero(~np.isfinite(v))
         if bad.size:
             raise InputError(
-                f"row {bad[0] + 2}: expected a finite tool offset in mm, got {df[c].iloc[bad[0]]!r}",
+                f"row {bad[0] + 2}: expected a finite tool offset in mm, got "
+                f"{df[c].iloc[bad[0]]!r}",
                 source=src,
                 column=c,
             )
@@ -497,7 +498,7 @@ def measurement_plan_from_csv(
     tool_list = np.unique(tools, axis=0, return_index=True)[1]
     T = tools[np.sort(tool_list)]
     first = np.array([s == order[0] for s in stations])
-    q0, t0 = poses.to_numpy(float)[first], tools[first]
+    q0 = poses.to_numpy(float)[first]
     n_t = len(T)
     n_p = len(q0) // n_t if n_t else 0
     Q = q0[:n_p]

@@ -309,11 +309,8 @@ def _blocks(
             )
             notes = [] if station in noted else list(setup_notes.get(station, ()))
             noted.add(station)
-            blocks.append(
-                _Block(
-                    station, tool, _comment(stop, dialect), [], [_comment(n, dialect) for n in notes]
-                )
-            )
+            lines = [_comment(n, dialect) for n in notes]
+            blocks.append(_Block(station, tool, _comment(stop, dialect), [], lines))
         words = [_word(n, k, float(values[n][i])) for n, k in axes]
         comment = _comment(f"point {int(points[i])} station {station} {what}", dialect)
         blocks[-1].rows.append(_Row(words, comment))

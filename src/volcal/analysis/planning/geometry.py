@@ -155,7 +155,8 @@ class Region:
         for k in range(len(v)):
             A = np.array([n[k - 1], n[k]])
             out[k] = np.linalg.solve(A, np.array([c[k - 1], c[k]]))
-        area2 = float(np.sum(out[:, 0] * np.roll(out[:, 1], -1) - np.roll(out[:, 0], -1) * out[:, 1]))
+        x, y = out[:, 0], out[:, 1]
+        area2 = float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
         inside = np.all(out @ n.T <= c + 1e-6 * max(1.0, np.abs(c).max()), axis=1)
         if area2 <= 0 or not inside.all() or self.high - self.low < 2 * m:
             raise InputError(
@@ -251,7 +252,9 @@ class Constraints:
             if ob.kind == "box":
                 lo = tuple(float(v) - mm for v in ob.lo)
                 hi = tuple(float(v) + mm for v in ob.hi)
-                obstacles.append(Obstacle("box", lo=lo, hi=hi, moves_with=ob.moves_with, name=ob.name))  # type: ignore[arg-type]
+                obstacles.append(
+                    Obstacle("box", lo=lo, hi=hi, moves_with=ob.moves_with, name=ob.name)  # type: ignore[arg-type]
+                )
             else:
                 obstacles.append(
                     Obstacle(

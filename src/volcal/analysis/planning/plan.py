@@ -558,12 +558,13 @@ def plan(
     starts / population / generations: search sizes; rounds: placement / exchange
     alternations; margin_deg / margin_mm: how far the plan keeps from the declared limits
     (deg off the acceptance half-angle; mm inside the regions, on the distance, range and
-    obstacles; see the module docstring); workers / scheduler: where the GA scores (1: this process; None: all
-    cores; a Dask address or Client); checkpoint_dir: searches save there after every
-    generation or start and resume from what they find; progress(stage, step, total,
-    best): called after every generation, start and exchange, e.g. ("GA round 1 of 2:
-    generation", 5, 30, 0.29) (step 1-based, 0 when a search round begins; best: the
-    criterion reached, um for I and MC, the solver's scaled units for A, D and E)."""
+    obstacles; see the module docstring); workers / scheduler: where the GA scores (1:
+    this process; None: all cores; a Dask address or Client); checkpoint_dir: searches
+    save there after every generation or start and resume from what they find;
+    progress(stage, step, total, best): called after every generation, start and
+    exchange, e.g. ("GA round 1 of 2: generation", 5, 30, 0.29) (step 1-based, 0 when a
+    search round begins; best: the criterion reached, um for I and MC, the solver's
+    scaled units for A, D and E)."""
     t0 = time.perf_counter()
     if criterion not in CRITERIA:
         raise InputError(f"unknown criterion {criterion!r}; expected one of {', '.join(CRITERIA)}")
@@ -670,9 +671,14 @@ def plan(
         unit, total = ("generation", generations) if optimizer == "ga" else ("start", starts)
         name = "GA" if optimizer == "ga" else optimizer
 
-        def report(step: int, best: float, _r: int = rnd) -> None:
+        def report(
+            step: int,
+            best: float,
+            _what: str = f"{name} round {rnd + 1} of {rounds}: {unit}",
+            _n: int = total,
+        ) -> None:
             if progress is not None:
-                progress(f"{name} round {_r + 1} of {rounds}: {unit}", step + 1, total, best)
+                progress(_what, step + 1, _n, best)
 
         if optimizer != "none":
             report(-1, current)  # step 0: the round begins

@@ -278,9 +278,7 @@ def run(args: argparse.Namespace) -> int:
             f"unidentifiable error parameters: "
             f"{', '.join(s['unidentifiable_error_parameters']) or 'none'}\n"
             f"margins {s['margins']['deg']:g} deg, {s['margins']['mm']:g} mm; slack left: "
-            + ", ".join(
-                f"{r['constraint']} {r['slack']:.3g} {r['unit']}" for r in s["slack"]
-            )
+            + ", ".join(f"{r['constraint']} {r['slack']:.3g} {r['unit']}" for r in s["slack"])
             + "\n"
             f"written to {out} in {s['seconds']:.1f} s"
         )
