@@ -64,9 +64,7 @@ _STATE: dict = {"on": False, "stream": None, "tty": False, "last": 0.0, "stage":
 def enable(on: bool = True, stream: TextIO | None = None) -> None:
     """Turn progress reports on (or off) for this process; ``stream`` default stderr."""
     s = stream or sys.stderr
-    _STATE.update(
-        on=bool(on), stream=s, tty=bool(getattr(s, "isatty", lambda: False)()), last=0.0
-    )
+    _STATE.update(on=bool(on), stream=s, tty=bool(getattr(s, "isatty", lambda: False)()), last=0.0)
 
 
 def enabled() -> bool:

@@ -272,7 +272,7 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"{s['model']}: {s['stations']} stations, {s['poses']} poses x "
             f"{s['tool_offsets']} tool offset(s) = {s['readings']} readings\n"
-            f"criterion {s['criterion']}: {s['criterion_value']:.4g} "
+            f"criterion {s['criterion']}: {s['criterion_value']:.4g}{unit} "
             f"(start {s['start_value']:.4g}); predicted volumetric u RMS "
             f"{s['volumetric_u_rms_um']:.3g} um, max {s['volumetric_u_max_um']:.3g} um\n"
             f"unidentifiable error parameters: "
