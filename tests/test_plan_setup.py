@@ -165,7 +165,7 @@ def test_margins_hold_when_the_tracker_stands_1_mm_off_its_spot():
         margin_mm=0.0,
     )
     assert bare.violations().empty
-    assert bare.slack().set_index("constraint").loc["angle", "slack"] < 0.01
+    assert bare.slack()["slack"].min() < 0.01  # some declared limit is reached
     assert _broken_after_moving(bare, cons0) > 0
 
 

@@ -541,7 +541,7 @@ def plan(
     workers: int | None = 1,
     scheduler: Any = None,
     checkpoint_dir: str | Path | None = None,
-    progress: Callable[[str, int, float], None] | None = None,
+    progress: Callable[[str, int, int, float], None] | None = None,
 ) -> PlanResult:
     """Plan a sequential multilateration measurement (see the module docstring).
 
