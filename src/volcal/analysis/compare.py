@@ -499,8 +499,7 @@ def compare(
     notes: list[str] = []
     if ref is None:
         notes.append(
-            f"the reference strategy {reference} did not solve: no field or parameter "
-            "differences"
+            f"the reference strategy {reference} did not solve: no field or parameter differences"
         )
 
     cmp = Comparison(
@@ -623,9 +622,7 @@ class TrialKernel:
         st = true_stations.set_index("station").loc[list(meas.station_ids)].reset_index()
         # the simulator's reading order: station-major, then tool, then pose
         S, K, N = len(st), len(tools), len(plan)
-        pose_idx = pd.MultiIndex.from_frame(plan).get_indexer(
-            pd.MultiIndex.from_frame(tab[names])
-        )
+        pose_idx = pd.MultiIndex.from_frame(plan).get_indexer(pd.MultiIndex.from_frame(tab[names]))
         tool_idx = np.array([np.flatnonzero((tools == t).all(axis=1))[0] for t in meas.tool])
         r = (meas.station_index * K + tool_idx) * N + pose_idx
         keep = np.zeros(S * K * N, dtype=bool)
