@@ -139,6 +139,8 @@ class Comparison:
     truth_source: str = ""
     trials: pd.DataFrame | None = None
     trials_truth: str = ""
+    #: the trials' kernel (run more with :func:`run_trials`); None without trials
+    trial_kernel: TrialKernel | None = field(default=None, repr=False)
     seed: int = 0
     n_readings: int = 0
     seconds: float = 0.0
@@ -452,6 +454,9 @@ def compare(
                 unidentifiable=" ".join(un),
             )
             f_s, det_s = fields[s]
+            # a fit without its own null space (classic) is compared where the reference
+            # determines the field
+            det_s = det_s & fields[reference][1] if ref is not None else det_s
             if ref is not None:
                 f_r, det_r = fields[reference]
                 m = det_s & det_r
@@ -545,6 +550,7 @@ def compare(
             seed=int(seed),
             solver=solver,
         )
+        cmp.trial_kernel = kernel
         cmp.trials = run_trials(kernel, int(trials), workers=workers, scheduler=scheduler)
         summary = _trial_summary(cmp.trials)
         table = table.merge(summary, on="strategy", how="left")

@@ -438,6 +438,6 @@ def load_comparison(folder: str | Path) -> tuple[dict[str, Any], pd.DataFrame, b
         )
     for col in ("unidentifiable", "largest_parameter_differences", "status", "verdict"):
         if col in table:
-            table[col] = table[col].fillna("").astype(str)
+            table[col] = [("" if pd.isna(v) else str(v)) for v in table[col]]
     png = (folder / PLOT).read_bytes() if (folder / PLOT).is_file() else None
     return doc, table, png
