@@ -245,3 +245,35 @@ def test_bad_truth_file_names_file_row_and_column(tmp_path, capsys):
     assert rc == 2
     assert "truth.csv" in err and "row 3" in err and "EXQ_9" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_failed_strategy_is_reported_and_the_others_compared(monkeypatch, tmp_path):
+    """A strategy whose solver fails gets its status in the table, no figures, and the
+    command's exit code 1; the other strategies are still compared and written."""
+    import volcal.analysis.compare as mod
+    from volcal.base.exceptions import SolverError
+    from volcal.outputs.compare_report import format_table, write_comparison
+
+    real = mod.identify
+
+    def failing(*args, strategy="joint", **kw):
+        if strategy == "two-phase":
+            raise SolverError("did not converge after 3000 iterations",
+                              status="Maximum_Iterations_Exceeded")
+        return real(*args, strategy=strategy, **kw)
+
+    monkeypatch.setattr(mod, "identify", failing)
+    ex, data = _small_example()
+    cmp = compare(ex.machine, data, strategies=("joint", "two-phase", "classic"),
+                  error_model=ex.error_model, budget=ex.budget)
+    t = cmp.table.set_index("strategy")
+    assert not cmp.success
+    assert not t.loc["two-phase", "success"]
+    assert t.loc["two-phase", "status"] == "Maximum_Iterations_Exceeded"
+    assert np.isnan(t.loc["two-phase", "field_diff_rms_um"])
+    assert t.loc["classic", "success"] and t.loc["classic", "field_diff_rms_um"] > 0
+    assert "FAILED (Maximum_Iterations_Exceeded)" in format_table(cmp.table, "joint")
+    out = write_comparison(cmp, tmp_path / "c", plots=True)
+    assert (out / "field_differences.png").is_file()
+    back = pd.read_csv(out / "comparison.csv").set_index("strategy")
+    assert not back.loc["two-phase", "success"]

@@ -58,7 +58,6 @@ from volcal.analysis.identify import (
 )
 from volcal.base.exceptions import InputError, SolverError
 from volcal.base.progress import stage as report_stage
-from volcal.base.progress import update as report_update
 from volcal.measurement.budget import Budget, load_budget
 from volcal.measurement.tables import Measurements, load_measurements, load_stations
 from volcal.model.errors import Datum, ErrorForm, ErrorModel
@@ -665,6 +664,18 @@ class TrialKernel:
         """Trials ``range(*chunk)``: (n, n_strategies, 3) of field error RMS and max (um,
         modulo the gauge, over the points the reference determines) and 1.0 / 0.0 for a
         solver that succeeded / failed."""
+        from volcal.base import progress
+
+        # one bar for the trials (run_trials); the stages of each identification inside a
+        # trial would only interleave with it
+        was = progress.enabled()
+        progress.enable(False)
+        try:
+            return self._run(chunk)
+        finally:
+            progress.enable(was)
+
+    def _run(self, chunk: tuple[int, int]) -> np.ndarray:
         from volcal.measurement.simulate import simulate
 
         true_um = self.true_field()
@@ -706,20 +717,30 @@ class TrialKernel:
 
 
 def run_trials(
-    kernel: TrialKernel, trials: int, *, workers: int | None = 1, scheduler: Any = None
+    kernel: TrialKernel,
+    trials: int,
+    *,
+    workers: int | None = 1,
+    scheduler: Any = None,
+    progress: bool | None = None,
 ) -> pd.DataFrame:
     """Run ``trials`` trials of ``kernel`` (one chunk each; serially, in local processes
     or on Dask, see :func:`volcal.analysis.uncertainty.parallel.run_chunks`) and return
     one row per trial and strategy: ``trial, seed, strategy, field_error_rms_um,
-    field_error_max_um, success``.  The same seed gives the same table wherever it runs."""
+    field_error_max_um, success``.  The same seed gives the same table wherever it runs.
+    progress: a tqdm bar on stderr (None: when :mod:`volcal.base.progress` is on)."""
+    from tqdm.std import tqdm
+
     from volcal.analysis.uncertainty.parallel import run_chunks
+    from volcal.base import progress as _progress
 
     chunks = [(i, i + 1) for i in range(int(trials))]
     got: dict[int, np.ndarray] = {}
-    with report_stage(f"trials ({trials} simulated data sets x {len(kernel.strategies)})"):
+    show = _progress.enabled() if progress is None else progress
+    with tqdm(total=len(chunks), desc="trials", unit="trial", disable=not show) as bar:
         for chunk, res in run_chunks(kernel, chunks, workers=workers, scheduler=scheduler):
             got[chunk[0]] = res
-            report_update(f"{len(got)} of {trials} trials")
+            bar.update(1)
     rows = []
     for i in range(int(trials)):
         for j, s in enumerate(kernel.strategies):
