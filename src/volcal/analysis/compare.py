@@ -324,6 +324,7 @@ def compare(
     eval_poses: int = EVAL_POSES,
     columns: Mapping[str, str] | str | None = None,
     true_stations: pd.DataFrame | None = None,
+    truth_name: str | None = None,
 ) -> Comparison:
     """Identify the same data with several strategies and compare them (module docstring).
 
@@ -337,7 +338,8 @@ def compare(
     truth's parameters, else the reference's estimate; true stations ``true_stations``,
     else the reference's identified stations); seed: of the trials' noise; workers,
     scheduler: where the trials run (:func:`volcal.analysis.uncertainty.parallel.run_chunks`;
-    ``workers=1``: this process); eval_poses: Halton poses of the workspace sample.
+    ``workers=1``: this process); eval_poses: Halton poses of the workspace sample;
+    truth_name: how the tables name the truth (default: its file).
 
     A strategy whose solver fails is reported (status, no figures) and the others go on;
     bad input raises :class:`InputError`.
@@ -380,6 +382,7 @@ def compare(
     em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
     bud = budget if isinstance(budget, Budget) else load_budget(budget)
     truth_value, truth_source = _load_truth(truth, em)
+    truth_source = truth_name or truth_source
     opts = {"error_model": em, "budget": bud, "solver": solver}
 
     runs: dict[str, StrategyRun] = {}

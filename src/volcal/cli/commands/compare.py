@@ -204,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
     from volcal.outputs.compare_report import format_table, write_comparison
 
     truth = args.truth
+    truth_name = None
     true_stations = None
     if args.example:
         from volcal.measurement.simulate import example
@@ -219,7 +220,7 @@ def run(args: argparse.Namespace) -> int:
             )
         )
         if truth is None and em is ex.error_model:
-            truth = ex.theta_true
+            truth, truth_name = ex.theta_true, f"the true errors of example {ex.name}"
         true_stations = ex.stations
         budget = args.budget or ex.budget
         data_name = f"example {ex.name}, seed {ex.seed if args.sim_seed is None else args.sim_seed}"
@@ -246,6 +247,7 @@ def run(args: argparse.Namespace) -> int:
         scheduler=args.scheduler,
         eval_poses=args.eval_poses,
         true_stations=true_stations,
+        truth_name=truth_name,
     )
     out = write_comparison(
         cmp, args.out, plots=not args.no_plots, data_name=data_name, inputs=inputs
