@@ -95,6 +95,8 @@ class Built:
     table_tool: np.ndarray | None = None
     #: the tolerance the format chose itself (generic grid with no tolerance given)
     tolerance_um: float | None = None
+    #: the names of the files ``render`` writes, when known without rendering them
+    file_names: list[str] | None = None
 
 
 @dataclass
@@ -559,6 +561,10 @@ def compensate(
             f"{int(np.sum(~np.asarray(ident, bool)))} parameter(s) were not "
             "identifiable: the files carry the values the datum chose for them"
         )
+    if out_dir is None and built.file_names is not None:
+        # a report only: large grids are not formatted for nothing
+        comp.files = sorted(built.file_names)
+        return comp
     files = built.render(comp)
     comp.files = sorted(files)
     if out_dir is None:

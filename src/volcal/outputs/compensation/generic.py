@@ -335,4 +335,6 @@ def build(ctx: Context) -> Built:
         limits,
         notes,
         tolerance_um=grid_tol,
+        file_names=[f"errors_{ax}.csv" for ax in tabs.axes]
+        + ["constants.csv", "volumetric_grid.csv", "volumetric_grid.npz"],
     )

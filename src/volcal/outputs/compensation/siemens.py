@@ -196,7 +196,11 @@ def build(ctx: Context) -> Built:
     targets = correction_targets(fld, ctx.table_tool)
     inputs = [a.name for a in fld.axes]
     sp, _ = correction_spacing(fld, targets, ctx.tolerance_um, inputs)
-    nodes = {a.name: uniform_nodes(a.lo, a.hi, sp.h[i]) for i, a in enumerate(fld.axes)}
+    # a full-turn axis' table spans [0, 360] deg, the range the control reports it in
+    nodes = {
+        a.name: uniform_nodes(*((0.0, a.hi - a.lo) if a.full_turn else (a.lo, a.hi)), sp.h[i])
+        for i, a in enumerate(fld.axes)
+    }
     per = {a.name: a.full_turn for a in fld.axes}
     lin = targets.linear
     tables: list[AxisTable] = []
