@@ -8,7 +8,8 @@ the ends, modulo 360 deg on a full-turn rotary axis) and apply the result:
 * ISG and the generic ISO tables hold error motions: the reader puts them into the
   independent rigid-body chain of tests/indep_sim.py (exact transforms, written from the
   physics, no volcal model code) and compares the error it predicts with the model's;
-* SINUMERIK and HEIDENHAIN hold axis corrections: the reader adds them to the commanded
+* SINUMERIK and HEIDENHAIN hold axis errors (the control moves each axis by their
+  negative, as their manuals document): the reader adds the negative to the commanded
   axes and moves the nominal tool point through the independent chain;
 * the generic grid holds the correction of the tool point: the reader adds it.
 

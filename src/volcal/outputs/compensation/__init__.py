@@ -439,10 +439,8 @@ def compensate(
     if sign not in ("correction", "error"):
         raise InputError(f"expected 'correction' or 'error', got {sign!r}", source="--sign")
     auto_tolerance = tolerance_um is None
-    if auto_tolerance:
-        tolerance_um = 0.1
     try:
-        tolerance_um = float(tolerance_um)
+        tolerance_um = 0.1 if tolerance_um is None else float(tolerance_um)
     except (TypeError, ValueError):
         raise InputError(f"expected a number, got {tolerance_um!r}", source="--tolerance") from None
     if not (math.isfinite(tolerance_um) and tolerance_um > 0):
