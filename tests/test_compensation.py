@@ -607,6 +607,28 @@ def test_command_line(mcv, tmp_path, capsys):
                "--target", "828d", "--max-tables", "3", "--out", str(tmp_path / "s828")])
     err = capsys.readouterr().err
     assert rc == 2 and "828D" in err and not (tmp_path / "s828").exists()
+    # general axis names and the machine datum; no absolute path of this machine in the files
+    s_out = tmp_path / "s840"
+    rc = main(["compensate", "--result", str(res_dir), "--format", "siemens", "--out",
+               str(s_out), "--general-axis-names", "--machine-datum", "X=-400",
+               "--machine-datum", "Z=-600", "--tolerance", "0.5"])
+    assert rc == 0
+    cec = (s_out / "NC_CEC.INI").read_text()
+    assert "$AN_CEC_OUTPUT_AXIS[0]=(AX" in cec and "=(X1)" not in cec
+    assert "X -400" in cec and "(AX3)" in cec
+    for p in s_out.iterdir():
+        if p.suffix != ".npz":
+            text = p.read_text()
+            assert str(tmp_path) not in text and "/tmp" not in text, p.name
+            if p.name != "manifest.json":
+                assert "res (parameters sha256 " in text, p.name
+    capsys.readouterr()
+    rc = main(["compensate", "--result", str(res_dir), "--format", "heidenhain", "--out",
+               str(tmp_path / "bad"), "--machine-datum", "W=3"])
+    assert rc == 2 and "--machine-datum" in capsys.readouterr().err
+    rc = main(["compensate", "--result", str(res_dir), "--format", "siemens", "--out",
+               str(tmp_path / "bad"), "--sign", "error"])
+    assert rc == 2 and "--sign" in capsys.readouterr().err
     assert _tree_hash(res_dir) == before
     assert not (tmp_path / "bad").exists()
 
