@@ -144,14 +144,19 @@ def assert_header(head: str, out: Path) -> None:
 
 
 def read_isg(folder: Path, geom):
-    """TF5280 volumetric compensation as its documentation describes it: the list names
-    the axes, the kinematic chain (``chain``, ``workpiece_axes``), ``interpolation GRID``
-    (linear between the rows of each ISG CSV file) and the parameter files; ``negate``
-    takes a string of axis names whose values are negated (default "-"); the CSV files
-    hold ISO 230 component errors (mm, rad) over the argument axis, rotary arguments in
-    degrees over the range the control reports (e.g. [0, 360)), the position errors and
-    P0 / N0 in one row; the tool length is applied along N0.  Outside a table the
-    emulator holds the end values (no ``enable_splicing``)."""
+    """TF5280 volumetric compensation as Beckhoff's documentation (infosys.beckhoff.com,
+    TF5280 "General configuration (obligatory)" and the P-VOLC parameters) describes it:
+    the list assigns the ISO 230 axis letters by logical axis number, names the kinematic
+    chain (``chain``, ``workpiece_axes``), ``interpolation GRID`` (linear between the rows
+    of each ISG CSV file) and up to 10 parameter files ``file[j]`` / ``file_format[j]``
+    (P-VOLC-00012, whose examples are absolute paths such as C:\\volcomp\\vc_001.csv);
+    ``negate`` (P-VOLC-00009) "specifies the Cartesian axes for which the compensation
+    value is to be negated ... the value "XY" means that the compensation values for X and
+    Y are to be negated", default "-"; the CSV files hold ISO 230 component errors (mm,
+    rad) over the argument axis, rotary arguments in degrees over the range the control
+    reports (e.g. [0, 360)), the position errors and P0 / N0 in one row; the tool length
+    is applied along N0.  Outside a table the emulator holds the end values
+    (``enable_splicing``, P-VOLC-00015, off by default)."""
     lis = {}
     for line in (folder / "volcomp.lis").read_text().splitlines():
         line = line.split("#", 1)[0].strip()
