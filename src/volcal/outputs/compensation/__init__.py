@@ -182,7 +182,8 @@ class Compensation:
             "after applying them the machine keeps the part of its error that is such a "
             "motion, and the work offset (G54 ...) and the workpiece alignment (probing, "
             "rotation of the coordinate system) take it up",
-            f"residual modulo that rigid motion: RMS {self.residual_mod_rigid_rms_um:.3f} um "
+            "residual modulo that rigid motion (one motion fitted over every tool offset "
+            f"together): RMS {self.residual_mod_rigid_rms_um:.3f} um "
             f"(raw, for the datum in force: {self.residual_rms_um:.3f} um RMS, of which a "
             "rigid motion of translation (" + ", ".join(f"{v:.3f}" for v in t) + ") um and "
             "rotation (" + ", ".join(f"{v:.3f}" for v in w) + ") urad)",
