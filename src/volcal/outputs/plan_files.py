@@ -222,6 +222,10 @@ def _plot(result: Any, vol: pd.DataFrame, path: Path) -> None:
     for ax, (i, j, lab) in zip(axes, [(0, 1, "from above (x, y)"), (0, 2, "from the side (x, z)")]):
         sc = ax.scatter(P[:, i], P[:, j], c=u, s=10, cmap="viridis", rasterized=True)
         ax.plot(S[:, i], S[:, j], "r^", markersize=9, label="stations")
+        if result.constraints.reflector.limited and result.constraints.reflector.axis is None:
+            # the point the re-aimed reflector's axis is aimed from (the set-up sheet's)
+            c = np.asarray(result.centre_mm, float)
+            ax.plot(c[i], c[j], "kx", markersize=9, label="reflector aimed from")
         for k, s in enumerate(S):
             ax.annotate(f"S{k + 1}", (s[i], s[j]), textcoords="offset points", xytext=(4, 4))
         ax.set_xlabel("xyz"[i] + " / mm")
