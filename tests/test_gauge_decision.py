@@ -12,6 +12,7 @@ The data come from tests/indep_sim.py (exact rigid-body simulation, truths from 
 families than volcal's bases, satisfying no datum), on every bundled model, with realistic
 errors (tens of micrometres) and with none at all.
 """
+
 from __future__ import annotations
 
 import functools
@@ -44,8 +45,10 @@ def _sims(model: str):
     """(geometry, plan (file units), simulation at realistic errors, at zero errors): the
     same poses, stations and noise draws."""
     geom = ind.load_geometry(model)
-    counts = {a.name: (5 if a.full_turn else 3) if a.rotary else
-              (3 if len(geom.axes) <= 3 else 2) for a in geom.axes}
+    counts = {
+        a.name: (5 if a.full_turn else 3) if a.rotary else (3 if len(geom.axes) <= 3 else 2)
+        for a in geom.axes
+    }
     plan = ind.grid(geom, counts)
     truth = ind.draw_truth(geom, np.random.default_rng(11), "nonrep")
     real = ind.simulate(geom, truth, plan, TOOLS, np.random.default_rng(7), n_stations=5)
@@ -77,12 +80,11 @@ def test_decision_is_the_same_at_zero_and_at_realistic_errors(model):
     assert np.abs(field).max() > 20.0  # realistic: tens of micrometres
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        r_real = identify(model, real.measurements, real.stations_start,
-                          error_model=_em(model))
-        r_zero = identify(model, zero.measurements, zero.stations_start,
-                          error_model=_em(model))
-        r_none = identify(model, real.measurements, real.stations_start,
-                          error_model=_em(model, "none"))
+        r_real = identify(model, real.measurements, real.stations_start, error_model=_em(model))
+        r_zero = identify(model, zero.measurements, zero.stations_start, error_model=_em(model))
+        r_none = identify(
+            model, real.measurements, real.stations_start, error_model=_em(model, "none")
+        )
     for r in (r_real, r_zero, r_none):
         assert r.success, r.status
     assert _decision(r_real) == _decision(r_zero)
@@ -98,8 +100,10 @@ def test_decision_is_the_same_at_zero_and_at_realistic_errors(model):
     st = real.stations.assign(dead_length_given=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        reps = [analyze_plan(model, df, st, TOOLS, error_model=r_real.error_model, theta=th)
-                for th in (r_real.theta, None)]
+        reps = [
+            analyze_plan(model, df, st, TOOLS, error_model=r_real.error_model, theta=th)
+            for th in (r_real.theta, None)
+        ]
     for rep in reps:
         ident = rep.identifiability
         assert (ident.rank, len(ident.singular_values)) == _decision(r_real)[1:3]
@@ -144,10 +148,12 @@ def test_paper002_plan_analysis_agrees_with_its_monte_carlo():
     theta = em.fit_functions(run.truth_functions(spec, cfg["truth"]))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        at_truth = analyze_plan(machine, plan, stations, tools, budget, error_model=em,
-                                theta=theta, eval_points=plan)
-        at_zero = analyze_plan(machine, plan, stations, tools, budget, error_model=em,
-                               eval_points=plan)
+        at_truth = analyze_plan(
+            machine, plan, stations, tools, budget, error_model=em, theta=theta, eval_points=plan
+        )
+        at_zero = analyze_plan(
+            machine, plan, stations, tools, budget, error_model=em, eval_points=plan
+        )
         sim = simulate(machine, em, theta, stations, plan, tools, budget, 49)
         meas = load_measurements(sim.measurements, spec)
     assert at_truth.rank == at_zero.rank == 55
@@ -163,12 +169,23 @@ def test_paper002_plan_analysis_agrees_with_its_monte_carlo():
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, 1.0 / meas.sigma)
     Call = np.zeros((pr.C_all.shape[0], pr.n_x))
     Call[:, : pr.n_theta] = pr.C_all * pr.scale[None, : pr.n_theta]
-    n_at = [int(select_conditions(ider.jacobian(y, p)[1], Call).sum())
-            for y in (x, ider.structural(x))]
+    n_at = [
+        int(select_conditions(ider.jacobian(y, p)[1], Call).sum()) for y in (x, ider.structural(x))
+    ]
     assert n_at[1] == n_at[0] + 3
 
-    res = monte_carlo(machine, meas, budget=budget, error_model=em, trials=1000, seed=2023,
-                      workers=1, eval_points=plan, verify=0, progress=False)
+    res = monte_carlo(
+        machine,
+        meas,
+        budget=budget,
+        error_model=em,
+        trials=1000,
+        seed=2023,
+        workers=1,
+        eval_points=plan,
+        verify=0,
+        progress=False,
+    )
     mv = res["mc"].max_volumetric()
     vol = at_truth.volumetric
     i = mv["pose_index"]
