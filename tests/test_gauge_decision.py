@@ -51,14 +51,18 @@ def _sims(model: str):
     }
     plan = ind.grid(geom, counts)
     truth = ind.draw_truth(geom, np.random.default_rng(11), "nonrep")
-    real = ind.simulate(geom, truth, plan, TOOLS, np.random.default_rng(7), n_stations=5)
-    zero = ind.simulate(geom, ind.ZERO, plan, TOOLS, np.random.default_rng(7), n_stations=5)
+    real = ind.simulate(geom, truth, plan, TOOLS, np.random.default_rng(7), n_stations=4)
+    zero = ind.simulate(geom, ind.ZERO, plan, TOOLS, np.random.default_rng(7), n_stations=4)
     return geom, plan, real, zero
 
 
+@functools.cache
+def _machine(model: str) -> Machine:
+    return Machine.from_model(model)
+
+
 def _em(model: str, datum: str = "iso230") -> ErrorModel:
-    m = Machine.from_model(model)
-    return ErrorModel(m.spec, default=ErrorForm("poly", DEGREE), datum=datum)
+    return ErrorModel(_machine(model).spec, default=ErrorForm("poly", DEGREE), datum=datum)
 
 
 def _decision(res) -> tuple:
@@ -80,10 +84,14 @@ def test_decision_is_the_same_at_zero_and_at_realistic_errors(model):
     assert np.abs(field).max() > 20.0  # realistic: tens of micrometres
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        r_real = identify(model, real.measurements, real.stations_start, error_model=_em(model))
-        r_zero = identify(model, zero.measurements, zero.stations_start, error_model=_em(model))
+        r_real = identify(
+            _machine(model), real.measurements, real.stations_start, error_model=_em(model)
+        )
+        r_zero = identify(
+            _machine(model), zero.measurements, zero.stations_start, error_model=_em(model)
+        )
         r_none = identify(
-            model, real.measurements, real.stations_start, error_model=_em(model, "none")
+            _machine(model), real.measurements, real.stations_start, error_model=_em(model, "none")
         )
     for r in (r_real, r_zero, r_none):
         assert r.success, r.status
@@ -101,7 +109,15 @@ def test_decision_is_the_same_at_zero_and_at_realistic_errors(model):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         reps = [
-            analyze_plan(model, df, st, TOOLS, error_model=r_real.error_model, theta=th)
+            analyze_plan(
+                _machine(model),
+                df,
+                st,
+                TOOLS,
+                error_model=r_real.error_model,
+                theta=th,
+                eval_points=df,
+            )
             for th in (r_real.theta, None)
         ]
     for rep in reps:
@@ -114,10 +130,9 @@ def test_decision_is_the_same_at_zero_and_at_realistic_errors(model):
     np.testing.assert_allclose(u[0], u[1], rtol=0.02, atol=1e-3)
 
     # plan: the evaluator's frozen datum is identify's
-    m = Machine.from_model(model)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ev = PlanEvaluator(m, r_real.error_model, geom.to_internal(plan), TOOLS, 5)
+        ev = PlanEvaluator(_machine(model), r_real.error_model, geom.to_internal(plan), TOOLS, 4)
         fz = ev.freeze(real.stations[["x_mm", "y_mm", "z_mm"]].to_numpy())
     assert tuple(fz.datum_active) == _decision(r_real)[0]
 

@@ -53,7 +53,8 @@ def test_readme_values_compared_with_tolerance(tmp_path):
                       encoding="utf-8")
 
     def run(exact, mc, note, tol):
-        new = {"t": f"| k | exact | mc | note |\n|---|---|---|---|\n| a | {exact} | {mc} | {note} |"}
+        head = "| k | exact | mc | note |\n|---|---|---|---|\n"
+        new = {"t": f"{head}| a | {exact} | {mc} | {note} |"}
         return rt.check_readme_against(readme, new, tolerance=tol)
 
     same = ("55 of 61", "5.30", "[100.7, 111.1]")
