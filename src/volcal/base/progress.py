@@ -245,7 +245,12 @@ def counter(
         yield _Off()
         return
     stream = _STATE["stream"] or sys.stderr
-    tty = bool(getattr(stream, "isatty", lambda: False)())
+    if getattr(stream, "closed", False):  # the stream of an earlier caller, gone since
+        stream = sys.stderr
+    try:
+        tty = bool(getattr(stream, "isatty", lambda: False)())
+    except (OSError, ValueError):
+        tty = False
     bar = None
     if "ipykernel" in sys.modules or tty:
         if "ipykernel" in sys.modules:
