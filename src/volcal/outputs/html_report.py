@@ -42,6 +42,7 @@ import numpy as np
 import pandas as pd
 
 from volcal import __version__
+from volcal.analysis.adequacy import STRUCTURE_P, Adequacy
 from volcal.base.exceptions import InputError
 from volcal.outputs.results import (
     OPTIONAL_FILES,
@@ -384,9 +385,20 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
     verdict = None
     if ad:
         lo, hi = (ad.get("interval") or [None, None])[:2]
+        # the three outcomes (results saved before them read adequate / inadequate)
+        adq = Adequacy.from_dict(ad)
         verdict = {
-            "adequate": ad.get("verdict") == "adequate",
-            "verdict": str(ad.get("verdict", "")),
+            "adequate": adq.adequate,
+            "verdict": adq.verdict,
+            "summary": adq.summary,
+            "threshold": f"{STRUCTURE_P:g}",
+            "where": (
+                "above"
+                if adq.chi2_per_dof > adq.interval[1]
+                else "below"
+                if adq.chi2_per_dof < adq.interval[0]
+                else "inside"
+            ),
             "message": str(ad.get("message", "")),
             "chi2_per_dof": _g(ad.get("chi2_per_dof")),
             "interval": f"[{_g(lo)}, {_g(hi)}]",
@@ -404,7 +416,12 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
             "max_abs": _g((ad.get("outliers") or {}).get("max_abs")),
             "structure": [
                 {
-                    "axis": str(s.get("axis", "")),
+                    "axis": (
+                        f"axis {s.get('axis', '')}"
+                        if s.get("kind", "axis") == "axis"
+                        else str(s.get("axis", ""))
+                    ),
+                    "significant": float(s.get("p_value", 1.0)) < STRUCTURE_P,
                     "bins": s.get("n_bins"),
                     "f": _g(s.get("f"), 3),
                     "p": (

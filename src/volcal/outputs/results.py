@@ -74,7 +74,7 @@ import numpy as np
 import pandas as pd
 
 from volcal import __version__
-from volcal.analysis.adequacy import assess
+from volcal.analysis.adequacy import STRUCTURE_P, assess
 from volcal.analysis.identifiability import FieldNullSpace
 from volcal.analysis.identify import IdentificationResult, SolverState, predict_volumetric
 from volcal.base import progress
@@ -719,10 +719,7 @@ def _report(
     rows.append(
         (
             "model adequacy",
-            "the model fits (chi2/dof inside its 99.9 % interval)"
-            if adequacy.adequate
-            else "**INADEQUATE**: chi2/dof outside its 99.9 % interval; likely cause: "
-            + ", ".join(c.kind for c in adequacy.causes)
+            (adequacy.summary if adequacy.adequate else f"**{adequacy.summary}**")
             + " (see Model adequacy)",
         )
     )
@@ -1080,30 +1077,48 @@ def _order_selection_lines(result: IdentificationResult) -> list[str]:
 # writing
 
 
+def _sentence(text: str) -> str:
+    """A message as a sentence: capital first letter, full stop."""
+    return (text[:1].upper() + text[1:]).rstrip(".") + "."
+
+
 def _adequacy_section(ad, plots: bool) -> str:
     """Report text: the model adequacy test (see :mod:`volcal.analysis.adequacy`)."""
     lo, hi = ad.interval
     lines = ["## Model adequacy", ""]
-    if ad.adequate:
+    if ad.verdict == "fits":
         lines.append(
             f"**The model fits the data within their uncertainty**: chi2/dof = "
             f"{ad.chi2_per_dof:.4g} lies inside its 99.9 % interval "
             f"[{lo:.4g}, {hi:.4g}] for {ad.dof} degrees of freedom "
-            f"({ad.n_readings} readings used)."
+            f"({ad.n_readings} readings used), and no residual structure is significant "
+            f"(p < {STRUCTURE_P:g})."
         )
+    elif ad.verdict == "budget_pessimistic":
+        lines.append(
+            f"**The model fits; the uncertainty budget is pessimistic.** {_sentence(ad.message)}"
+        )
+        lines += ["", "The reported uncertainties are conservative; the result can be used as is."]
     else:
+        where = "above" if ad.chi2_per_dof > hi else "below" if ad.chi2_per_dof < lo else "inside"
+        sig = [s.label for s in ad.significant_structure]
         lines.append(
             f"**WARNING: the model does not fit the data within their uncertainty.** "
-            f"chi2/dof = {ad.chi2_per_dof:.4g} lies outside its 99.9 % interval "
+            f"chi2/dof = {ad.chi2_per_dof:.4g} lies {where} its 99.9 % interval "
             f"[{lo:.4g}, {hi:.4g}] for {ad.dof} degrees of freedom "
-            f"({ad.n_readings} readings used). The identified errors and their "
-            "uncertainties are not to be trusted until the cause is removed."
+            f"({ad.n_readings} readings used)"
+            + (
+                f"; the residuals are structured (F-test p < {STRUCTURE_P:g} against "
+                + ", ".join(sig)
+                + ")"
+                if sig
+                else ""
+            )
+            + ". The identified errors and their uncertainties are not to be trusted until "
+            "the cause is removed."
         )
         lines += ["", "Likely cause" + ("s, most likely first:" if len(ad.causes) > 1 else ":"), ""]
-        lines += [
-            f"- **{c.kind}** ({100 * c.share:.0f} % of the excess chi2): {c.text}"
-            for c in ad.causes
-        ]
+        lines += [f"- **{c.kind}**: {c.text}" for c in ad.causes]
     lines.append("")
     for w in ad.warnings:
         lines += [f"**Warning:** {w}.", ""]
@@ -1119,17 +1134,20 @@ def _adequacy_section(ad, plots: bool) -> str:
     ]
     lines += [
         "",
-        "Residual structure against each axis' position (nested F-test of the "
-        "binned means per station against the station means; share: of the residual "
-        "sum of squares the binned means explain beyond chance):",
+        "Residual structure (nested F-tests: against an axis' position, the tool offset "
+        "or the time of the reading, the group means per station against the station "
+        "means; against the station, the station means against the overall mean; "
+        f"significant below p = {STRUCTURE_P:g}; share: of the residual sum of squares "
+        "the group means explain beyond chance):",
         "",
-        "| axis | bins | F | p-value | share |",
-        "|---|---:|---:|---:|---:|",
+        "| against | groups | F | p-value | share | significant |",
+        "|---|---:|---:|---:|---:|---|",
     ]
     for st in ad.structure:
         p = f"{st.p_value:.2g}" if st.log10_p > -300 else "< 1e-300"
         lines.append(
-            f"| {st.axis} | {st.n_bins} | {st.f:.3g} | {p} | {100 * st.explained_share:.1f} % |"
+            f"| {st.label} | {st.n_bins} | {st.f:.3g} | {p} | "
+            f"{100 * st.explained_share:.1f} % | {'**yes**' if st.significant else 'no'} |"
         )
     lines.append("")
     if plots:
