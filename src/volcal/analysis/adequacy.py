@@ -65,7 +65,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -184,7 +184,12 @@ class Cause:
         if self.kind == "tool_offset":
             return "structure against the tool offset"
         if self.kind == "station":
-            return "offset between stations"
+            a = str(nb.get("axis", ""))
+            return (
+                f"a station's scatter ({a[16:-1]})"
+                if a.startswith("station spread")
+                else ("offset between stations")
+            )
         if self.kind == "drift":
             return "drift in time"
         if self.kind == "budget":
@@ -264,7 +269,7 @@ class Adequacy:
         where = "above" if c > hi else "below" if c < lo else "inside"
         return (
             f"does NOT fit ({c2} {where} [{lo:.3g}, {hi:.3g}]"
-            + (f"; likely cause: {', '.join(c.short for c in self.causes)}" if self.causes else "")
+            + (f"; likely cause: {', '.join(_shorts(self.causes))}" if self.causes else "")
             + ")"
         )
 
@@ -304,6 +309,20 @@ class Adequacy:
     def lines(self) -> list[str]:
         """The message and the warnings, one per line."""
         return [self.message, *self.warnings]
+
+
+def _shorts(causes: Sequence[Cause]) -> list[str]:
+    """The causes' few words, the axes of several basis causes in one."""
+    out: list[str] = []
+    axes = [str(c.numbers.get("axis", "?")) for c in causes if c.kind == "basis"]
+    for c in causes:
+        if c.kind != "basis":
+            out.append(c.short)
+        elif len(axes) == 1:
+            out.append(c.short)
+        elif str(c.numbers.get("axis")) == axes[0]:
+            out.append(f"basis too poor for axes {', '.join(axes)}")
+    return out
 
 
 # --------------------------------------------------------------------------------------
@@ -395,6 +414,7 @@ def _structure(
     units: Sequence[str],
     tools: np.ndarray | None,
     time: np.ndarray | None,
+    station_names: Sequence[str] | None = None,
 ) -> list[AxisStructure]:
     """Every structure test the data allow (see the module), strongest first."""
     out: list[AxisStructure | None] = []
@@ -408,7 +428,21 @@ def _structure(
         out.append(_nested_f(z, station, cell, "tool offset", "", "tool_offset", nb))
     n_st = len(np.unique(station))
     if n_st > 1:
-        out.append(_nested_f(z, np.zeros_like(station), station, "station", "", "station", n_st))
+        zero = np.zeros_like(station)
+        out.append(_nested_f(z, zero, station, "station", "", "station", n_st))
+        # a fitted dead length takes up a station's mean: what is left to see is one
+        # station scattering more than the others (Brown-Forsythe: the means of the
+        # absolute deviations from each station's median)
+        med = np.zeros(len(z))
+        for k in np.unique(station):
+            med[station == k] = np.median(z[station == k])
+        spread = _nested_f(np.abs(z - med), zero, station, "station spread", "", "station", n_st)
+        if spread is not None:
+            rms = {k: float(np.sqrt(np.mean(z[station == k] ** 2))) for k in np.unique(station)}
+            worst = max(rms, key=lambda k: rms[k])
+            name = station_names[worst] if station_names is not None else str(worst)
+            spread = replace(spread, axis=f"station spread (widest {name})")
+            out.append(spread)
     if time is not None:
         t = np.asarray(time, float)
         fin = np.isfinite(t)
@@ -482,7 +516,15 @@ def _structure_cause(
         text = (
             f"the readings differ between tool offsets: {stat}; check the tool offsets "
             "in the data (measure the reflectors' offsets, e.g. on a tool presetter) or "
-            "look for an angular error the model does not have"
+            "look for an angular error the model does not have (when the offsets were "
+            "measured one after the other, a drift in time shows here too)"
+        )
+    elif kind == "station" and s.axis.startswith("station spread"):
+        text = (
+            f"one station's readings scatter more than the others' ({s.axis[16:-1]}): "
+            f"{stat}; that station moved or its beam path was disturbed during the run "
+            "(reflector seating, air turbulence, a beam break re-initialised): check it and "
+            "measure it again"
         )
     elif kind == "station":
         text = (
@@ -535,11 +577,11 @@ def assess_residuals(
         keep &= ~np.asarray(rejected, bool)
     z = z_all[keep]
     n = len(z)
-    st = (
-        np.zeros(len(z_all), np.int64)
-        if stations is None
-        else np.unique(np.asarray(stations).astype(str), return_inverse=True)[1]
-    )[keep]
+    if stations is None:
+        st_names, st = np.array(["1"]), np.zeros(len(z_all), np.int64)[keep]
+    else:
+        st_names, st = np.unique(np.asarray(stations).astype(str), return_inverse=True)
+        st = st[keep]
     n_st = int(len(np.unique(st))) if n else 0
     dof = n if dof is None else max(int(dof), 1)
     chi2_sum = float(np.sum(z * z))
@@ -582,7 +624,7 @@ def assess_residuals(
         if tools is not None:
             tl = np.unique(np.asarray(tools).astype(str), return_inverse=True)[1][keep][inl]
         tm = np.asarray(time, float)[keep][inl] if time is not None else None
-        structure = _structure(z[inl], st[inl], pos, u, tl, tm)
+        structure = _structure(z[inl], st[inl], pos, u, tl, tm, list(st_names))
     significant = [s for s in structure if s.significant]
 
     warnings: list[str] = []
