@@ -119,9 +119,7 @@ def test_noise_below_the_budget_is_a_pessimistic_budget_with_exit_code_0(
 
 def test_classic_with_tool_offsets_names_its_bias_not_the_budget():
     sim = _three_axis("paper002")
-    ad = identify(
-        "mcv754_wxyzt", sim.measurements, sim.stations_start, strategy="classic"
-    ).adequacy
+    ad = identify("mcv754_wxyzt", sim.measurements, sim.stations_start, strategy="classic").adequacy
     assert ad.verdict == "does_not_fit" and not ad.adequate
     assert ad.cause == "strategy" and ad.causes[0].numbers["strategy"] == "classic"
     assert "--strategy joint" in ad.causes[0].text
