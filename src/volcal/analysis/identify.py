@@ -862,6 +862,9 @@ def _identify(
         no_sigma = ~np.isfinite(sigma)
         if no_sigma.any():  # the budget only where the table gives no sigma
             sigma[no_sigma] = reading_sigma(machine, bud, meas, st0, ins)[no_sigma]
+            uncovered = bud.warn_uncovered(spec)
+            if uncovered:
+                notes.append(uncovered)
     sigma_source = (
         "table"
         if not no_sigma.any()
