@@ -125,6 +125,7 @@ def test_classic_with_tool_offsets_names_its_bias_not_the_budget():
     assert "--strategy joint" in ad.causes[0].text
     assert "biased strategy (classic)" in ad.summary
     _no_budget_advice(ad)
+    print("\nclassic:", ad.summary)
 
 
 def test_too_low_a_degree_names_the_basis():
@@ -148,6 +149,7 @@ def test_a_fourier_basis_for_a_non_periodic_error_names_the_basis_and_its_remedy
     forms = dict([parse_basis("C=bspline:8")])
     again = identify("trunnion_ac", sim.measurements, sim.stations_start, forms=forms).adequacy
     assert again.verdict == "fits", again.message
+    print(f"\nFourier C: {ad.summary}\nC=bspline:8: {again.summary}")
 
 
 @pytest.mark.parametrize("kind", ["station", "time"])
