@@ -343,6 +343,8 @@ class AnalysisReport:
                 "singular_value": s,
                 "relative": s / s[0] if len(s) and s[0] > 0 else s,
                 "above_tolerance": s > idn.tol,
+                # gauge and unidentifiable apart (see singular_value_kinds)
+                "kind": singular_value_kinds(self),
             }
         ).to_csv(d / "singular_values.csv", index=False)
         pd.DataFrame(
@@ -422,20 +424,52 @@ class AnalysisReport:
 # plots (matplotlib object API, Agg canvas)
 
 
-def plot_singular_values(rep: AnalysisReport, path: Path) -> None:
+def singular_value_kinds(rep: AnalysisReport) -> np.ndarray:
+    """Per singular value: ``determined`` (above the rank tolerance), ``gauge`` or
+    ``unidentifiable``.  The null directions below the tolerance are split by count: as
+    many as the gauge has dimensions are the gauge (the smallest ones: a rigid motion
+    changes no reading at all), the others are unidentifiable (which value belongs to which
+    direction is arbitrary inside the null space; the counts are what is known)."""
+    s = np.asarray(rep.singular_values, float)
+    kind = np.where(s > rep.tol, "determined", "unidentifiable").astype(object)
+    below = np.flatnonzero(s <= rep.tol)
+    n_gauge = min(sum(d.dimension for d in rep.null if d.kind == "gauge"), len(below))
+    if n_gauge:
+        smallest = below[np.argsort(s[below], kind="stable")[:n_gauge]]
+        kind[smallest] = "gauge"
+    return kind
+
+
+def plot_singular_values(rep: AnalysisReport, path: Path) -> Any:
+    """singular_values.png: the determined, gauge and unidentifiable singular values apart
+    (:func:`singular_value_kinds`); returns the figure."""
     s = rep.singular_values
     fig = figure(7, 4, layout="constrained")
     ax = fig.subplots()
     idx = np.arange(1, len(s) + 1)
-    ok = s > rep.tol
-    ax.semilogy(idx[ok], s[ok], "o", markersize=3, label="identifiable")
-    if (~ok).any():
+    kind = singular_value_kinds(rep)
+    ok = kind == "determined"
+    ax.semilogy(idx[ok], s[ok], "o", markersize=3, label="determined by the data")
+    floor = np.maximum(s, rep.tol * 1e-3)
+    gauge = kind == "gauge"
+    if gauge.any():
         ax.semilogy(
-            idx[~ok],
-            np.maximum(s[~ok], rep.tol * 1e-3),
+            idx[gauge],
+            floor[gauge],
+            "s",
+            markersize=4,
+            color="tab:gray",
+            label=f"gauge ({int(gauge.sum())}: rigid motion no multilateration sees, "
+            "held by the datum)",
+        )
+    unid = kind == "unidentifiable"
+    if unid.any():
+        ax.semilogy(
+            idx[unid],
+            floor[unid],
             "x",
             color="tab:red",
-            label="below tolerance (unidentifiable)",
+            label=f"unidentifiable ({int(unid.sum())}: error parameters the data do not determine)",
         )
     ax.axhline(rep.tol, color="tab:red", linewidth=0.8, linestyle="--", label="rank tolerance")
     ax.set_xlabel("index")
@@ -444,6 +478,7 @@ def plot_singular_values(rep: AnalysisReport, path: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.savefig(path, dpi=110)
+    return fig
 
 
 def plot_correlation(R: pd.DataFrame, path: Path) -> None:

@@ -473,6 +473,7 @@ def _unidentifiable(res: LoadedResult) -> dict[str, Any]:
         "parameters": [str(n) for n in names],
         "combinations": [str(c) for c in meta.get("null_space") or []],
         "gauge": [str(c) for c in meta.get("gauge") or []],
+        "why": str((meta.get("unidentifiable_explanation") or {}).get("text") or ""),
     }
 
 
@@ -484,7 +485,13 @@ def _parameters(res: LoadedResult) -> list[dict[str, Any]]:
             "name": str(r.name),
             "value": _g(r.value, 6),
             "unit": _unit(r.unit),
-            "std": _g(r.u, 6) if r.identifiable else "not identifiable",
+            "std": (
+                "imposed by the datum"
+                if getattr(r, "imposed", False)
+                else _g(r.u, 6)
+                if r.identifiable
+                else "not identifiable"
+            ),
             "identifiable": bool(r.identifiable),
         }
         for r in table.itertuples(index=False)
@@ -495,7 +502,12 @@ def _uncertainty(res: LoadedResult, grid: pd.DataFrame | None) -> dict[str, Any]
     table = res.parameters()
     largest = []
     for unit in dict.fromkeys(table["unit"]):
-        sub = table[(table["unit"] == unit) & table["identifiable"] & np.isfinite(table["u"])]
+        sub = table[
+            (table["unit"] == unit)
+            & table["identifiable"]
+            & ~table["imposed"]
+            & np.isfinite(table["u"])
+        ]
         for r in sub.sort_values("u", ascending=False).head(LARGEST_UNCERTAINTIES).itertuples():
             largest.append(
                 {

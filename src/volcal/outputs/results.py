@@ -5,10 +5,12 @@
 =========================  ==================================================================
 file                       content
 =========================  ==================================================================
-``parameters.csv``         ``name, value, unit, u, identifiable``: every error parameter in
-                           um / urad (``unit`` says which); ``u`` its standard uncertainty
-                           (empty for unidentifiable parameters: their values are one
-                           representative of what the data allow, not determined)
+``parameters.csv``         ``name, value, unit, u, identifiable, imposed``: every error
+                           parameter in um / urad (``unit`` says which); ``u`` its standard
+                           uncertainty (empty for unidentifiable parameters: their values
+                           are one representative of what the data allow, not determined);
+                           ``imposed``: set to zero by the datum (a convention, u = 0, not
+                           a measurement; the conditions are in ``datum.csv``)
 ``stations.csv``           the identified stations: ``station, x_mm, y_mm, z_mm,
                            dead_length_mm`` (+ their standard uncertainties ``u_x_um`` ...
                            ``u_dead_length_um``, ``fixed``)
@@ -409,6 +411,11 @@ def _result_document(
         "theta": result.theta,
         "cov_theta": result.cov_theta,
         "identifiable": result.identifiable,
+        "imposed": (
+            np.zeros(len(result.theta), bool)
+            if getattr(result, "imposed", None) is None
+            else np.asarray(result.imposed, bool)
+        ),
         "strategy": result.strategy,
         "status": result.status,
         "success": result.success,
@@ -441,6 +448,13 @@ def _result_document(
         "unidentifiable": list(np.asarray(em.param_names)[~np.asarray(result.identifiable)]),
         "null_space": (list(ident.unidentifiable_combinations) if ident is not None else []),
         "gauge": (list(ident.gauge_combinations) if ident is not None else []),
+        # why parameters are left out and what to measure (None: all identifiable, or no
+        # known cause)
+        "unidentifiable_explanation": (
+            result.unidentifiable_explanation()
+            if hasattr(result, "unidentifiable_explanation")
+            else None
+        ),
         "datum": (result.datum.to_dict(orient="records") if result.datum is not None else None),
         "null_space_field": (
             result.null_space.to_dict() if result.null_space is not None else None
@@ -488,8 +502,15 @@ class LoadedResult:
         written before the test existed."""
         return self.meta.get("adequacy")
 
+    @property
+    def imposed(self) -> np.ndarray:
+        """Parameters the datum set to zero (all False for results saved without it)."""
+        rec = self.meta.get("imposed")
+        n = len(self.theta)
+        return np.asarray(rec, bool) if rec is not None and len(rec) == n else np.zeros(n, bool)
+
     def parameters(self) -> pd.DataFrame:
-        """``name, value, unit, u, identifiable`` in um / urad (as parameters.csv)."""
+        """``name, value, unit, u, identifiable, imposed`` in um / urad (as parameters.csv)."""
         units = self.error_model.param_units
         f = np.array([_unit_factor(u)[0] for u in units])
         std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
@@ -501,6 +522,7 @@ class LoadedResult:
                 "unit": [_unit_factor(u)[1] for u in units],
                 "u": std,
                 "identifiable": self.identifiable,
+                "imposed": self.imposed,
             }
         )
 
@@ -872,6 +894,10 @@ def _report(
             "so their values are one representative among equally good ones and they have "
             "no uncertainty (empty `std`, `u_` cells; dashed in the plot)."
         )
+        why = result.unidentifiable_explanation()
+        if why is not None:
+            add("")
+            add(f"**Why, and what to measure:** {_sentence(why['text'])}")
     else:
         add("Every error parameter is identifiable from these data.")
     add("")
@@ -998,7 +1024,8 @@ def _report(
         "Legendre coefficient on the normalised travel, `<error>_0`, `<error>_c<k>`, "
         "`<error>_s<k>` the Fourier coefficients of 1, cos(k x), sin(k x), `<error>_b<j>` "
         "the j-th B-spline coefficient, `<error>@<pos>` a table value, `<error>` a "
-        "constant."
+        "constant. `imposed`: set to zero by the datum (a convention with u = 0, not a "
+        "measurement; the conditions are in `datum.csv`)."
     )
     add("")
     add(_md_table(result.parameters()))

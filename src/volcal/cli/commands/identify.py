@@ -366,6 +366,9 @@ def _run(args: argparse.Namespace, plotter) -> int:
         log.info("%s (report: %s)", adequacy.message, path / "report.md")
     for w in adequacy.warnings:
         log.warning("%s", w)
+    why = res.unidentifiable_explanation()
+    if why is not None:
+        log.warning("%s (report: %s)", why["text"], path / "report.md")
     if not res.success:
         return 1
     return 0
