@@ -69,6 +69,17 @@ def test_analyze_labels_gauge_and_unidentifiable_singular_values_apart(ex, tmp_p
     assert any(t.startswith("gauge (6:") for t in labels), labels
     assert any(t.startswith("unidentifiable (12:") for t in labels), labels
     assert not any("below tolerance (unidentifiable)" in t for t in labels)
+    # the parameter table: the frame and the stations' gauge part apart from errors the
+    # data do not see, and from what the datum imposes
+    par = rep.parameters()
+    assert set(par.loc[par["kind"] == "frame", "status"]) == {"gauge"}
+    err = par[par["kind"] == "error"]
+    assert (err["status"] == "unidentifiable").sum() == (~err["identifiable"]).sum() > 0
+    assert {n.split("_")[0] for n in err.loc[err["status"] == "unidentifiable", "name"]} == {
+        "ECY", "EAZ", "EBZ", "ECZ"}
+    imposed = err[err["status"] == "imposed"]
+    assert len(imposed) and (imposed["u"] < 1e-9).all() and (imposed["value"] == 0).all()
+    assert "gauge" not in set(err["status"])
     rep.save(tmp_path / "an", plots=False)
     csv = pd.read_csv(tmp_path / "an" / "singular_values.csv")
     assert (csv["kind"] == "gauge").sum() == 6 and (csv["kind"] == "unidentifiable").sum() == 12
