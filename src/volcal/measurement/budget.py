@@ -525,7 +525,13 @@ class Budget:
             if not rotary
             else f"rotary: {', '.join(rotary)}"
         )
-        unit = "an angle unit such as arcsec" if rotary else "a length unit such as um"
+        unit = (
+            "an angle unit such as arcsec"
+            if len(rotary) == len(missing)
+            else "a length unit such as um"
+            if not rotary
+            else "um for a linear axis, arcsec for a rotary one"
+        )
         return (
             f"the uncertainty budget '{self.name}' has no positioning repeatability for "
             f"{'axes' if len(missing) > 1 else 'axis'} {', '.join(missing)} ({kinds}) of "
