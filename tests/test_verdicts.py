@@ -27,6 +27,7 @@ import volcal.cli.main
 from volcal.analysis.adequacy import STRUCTURE_P
 from volcal.analysis.identify import identify
 from volcal.model.errors import parse_basis
+from volcal.outputs.html_report import html_report
 
 TOOLS = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0], [80.0, 0.0, 60.0], [0.0, 80.0, 60.0]])
 #: an instrument about half as noisy as paper 002's budget says
@@ -115,6 +116,12 @@ def test_noise_below_the_budget_is_a_pessimistic_budget_with_exit_code_0(
     report = (tmp_path / "r" / "report.md").read_text()
     assert "The model fits; the uncertainty budget is pessimistic" in report
     assert "WARNING" not in report.split("## Model adequacy")[1].split("\n## ")[0]
+    # the HTML hand-over: a green banner, never the red one
+    html = html_report(tmp_path / "r", plots=False)
+    head = html.split('id="adequacy-verdict"')[0][-80:]
+    banner = html.split('id="adequacy-verdict"')[1].split("</div>")[0]
+    assert 'class="banner good"' in head and 'data-verdict="budget_pessimistic"' in banner
+    assert "the uncertainty budget is pessimistic" in banner and "NOT" not in banner
 
 
 def test_classic_with_tool_offsets_names_its_bias_not_the_budget():
