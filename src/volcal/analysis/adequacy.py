@@ -312,7 +312,20 @@ class Adequacy:
 
 
 def _shorts(causes: Sequence[Cause]) -> list[str]:
-    """The causes' few words, the axes of several basis causes in one."""
+    """The causes' few words, the axes of several basis causes in one.  After a biased
+    strategy the structure causes are its likely consequences: only where the structure
+    is is said (the report gives them as causes in their own right)."""
+    if causes and causes[0].kind == "strategy":
+        rest = [c for c in causes[1:] if c.kind not in ("outliers", "budget")]
+        return (
+            [causes[0].short]
+            + [c.short for c in causes[1:] if c.kind == "outliers"]
+            + (
+                [f"structure against {', '.join(str(c.numbers.get('axis')) for c in rest)}"]
+                if rest
+                else []
+            )
+        )
     out: list[str] = []
     axes = [str(c.numbers.get("axis", "?")) for c in causes if c.kind == "basis"]
     for c in causes:

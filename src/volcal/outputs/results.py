@@ -1157,7 +1157,12 @@ def _adequacy_section(ad, plots: bool) -> str:
         f"| readings beyond 5 robust sigma / 5 budget sigma | "
         f"{o['n_beyond_5_robust']} / {o['n_beyond_5_sigma']} |",
         f"| excess kurtosis of the normalised residuals | {_fmt(o['excess_kurtosis'])} |",
-        f"| budget factor (sigma multiplier the residuals call for) | {_fmt(ad.budget_factor)} |",
+        f"| budget factor (sigma multiplier the residuals call for) | {_fmt(ad.budget_factor)}"
+        + (
+            " (not a property of the budget while the residuals are structured) |"
+            if ad.significant_structure
+            else " |"
+        ),
     ]
     lines += [
         "",
