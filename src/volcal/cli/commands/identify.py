@@ -175,7 +175,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--scale-covariance",
         action="store_true",
-        help="scale the covariance by the residual variance factor (chi2/dof)",
+        help="scale the covariance by the residual variance factor (chi2/dof); for a "
+        "budget that is off, not for residual structure (a misfit is not noise)",
     )
     p.add_argument(
         "--out",
