@@ -35,7 +35,9 @@ remedy.
 
 * ``strategy``: a strategy with a biased step (``classic``: stations calibrated on nominal
   points and points multilaterated before the fit; ``two-phase``: the stations of the
-  first phase held) leaves structure behind; the joint fit estimates everything together;
+  first phase held; ``points-only``: stations held where given or at the analytical
+  solution from nominal points) leaves structure behind; the joint fit estimates
+  everything together;
 * ``basis``: structure against an axis: its basis is too poor for its error motions
   (raise the degree, ``--degree auto``, or give the axis another basis; a Fourier series
   on a full-turn axis cannot follow an error that does not return after a turn);
@@ -119,6 +121,11 @@ BIASED_STRATEGIES = {
     "two-phase": (
         "two-phase holds the stations its first phase found on nominal points (the "
         "machine's errors set to zero), so the errors they absorbed are not recovered"
+    ),
+    "points-only": (
+        "points-only holds the stations where the stations table puts them or, without "
+        "one, at the analytical solution from nominal points (which absorbs part of the "
+        "machine's errors); held stations that are off leave structure behind"
     ),
 }
 #: the structure kinds of :class:`AxisStructure` and the cause each points to

@@ -6,7 +6,9 @@ knows) through :func:`volcal.analysis.identify.identify` on the same readings, w
 same error model, budget and start values, and compares each with a reference strategy
 (default joint):
 
-* status, chi2/dof, the adequacy verdict (:func:`adequacy_verdict`), residual RMS, time;
+* status, chi2/dof, the adequacy verdict (:func:`adequacy_verdict`) and its likely causes
+  (``causes``: the kinds of :attr:`volcal.analysis.adequacy.Adequacy.cause_kinds`), residual
+  RMS, time;
 * the **field difference** to the reference: both volumetric errors at the workspace
   points (a Halton sample of the declared travel plus the corners of the travel box,
   :func:`volcal.analysis.identify.declared_poses`, at every measured tool offset),
@@ -432,6 +434,7 @@ def compare(
             "success": r.success,
             "chi2_per_dof": np.nan,
             "verdict": "not solved",
+            "causes": "",
             "residual_rms_um": np.nan,
             "field_diff_rms_um": np.nan,
             "field_diff_max_um": np.nan,
@@ -451,6 +454,8 @@ def compare(
             row.update(
                 chi2_per_dof=float(res.conditions.get("chi2_per_dof", np.nan)),
                 verdict=adequacy_verdict(res),
+                # the likely causes' kinds, most likely first (Adequacy.cause_kinds)
+                causes=" ".join(res.adequacy.cause_kinds),
                 residual_rms_um=res.residual_rms_um,
                 n_unidentifiable=len(un),
                 unidentifiable=" ".join(un),
