@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import logging
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,7 +61,7 @@ from volcal.analysis.identify import (
 )
 from volcal.base.exceptions import InputError, SolverError
 from volcal.base.progress import stage as report_stage
-from volcal.measurement.budget import Budget, load_budget
+from volcal.measurement.budget import Budget, BudgetWarning, load_budget
 from volcal.measurement.tables import Measurements, load_measurements, load_stations
 from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.model.machine import Machine
@@ -383,6 +384,9 @@ def compare(
     )
     em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
     bud = budget if isinstance(budget, Budget) else load_budget(budget)
+    # said here, once per run: the trials draw every axis' scatter from the budget (their
+    # processes keep quiet about it)
+    bud.warn_uncovered(spec)
     truth_value, truth_source = _load_truth(truth, em)
     truth_source = truth_name or truth_source
     opts = {"error_model": em, "budget": bud, "solver": solver}
@@ -690,37 +694,40 @@ class TrialKernel:
         m = self.mask
         p0 = self.machine.nominal_points(self.Q[m], self.T[m])
         out = np.full((chunk[1] - chunk[0], len(self.strategies), 3), np.nan)
-        for i, trial in enumerate(range(*chunk)):
-            sim = simulate(
-                self.machine,
-                self.error_model,
-                self.theta,
-                self.stations,
-                self.plan,
-                self.tools,
-                self.budget,
-                trial_seed(self.seed, trial),
-            )
-            data = sim.measurements
-            if self.keep is not None:
-                data = data.loc[self.keep].reset_index(drop=True)
-            for j, s in enumerate(self.strategies):
-                try:
-                    res = identify(
-                        self.machine,
-                        data,
-                        self.start_stations,
-                        strategy=s,
-                        error_model=self.error_model,
-                        budget=self.budget,
-                        solver=self.solver,
-                    )
-                except SolverError:
-                    out[i, j, 2] = 0.0
-                    continue
-                f, _ = _field(res, self.Q[m], self.T[m])
-                out[i, j, :2] = _norm_stats(modulo_gauge(p0, f - true_um[m]))
-                out[i, j, 2] = 1.0 if res.success else 0.0
+        with warnings.catch_warnings():
+            # the run said it once (compare); a trial, maybe in its own process, not
+            warnings.simplefilter("ignore", BudgetWarning)
+            for i, trial in enumerate(range(*chunk)):
+                sim = simulate(
+                    self.machine,
+                    self.error_model,
+                    self.theta,
+                    self.stations,
+                    self.plan,
+                    self.tools,
+                    self.budget,
+                    trial_seed(self.seed, trial),
+                )
+                data = sim.measurements
+                if self.keep is not None:
+                    data = data.loc[self.keep].reset_index(drop=True)
+                for j, s in enumerate(self.strategies):
+                    try:
+                        res = identify(
+                            self.machine,
+                            data,
+                            self.start_stations,
+                            strategy=s,
+                            error_model=self.error_model,
+                            budget=self.budget,
+                            solver=self.solver,
+                        )
+                    except SolverError:
+                        out[i, j, 2] = 0.0
+                        continue
+                    f, _ = _field(res, self.Q[m], self.T[m])
+                    out[i, j, :2] = _norm_stats(modulo_gauge(p0, f - true_um[m]))
+                    out[i, j, 2] = 1.0 if res.success else 0.0
         return out
 
 

@@ -119,8 +119,9 @@ def _rows(table: pd.DataFrame, reference: str) -> tuple[list[str], list[list[str
             str(r["strategy"]),
             "solved" if ok else f"FAILED ({r['status']})",
             _g(r["chi2_per_dof"]),
+            # the most likely cause beside the verdict (comparison.csv has them all)
             str(r["verdict"])
-            + (f" ({str(r.get('causes')).replace(' ', ', ')})" if r.get("causes") else ""),
+            + (f" ({str(r.get('causes')).split()[0]})" if r.get("causes") else ""),
             _g(r["residual_rms_um"]),
             "reference"
             if is_ref and ok
@@ -170,8 +171,9 @@ def _explanation(doc: dict[str, Any]) -> list[str]:
         "Verdict: the model adequacy test of each fit (volcal.analysis.adequacy): fits, "
         "budget_pessimistic (fits; chi2/dof below its 99.9 % interval without residual "
         "structure) or does_not_fit (chi2/dof above the interval or residual structure at "
-        "p < 1e-6), with the likely causes in brackets (strategy: a biased strategy; "
-        "basis, tool_offset, station, drift: where the structure is; outliers; budget).",
+        "p < 1e-6), with the most likely cause in brackets (strategy: a biased strategy; "
+        "basis, tool_offset, station, drift: where the structure is; outliers; budget; "
+        "all of them in the causes column of comparison.csv).",
     ]
     if doc.get("truth_source"):
         out.append(
