@@ -66,7 +66,7 @@ against each axis position with the binned means of :func:`position_bins`.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
@@ -512,7 +512,7 @@ def _basis_advice(axis: str, forms: Sequence[Any], full_turn: bool) -> str:
 
 
 def _structure_cause(
-    s: AxisStructure, bases: dict[str, Sequence[Any]], full_turn: set[str]
+    s: AxisStructure, bases: Mapping[str, Sequence[Any]], full_turn: set[str]
 ) -> Cause:
     """The cause a significant structure points to, in a metrologist's words."""
     numbers = {
@@ -574,7 +574,7 @@ def assess_residuals(
     tools: Sequence[Any] | np.ndarray | None = None,
     time: Sequence[float] | np.ndarray | None = None,
     strategy: str | None = None,
-    bases: dict[str, Sequence[Any]] | None = None,
+    bases: Mapping[str, Sequence[Any]] | None = None,
     full_turn: Sequence[str] = (),
 ) -> Adequacy:
     """Test whitened residuals for model adequacy (see the module docstring).
