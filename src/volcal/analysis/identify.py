@@ -454,29 +454,52 @@ class Identifier:
     # ---- pieces ---------------------------------------------------------------------
     def jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Whitened residuals and Jacobian wrt the scaled variables at physical x.  The
-        last evaluation is kept: the datum selection, the analysis and the covariance ask
-        for the same point in turn, and the dense Jacobian is the expensive part."""
+        last two evaluations are kept: the datum selection and the analysis ask for the
+        structural point (:meth:`structural`), the covariance for x, in turn, and the dense
+        Jacobian is the expensive part."""
         key = (np.asarray(x, float).tobytes(), np.asarray(p, float).tobytes())
-        if getattr(self, "_jac_key", None) != key:
+        cache: dict = self.__dict__.setdefault("_jac_cache", {})
+        if key not in cache:
             if getattr(self, "_jac_call", None) is None:
                 self._jac_call = DenseJacobian(self.problem)
             r, J = self._jac_call(self.problem.to_scaled(x), p)
             r = r.ravel()
             r.flags.writeable = J.flags.writeable = False  # shared: read-only
-            self._jac_key, self._jac = key, (r, J)
-        return self._jac
+            if len(cache) >= 2:
+                cache.pop(next(iter(cache)))
+            cache[key] = (r, J)
+        return cache[key]
+
+    def structural(self, x: np.ndarray) -> np.ndarray:
+        """x (physical) with the error parameters at zero: where gauge, datum and
+        identifiability are decided.  There the first-order model's gauge (a rigid motion
+        of the point cloud expressed through the error parameters) is exact; at non-zero
+        errors it is broken by second-order terms, which turn null directions into
+        directions with singular values near 1e-6 that a rank tolerance near 1e-13 counts as
+        determined (and the datum then leaves free).  Deciding here makes the decision the
+        same whatever the linearisation point (analyze, identify, mc, plan)."""
+        x0 = np.array(x, float)
+        x0[: self.problem.n_theta] = 0.0
+        return x0
 
     def analyse(
         self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray, constrained: bool = True
     ) -> Identifiability:
+        """Identifiability at x (physical): rank, null space and pivots decided at the
+        structural point (:meth:`structural`), singular values, condition numbers and weak
+        directions of the identifiable part at x."""
         _, J = self.jacobian(x, p)
+        _, J0 = self.jacobian(self.structural(x), p)
         C = self._scaled_constraints() if constrained else None
-        return analyse_jacobian(J, self.problem.names, C, fixed=fixed, prefer=self.prefer)
+        return analyse_jacobian(
+            J, self.problem.names, C, fixed=fixed, prefer=self.prefer, decide_on=J0
+        )
 
     def select_datum(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray) -> np.ndarray:
         """Put in force the candidate datum conditions that remove a null direction of the
-        Jacobian at x (physical) with ``fixed`` held (:func:`volcal.model.datum.select_conditions`);
-        returns the mask over the candidates."""
+        Jacobian at the structural point of x (physical; :meth:`structural`) with ``fixed``
+        held (:func:`volcal.model.datum.select_conditions`); returns the mask over the
+        candidates."""
         pr = self.problem
         Call = np.zeros((pr.C_all.shape[0], pr.n_x))
         Call[:, : pr.n_theta] = pr.C_all * pr.scale[None, : pr.n_theta]
@@ -496,7 +519,7 @@ class Identifier:
             act[rows[_independent_rows(pr.C_all[rows])]] = True
             pr.set_datum(act)
             return pr.datum_active
-        _, J = self.jacobian(x, p)
+        _, J = self.jacobian(self.structural(x), p)
         pr.set_datum(select_conditions(J, Call, fixed))
         return pr.datum_active
 
@@ -511,18 +534,14 @@ class Identifier:
         """How the null directions of the full Jacobian (no datum; ``fixed`` held) act on
         the volumetric error.
 
-        The null space is taken at x with the error parameters at zero: there the
-        first-order and the exact model have the same Jacobian and the gauge of the model
-        is exact (at theta != 0 the first-order model represents a rigid motion of the
-        cloud only to first order, which turns exact null directions into weak ones).  The
-        measured set is the data's distinct (pose, tool offset) pairs q_meas (N, n_axes;
-        mm, rad), tools_meas (N, 3) mm; the declared set a Halton sample of the travel of
-        every axis at each measured tool offset."""
+        The null space is taken at the structural point of x (:meth:`structural`), as
+        every other decision of gauge and datum.  The measured set is the data's distinct
+        (pose, tool offset) pairs q_meas (N, n_axes; mm, rad), tools_meas (N, 3) mm; the
+        declared set a Halton sample of the travel of every axis at each measured tool
+        offset."""
         pr = self.problem
         nt = pr.n_theta
-        x0 = np.array(x, float)
-        x0[:nt] = 0.0
-        _, J = self.jacobian(x0, p)
+        _, J = self.jacobian(self.structural(x), p)
         free, d, N = null_space(J, fixed)
         dirs = np.zeros((pr.n_x, N.shape[1]))
         dirs[free] = N * d[:, None]

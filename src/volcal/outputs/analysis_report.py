@@ -837,10 +837,14 @@ def analyze_jacobian_report(
     n = pr.n_x
     user_fixed = np.zeros(n, bool) if user_fixed is None else np.asarray(user_fixed, bool)
     with progress.stage("identifiability and covariance"):
+        # datum, rank, null space and pivots are decided at zero errors (the structural
+        # point), as identify, mc and plan decide them; the covariance is x's
         if datum_active is None:
             ider.select_datum(x, p, user_fixed)
         else:
             pr.set_datum(datum_active)
+        x0 = ider.structural(x)
+        _, J0 = ider.jacobian(x0, p)
         _, J = ider.jacobian(x, p)
         ident = ider.analyse(x, p, user_fixed)
         fixed = user_fixed.copy()
@@ -849,7 +853,7 @@ def analyze_jacobian_report(
     identifiable = ~(ident.unidentifiable | fixed)
     q, t, _, w = unpack_data(machine.n_axes, p)
     null = _null_directions(
-        ider, J, x, ident, user_fixed, q, t, np.asarray(pr.layout.station_index), w
+        ider, J0, x0, ident, user_fixed, q, t, np.asarray(pr.layout.station_index), w
     )
     Cs = ider._scaled_constraints()
     weak = _weak_directions(J, Cs, fixed, pr.names, ident.tol, n_weak)
