@@ -237,11 +237,13 @@ def test_mc_command_writes_results_and_resumes(tmp_path, capsys):
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "IPOPT cross-check" in text and "reference comparison" in text
+    assert "  identification           fits (chi2/dof" in text
     for f in ("parameters.csv", "error_motions.csv", "volumetric.csv", "summary.json",
               "report.md", "comparison.csv"):
         assert (out / f).is_file(), f
     summ = json.loads((out / "summary.json").read_text())
     assert summ["trials"] == 300 and summ["not_converged"] == 0
+    assert summ["identification"]["adequacy"] == "fits"
     assert summ["verify_against_ipopt"]["theta_rel"] < 1e-9
     first = pd.read_csv(out / "parameters.csv")
     assert main(argv) == 2          # an earlier run is replaced only with --force

@@ -28,6 +28,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -52,7 +53,12 @@ from volcal.measurement.tables import (
     load_measurements,
     load_stations,
 )
-from volcal.model.datum import condition_table, null_space, select_conditions
+from volcal.model.datum import (
+    condition_table,
+    imposed_parameters,
+    null_space,
+    select_conditions,
+)
 from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.model.machine import Machine
 from volcal.model.spec import MachineSpec
@@ -125,6 +131,9 @@ class IdentificationResult:
     #: the :class:`Identifier` that solved it (problem and solvers), for analyses of the
     #: same data that would otherwise build it again (Monte Carlo); not pickled
     identifier: Identifier | None = field(default=None, repr=False, compare=False)
+    #: parameters the imposed datum conditions alone set to zero (a convention, not a
+    #: measurement: u = 0); None: none known
+    imposed: np.ndarray | None = field(default=None, repr=False)
 
     def __getstate__(self):
         d = dict(self.__dict__)
@@ -180,14 +189,50 @@ class IdentificationResult:
 
         return assess(self)
 
+    def unidentifiable_explanation(self) -> dict[str, Any] | None:
+        """Why parameters are left out and what to measure, when the data explain it:
+        ``{"cause", "parameters", "text"}`` (None when every parameter is identifiable or
+        no cause is known).
+
+        Known cause: a single tool offset.  Lengths to one reflector position see an
+        angular error of the tool-side axes only through that offset's lever arm, so
+        rotations and translations that move the one point alike cannot be told apart;
+        more offsets (not on one line) or more spindle orientations separate them."""
+        names = [n for n, ok in zip(self.error_model.param_names, self.identifiable) if not ok]
+        if not names:
+            return None
+        res = self.residuals
+        cols = [c for c in ("tool_x", "tool_y", "tool_z") if c in res.columns]
+        used = ~np.asarray(res["rejected"], bool) if "rejected" in res else slice(None)
+        tools = np.unique(res.loc[used, cols].to_numpy(float), axis=0) if cols else np.zeros((1, 3))
+        if len(tools) != 1:
+            return None
+        t = ", ".join(f"{v:g}" for v in tools[0])
+        errors = sorted({n.split("_")[0].split("@")[0] for n in names})
+        return {
+            "cause": "single_tool_offset",
+            "parameters": names,
+            "text": (
+                f"every reading has the same tool offset ({t}) mm: lengths to one reflector "
+                "position see an angular error of the tool-side axes only through that "
+                "offset's lever arm, so rotations and translations that move the one point "
+                f"alike cannot be told apart. Left out: {len(names)} parameter(s) of "
+                f"{', '.join(errors)} ({', '.join(names)}). To determine them, measure at "
+                "three or more tool offsets not on one line (e.g. 0,0,0; 0,0,100; 80,0,60 "
+                "mm: `volcal simulate --tools`, `volcal plan --tools`) or, on a machine with a "
+                "swivelling head, in more spindle orientations"
+            ),
+        }
+
     @property
     def residual_rms_um(self) -> float:
         r = self.residuals.loc[~self.residuals["rejected"], "residual_um"]
         return float(np.sqrt(np.mean(r**2))) if len(r) else float("nan")
 
     def parameters(self) -> pd.DataFrame:
-        """name, value, unit, u (standard uncertainty), identifiable (values and u in um /
-        urad)."""
+        """name, value, unit, u (standard uncertainty), identifiable, imposed (values and u
+        in um / urad; imposed: set to zero by the datum, a convention with u = 0, not a
+        measurement)."""
         units = self.error_model.param_units
         f = report_factors(units)
         std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
@@ -199,6 +244,11 @@ class IdentificationResult:
                 "unit": [report_unit(u) for u in units],
                 "u": std,
                 "identifiable": self.identifiable,
+                "imposed": (
+                    np.zeros(len(self.theta), bool)
+                    if self.imposed is None
+                    else np.asarray(self.imposed, bool)
+                ),
             }
         )
 
@@ -881,6 +931,9 @@ def _identify(
         no_sigma = ~np.isfinite(sigma)
         if no_sigma.any():  # the budget only where the table gives no sigma
             sigma[no_sigma] = reading_sigma(machine, bud, meas, st0, ins)[no_sigma]
+            uncovered = bud.warn_uncovered(spec)
+            if uncovered:
+                notes.append(uncovered)
     sigma_source = (
         "table"
         if not no_sigma.any()
@@ -998,6 +1051,7 @@ def _identify(
     # value depends on which variable was held (reported), so it gets no uncertainty
     identifiable = ~ident.unidentifiable[:nt]
     datum_table = condition_table(pr.conditions, pr.datum_active, theta)
+    imposed = imposed_parameters(pr.conditions, pr.datum_active, nt) & identifiable
     n_not = int((~datum_table["imposed"]).sum())
     if n_not:
         notes.append(
@@ -1060,4 +1114,5 @@ def _identify(
         null_field,
         state,
         identifier=ider,
+        imposed=imposed,
     )

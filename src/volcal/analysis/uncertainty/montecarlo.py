@@ -1023,6 +1023,9 @@ def _monte_carlo(
 
         machine = model if isinstance(model, Machine) else Machine.from_model(model)
         bud = load_budget(budget)
+        # the trials draw every axis' positioning scatter from the budget, whatever sigma
+        # the data carry: an axis without a term has none (warned once per run)
+        bud.warn_uncovered(machine.spec)
         st_table = (
             load_stations(stations)
             if stations is not None
