@@ -222,7 +222,7 @@ def test_identify_warns_on_the_terminal_when_the_model_does_not_fit(xfyz, tmp_pa
     printed = capsys.readouterr().out
     assert "model adequacy           does NOT fit" in printed
     assert "likely cause: budget too small" in printed
-    assert "grid over X, Y, Z, tool offset 0" in printed
+    assert "grid over X, Y, Z, tool offset (0, 0, 0) mm" in printed
 
 
 # --------------------------------------------------------------------------------------

@@ -743,16 +743,14 @@ def run_trials(
     or on Dask, see :func:`volcal.analysis.uncertainty.parallel.run_chunks`) and return
     one row per trial and strategy: ``trial, seed, strategy, field_error_rms_um,
     field_error_max_um, success``.  The same seed gives the same table wherever it runs.
-    progress: a tqdm bar on stderr (None: when :mod:`volcal.base.progress` is on)."""
-    from tqdm.std import tqdm
-
+    progress: a bar on a terminal, plain lines with the time left otherwise
+    (:func:`volcal.base.progress.counter`; None: when :mod:`volcal.base.progress` is on)."""
     from volcal.analysis.uncertainty.parallel import run_chunks
-    from volcal.base import progress as _progress
+    from volcal.base.progress import counter
 
     chunks = [(i, i + 1) for i in range(int(trials))]
     got: dict[int, np.ndarray] = {}
-    show = _progress.enabled() if progress is None else progress
-    with tqdm(total=len(chunks), desc="trials", unit="trial", disable=not show) as bar:
+    with counter(len(chunks), "trials", "trial", on=progress) as bar:
         for chunk, res in run_chunks(kernel, chunks, workers=workers, scheduler=scheduler):
             got[chunk[0]] = res
             bar.update(1)

@@ -155,7 +155,8 @@ def volumetric_slices_data(
             {"title": title, "norm": np.linalg.norm(d, axis=2), "d1": d[..., c1], "d2": d[..., c2]}
         )
     vmax = max(float(np.max(s["norm"])) for s in out) or 1.0
-    what = "tool offset 0" if tool is None else f"tool offset {tuple(np.round(tool, 1))} mm"
+    t = np.zeros(3) if tool is None else np.asarray(tool, float)
+    what = "tool offset (" + ", ".join(f"{v:g}" for v in np.round(t, 1) + 0.0) + ") mm"
     return {
         "g1": g1,
         "g2": g2,

@@ -22,7 +22,7 @@ file                       content
                            (``EXX_um``, ``EAX_urad``) and its standard uncertainty
                            (``u_EXX_um``); cells of other axes' errors are empty
 ``volumetric_grid.csv``    a grid over the box of the linear axes and, on a coarse grid,
-                           the rotary axes' whole travel (tool offset 0): axis columns
+                           the rotary axes' whole travel (tool offset (0, 0, 0) mm): axis columns
                            (mm / deg), ``dx_um, dy_um, dz_um``, ``u_dx_um, u_dy_um,
                            u_dz_um`` and ``norm_um``
 ``report.md``              the human-readable report (links the plots)
@@ -223,7 +223,7 @@ def volumetric_grid_table(
     *,
     rotary: bool = True,
 ) -> pd.DataFrame:
-    """Volumetric error on a grid over the workspace, tool offset 0: ``n`` positions per
+    """Volumetric error on a grid over the workspace, tool offset (0, 0, 0) mm: ``n`` positions per
     linear axis over its travel (at most :data:`GRID_POINTS_WITH_ROTARY` for a model with
     rotary axes) and, with ``rotary`` (default), the rotary axes over their whole travel
     on the coarse grid of :func:`volcal.measurement.plans.summary_grid` (8 angles 45 deg apart for a
@@ -378,7 +378,7 @@ def _grid_coverage(spec: MachineSpec, grid: pd.DataFrame) -> str:
     text = f"grid over {', '.join(moving) or 'no axis'}"
     if fixed:
         text += f"; {', '.join(fixed)} at reference"
-    return text + ", tool offset 0"
+    return text + ", tool offset (0, 0, 0) mm"
 
 
 def _result_document(
@@ -442,7 +442,7 @@ def _result_document(
         "max_volumetric_pose": (
             {a: float(grid[a].iloc[imax]) for a in spec.axis_names} if imax is not None else None
         ),
-        # the axes the volumetric grid (and so max_volumetric_um) spans, tool offset 0
+        # the axes the volumetric grid (and so max_volumetric_um) spans, tool offset (0, 0, 0) mm
         "max_volumetric_axes": _grid_axes(spec, grid),
         "adequacy": assess(result).to_dict(),
         "unidentifiable": list(np.asarray(em.param_names)[~np.asarray(result.identifiable)]),
@@ -979,7 +979,7 @@ def _report(
         at_ref &= np.isclose(grid[a.name].to_numpy(float), a.reference)
     add(
         f"`volumetric_grid.csv` covers {', '.join(_grid_axes(spec, grid)) or 'no axis'}: "
-        f"{'; '.join(covered)}; tool offset 0; {len(grid)} poses. Largest error "
+        f"{'; '.join(covered)}; tool offset (0, 0, 0) mm; {len(grid)} poses. Largest error "
         f"{grid['norm_um'].max():.4g} um, RMS of the norm "
         f"{float(np.sqrt(np.mean(grid['norm_um'] ** 2))):.4g} um"
         + (

@@ -160,7 +160,7 @@ def _handler(args: argparse.Namespace) -> int:
         print(f"  solver status            {s.status}")
         print(
             f"  largest volumetric error {s.max_volumetric_um:.1f} um (workspace grid over "
-            f"{', '.join(s.grid_axes)}, tool offset 0)"
+            f"{', '.join(s.grid_axes)}, tool offset (0, 0, 0) mm)"
         )
         print(f"  residual RMS             {s.residual_rms_um:.3f} um")
         print(f"  model adequacy           {s.adequacy}")

@@ -340,7 +340,7 @@ def _run(args: argparse.Namespace, plotter) -> int:
             f"  largest volumetric error {meta['max_volumetric_um']:.2f} um "
             f"(grid over {', '.join(axes) or 'no axis'}"
             + (f", {', '.join(fixed)} at reference" if fixed else "")
-            + ", tool offset 0)"
+            + ", tool offset (0, 0, 0) mm)"
         )
         print("  unidentifiable           " + (", ".join(unid) if unid else "none"))
         if res.datum is not None and len(res.datum):
