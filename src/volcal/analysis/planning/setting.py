@@ -14,6 +14,8 @@ override them)::
     grid = 6                        # candidate positions per linear axis
     seed = 0
     degree = 3
+    margin_deg = 5                  # kept off the acceptance half-angle, deg
+    margin_mm = 20                  # kept inside regions, on distances and obstacles, mm
     start_stations = "S.csv"        # start or given stations (relative to the file)
     [travel]                        # the travel to cover, mm / deg
     X = [0, 754]
@@ -55,6 +57,8 @@ SETTING_KEYS = {
     "population": int,
     "generations": int,
     "rounds": int,
+    "margin_deg": float,
+    "margin_mm": float,
     "start_stations": str,
     "travel": dict,
     "constraints": dict,
@@ -118,7 +122,9 @@ def check_setting(doc: Mapping[str, Any], source: str) -> dict[str, Any]:
         ok = isinstance(v, want) or (want is float and isinstance(v, int))
         if isinstance(v, bool) or not ok:
             raise InputError(f"'{k}' must be {_TYPE_WORDS[want]}, got {_what(v)}", source=source)
-        if want is float and not (math.isfinite(v) and v > 0):
+        if want is float and k.startswith("margin_") and not (math.isfinite(v) and v >= 0):
+            raise InputError(f"'{k}' must be a finite number >= 0, got {v!r}", source=source)
+        if want is float and not k.startswith("margin_") and not (math.isfinite(v) and v > 0):
             raise InputError(f"'{k}' must be a finite number > 0, got {v!r}", source=source)
         if k in _AT_LEAST and v < _AT_LEAST[k]:
             raise InputError(f"'{k}' must be at least {_AT_LEAST[k]}, got {v}", source=source)
