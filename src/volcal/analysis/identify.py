@@ -43,6 +43,7 @@ from volcal.analysis import (
 )
 from volcal.analysis.identifiability import FieldSets, rigid_columns
 from volcal.base.exceptions import InputError, SolverError
+from volcal.base.memory import check_memory
 from volcal.base.progress import stage as report_stage
 from volcal.base.units import report_factors, report_unit
 from volcal.measurement.budget import Budget, load_budget
@@ -836,6 +837,7 @@ def _identify(
     instrument: str | Instrument | None = None,
     solver: str = "ipopt",
     columns: Mapping[str, str] | str | None = None,
+    max_memory_gb: float | None = None,
 ) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
@@ -859,6 +861,11 @@ def _identify(
 
     columns: a column mapping for an instrument's export (``"length=L[m],station=Tracker"``,
     see :func:`volcal.measurement.tables.parse_column_map`).
+
+    max_memory_gb: the memory (GB, 1e9 bytes) the identification may take; a table whose
+    estimated peak (:func:`volcal.base.memory.estimate_peak_bytes`, readings x unknowns)
+    exceeds it is refused with :class:`InputError` before the solve.  None (default): the
+    memory available now; ``float("inf")``: no check.
     """
     if degree == "auto":  # every other argument goes to each candidate fit
         opts = {
@@ -924,6 +931,16 @@ def _identify(
     bud = budget if isinstance(budget, Budget) else load_budget(budget)
     strat = get_strategy(strategy, station_method=station_method, point_method=point_method)
     strategy = strat.name
+    # before anything of the table's size is built: a table too large for the memory is
+    # refused with the estimate and the limit, not ended by the kernel's OOM killer
+    check_memory(
+        len(meas),
+        em.n_params
+        + len(meas.station_ids) * len(ins.station_param_names)
+        + len(ins.global_param_names),
+        limit_gb=max_memory_gb,
+        what=meas.source,
+    )
 
     with report_stage("start values and reading uncertainties"):
         st0, glob0, st_fixed, notes = initial_instrument(machine, meas, st_table, ins)

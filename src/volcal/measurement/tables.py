@@ -398,6 +398,12 @@ def parse_column_map(spec: Mapping[str, str] | str) -> dict[str, tuple[str, str 
                 f"{', '.join(_MAP_UNITS)}",
                 source="--columns",
             )
+        if key in out:
+            raise InputError(
+                f"column mapping: {key} is given twice ({key}={out[key][0]} and {key}={val}); "
+                "give each volcal column once",
+                source="--columns",
+            )
         out[key] = (col, unit)
     return out
 
@@ -409,6 +415,8 @@ def _map_columns(raw: _Raw, mapping: dict[str, tuple[str, str | None]], spec) ->
     canon = {n: c for c in _measurement_schema(spec) for n in c.names}
     header = list(raw.header)
     body = raw.body.copy()
+    taken: dict[int, str] = {}  # file column index -> the volcal column it became
+    target: dict[str, str] = {}  # volcal column -> the mapping key that named it
     for key, (col, unit) in mapping.items():
         if key not in canon:
             close = _closest(key, canon)
@@ -418,18 +426,33 @@ def _map_columns(raw: _Raw, mapping: dict[str, tuple[str, str | None]], spec) ->
                 + f"; columns: {', '.join(c.canonical for c in _measurement_schema(spec))}",
                 source=raw.name,
             )
-        if col not in header and unit is not None:
+        if col not in raw.header and unit is not None:
             # a file column named with its unit ("Distance [m]"): the bracket is both part
             # of the name and the unit of the values
-            col = next((c for c in (f"{col} [{unit}]", f"{col}[{unit}]") if c in header), col)
-        if col not in header:
+            col = next((c for c in (f"{col} [{unit}]", f"{col}[{unit}]") if c in raw.header), col)
+        if col not in raw.header:
             raise InputError(
                 f"column mapping {key}={col}: the file has no column {col!r}; its columns: "
-                f"{', '.join(header)}",
+                f"{', '.join(raw.header)}",
                 source=raw.name,
                 row=1,
             )
-        k = header.index(col)
+        k = list(raw.header).index(col)
+        if k in taken:
+            # one file column is one quantity: its values cannot be, say, both the length
+            # and its uncertainty
+            raise InputError(
+                f"column mapping: the file column {col!r} is mapped to both {taken[k]} and "
+                f"{key}; map each file column to one volcal column",
+                source=raw.name,
+            )
+        if canon[key].canonical in target:
+            raise InputError(
+                f"column mapping: {target[canon[key].canonical]} and {key} both name volcal's "
+                f"column {canon[key].canonical}; give it once",
+                source=raw.name,
+            )
+        taken[k], target[canon[key].canonical] = key, key
         header[k] = canon[key].canonical
         if unit is not None:
             want = canon[key].unit

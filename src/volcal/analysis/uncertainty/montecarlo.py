@@ -29,6 +29,7 @@ uncertainty of the estimate, their mean the GUM S1 estimate.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -45,6 +46,7 @@ import pandas as pd
 
 from volcal.analysis.uncertainty.engine import StructuredLSQ, VolumetricMap, unpack_data
 from volcal.analysis.uncertainty.sampling import InputSampler
+from volcal.base.folders import stale_temporaries
 from volcal.base.progress import counter
 
 log = logging.getLogger(__name__)
@@ -357,7 +359,10 @@ def _save_npz(path: Path, arrays: dict[str, np.ndarray], chunk: Chunk) -> None:
     # a signal (Ctrl-C, SIGTERM) waits until the chunk is whole or gone: an interrupt inside
     # numpy's zip writer can otherwise leave a temporary file or print a traceback
     with uninterrupted():
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npz")
+        # named with the process id: a rerun removes what a writer killed outright left
+        fd, tmp = tempfile.mkstemp(
+            dir=path.parent, prefix=f".chunk-{os.getpid()}-", suffix=".tmp.npz"
+        )
         os.close(fd)
         try:
             # numpy's stub types **kwargs as allow_pickle; these are arrays
@@ -439,6 +444,9 @@ def run_trials(
         name = (label or "all") + "-" + key
         folder = Path(out_dir) / "samples" / name
         folder.mkdir(parents=True, exist_ok=True)
+        for stale in stale_temporaries(folder, ".chunk-"):  # of a run killed outright
+            with contextlib.suppress(OSError):
+                stale.unlink()
         meta = {
             "seed": int(seed),
             "chunk_size": int(chunk_size),

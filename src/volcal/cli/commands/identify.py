@@ -65,6 +65,15 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "rad, s, ms, min)",
     )
     p.add_argument(
+        "--max-memory-gb",
+        type=float,
+        default=None,
+        metavar="GB",
+        help="memory the identification may take, GB; a table whose estimated peak "
+        "(readings x unknowns, see docs/robustness.md) exceeds it is refused before the "
+        "solve (default: the memory available now; inf: no check)",
+    )
+    p.add_argument(
         "--stations",
         type=Path,
         metavar="S.csv",
@@ -241,6 +250,10 @@ def _run(args: argparse.Namespace, plotter) -> int:
             source="--order-criterion",
         )
     forms = dict(parse_basis(b) for b in args.basis) or None
+    if args.max_memory_gb is not None and not args.max_memory_gb > 0:
+        raise InputError(
+            f"expected a memory limit > 0 GB, got {args.max_memory_gb:g}", source="--max-memory-gb"
+        )
     if args.reject_k is not None and not args.robust:
         raise InputError("--reject-k applies with --robust only", source="--reject-k")
     reject_k = 4.0 if args.reject_k is None else args.reject_k
@@ -284,6 +297,7 @@ def _run(args: argparse.Namespace, plotter) -> int:
         solver=args.solver,
         instrument=args.instrument,
         columns=args.columns,
+        max_memory_gb=args.max_memory_gb,
     )
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
     from volcal.base.processes import return_freed_memory

@@ -43,17 +43,25 @@ def _write(out_dir: Path, inputs, write) -> dict:
     """The outputs through :func:`volcal.base.folders.write_folder` (temporary folder, manifest,
     rename); the resumable ``samples/`` chunks written during the run move in with them."""
     import os
+    import shutil
 
     from volcal.base.folders import write_folder
 
     summary: dict = {}
 
+    def link(src: str, dst: str) -> None:
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copy2(src, dst)
+
     def writer(tmp: Path) -> None:
         summary.update(write(tmp))
-        # last, so that a failure above leaves the chunks where a rerun resumes them
+        # linked, not moved: until the finished folder is renamed into place the chunks
+        # stay where a rerun resumes them, whatever fails (a full disk, a signal)
         samples = Path(out_dir) / "samples"
         if samples.is_dir():
-            os.rename(samples, tmp / "samples")
+            shutil.copytree(samples, tmp / "samples", copy_function=link)
 
     write_folder(
         out_dir,
