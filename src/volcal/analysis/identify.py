@@ -55,7 +55,7 @@ from volcal.measurement.tables import (
 from volcal.model.datum import condition_table, null_space, select_conditions
 from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.model.machine import Machine
-from volcal.model.spec import MachineSpec
+from volcal.model.spec import MachineSpec, resolve_model
 from volcal.problem.residuals import DenseJacobian, IdentificationProblem, Layout
 from volcal.problem.strategies import (
     ClassicPipeline,
@@ -821,12 +821,9 @@ def _identify(
     from volcal.base.progress import reset_timings
 
     reset_timings()  # the stage timings recorded with the result are this run's
-    if isinstance(model, Machine):
-        machine = model
-    else:
-        with report_stage("building the model"):
-            machine = Machine.from_model(model)
-    spec = machine.spec
+    # the tables are read and checked before the model is built: a bad input is reported
+    # at once, not after the build
+    spec = model.spec if isinstance(model, Machine) else resolve_model(model)
     ins = get_instrument(instrument)
     st_table = None
     if stations is not None:
@@ -851,6 +848,11 @@ def _identify(
                 columns=columns,
             )
         )
+    if isinstance(model, Machine):
+        machine = model
+    else:
+        with report_stage("building the model"):
+            machine = Machine.from_model(spec)
     em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
     bud = budget if isinstance(budget, Budget) else load_budget(budget)
     strat = get_strategy(strategy, station_method=station_method, point_method=point_method)

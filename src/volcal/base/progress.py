@@ -21,7 +21,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TextIO
 
-__all__ = ["enable", "enabled", "stage", "update", "timings", "reset_timings"]
+__all__ = ["enable", "enabled", "stage", "update", "timings", "reset_timings", "record"]
 
 #: seconds per stage name of this process (kept whether or not reports are on), for the
 #: result's record and the benchmarks; a name's parenthesised detail is left out
@@ -40,6 +40,12 @@ def reset_timings() -> None:
 def _record(name: str, seconds: float) -> None:
     key = name.split(" (")[0]
     _TIMINGS[key] = _TIMINGS.get(key, 0.0) + seconds
+
+
+def record(name: str, seconds: float) -> None:
+    """Add ``seconds`` (s) to the stage ``name`` of this process's record: a stage a
+    command ran before the computation that starts a new record (:func:`reset_timings`)."""
+    _record(name, seconds)
 
 
 _STATE: dict = {"on": False, "stream": None, "tty": False, "last": 0.0, "stage": None}
