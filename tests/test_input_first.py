@@ -48,3 +48,23 @@ def test_api_reports_a_bad_table_before_building(tmp_path, no_build):
 
     with pytest.raises(InputError, match=r"row 4, column 'length'"):
         identify("mcv754_wxyzt", _bad_table(tmp_path))
+
+
+def test_unique_rows_is_numpy_unique_on_rows():
+    """base.linalg.unique_rows (the fast pose grouping) against np.unique(axis=0): the
+    same distinct rows in the same order and the same inverse, on rows with many
+    repeats, ties in the leading columns and negative values."""
+    import numpy as np
+
+    from volcal.base.linalg import unique_rows
+
+    rng = np.random.default_rng(7)
+    for n, k in ((1, 3), (50, 1), (2000, 6)):
+        base = np.round(rng.normal(0.0, 100.0, (max(n // 8, 1), k)), 1)
+        base[: len(base) // 2, 0] = 5.0  # ties in the first column
+        a = base[rng.integers(0, len(base), n)]
+        uniq, inv = unique_rows(a)
+        ref_u, ref_i = np.unique(a, axis=0, return_inverse=True)
+        np.testing.assert_array_equal(uniq, ref_u)
+        np.testing.assert_array_equal(inv, ref_i.ravel())
+        np.testing.assert_array_equal(uniq[inv], a)

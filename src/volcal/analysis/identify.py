@@ -42,6 +42,7 @@ from volcal.analysis import (
 )
 from volcal.analysis.identifiability import FieldSets, rigid_columns
 from volcal.base.exceptions import InputError, SolverError
+from volcal.base.linalg import unique_rows
 from volcal.base.progress import stage as report_stage
 from volcal.base.units import report_factors, report_unit
 from volcal.measurement.budget import Budget, load_budget
@@ -585,14 +586,20 @@ def axis_sensitivity(
     """(nominal points (N, 3) mm, d(point)/d(axis) (n_axes, N, 3) in mm per mm or per rad)
     at poses q (N, n_axes; mm, rad) and tool offsets t (N, 3) mm, by forward differences
     of the nominal chain (step 1e-6 mm or rad)."""
-    p0 = machine.nominal_points(q, t)
+    q = np.atleast_2d(np.asarray(q, float))
+    t = np.broadcast_to(np.asarray(t, float), (q.shape[0], 3))
+    # once per distinct pose (a measurement repeats each pose once per station): one
+    # search for the distinct rows, not one per axis inside nominal_points
+    uniq, inv = unique_rows(np.hstack([q, t]))
+    qu, tu = uniq[:, : machine.n_axes], uniq[:, machine.n_axes :]
+    p0 = machine.nominal_points(qu, tu)
     out = np.zeros((machine.n_axes,) + p0.shape)
     h = 1e-6
     for k in range(machine.n_axes):
-        dq = np.zeros_like(q)
+        dq = np.zeros_like(qu)
         dq[:, k] = h
-        out[k] = (machine.nominal_points(q + dq, t) - p0) / h
-    return p0, out
+        out[k] = (machine.nominal_points(qu + dq, tu) - p0) / h
+    return p0[inv], out[:, inv]
 
 
 def combined_variance(
