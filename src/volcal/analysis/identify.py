@@ -28,6 +28,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -53,7 +54,12 @@ from volcal.measurement.tables import (
     load_measurements,
     load_stations,
 )
-from volcal.model.datum import condition_table, null_space, select_conditions
+from volcal.model.datum import (
+    condition_table,
+    imposed_parameters,
+    null_space,
+    select_conditions,
+)
 from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.model.machine import Machine
 from volcal.model.spec import MachineSpec, resolve_model
@@ -126,6 +132,9 @@ class IdentificationResult:
     #: the :class:`Identifier` that solved it (problem and solvers), for analyses of the
     #: same data that would otherwise build it again (Monte Carlo); not pickled
     identifier: Identifier | None = field(default=None, repr=False, compare=False)
+    #: parameters the imposed datum conditions alone set to zero (a convention, not a
+    #: measurement: u = 0); None: none known
+    imposed: np.ndarray | None = field(default=None, repr=False)
 
     def __getstate__(self):
         d = dict(self.__dict__)
@@ -181,14 +190,50 @@ class IdentificationResult:
 
         return assess(self)
 
+    def unidentifiable_explanation(self) -> dict[str, Any] | None:
+        """Why parameters are left out and what to measure, when the data explain it:
+        ``{"cause", "parameters", "text"}`` (None when every parameter is identifiable or
+        no cause is known).
+
+        Known cause: a single tool offset.  Lengths to one reflector position see an
+        angular error of the tool-side axes only through that offset's lever arm, so
+        rotations and translations that move the one point alike cannot be told apart;
+        more offsets (not on one line) or more spindle orientations separate them."""
+        names = [n for n, ok in zip(self.error_model.param_names, self.identifiable) if not ok]
+        if not names:
+            return None
+        res = self.residuals
+        cols = [c for c in ("tool_x", "tool_y", "tool_z") if c in res.columns]
+        used = ~np.asarray(res["rejected"], bool) if "rejected" in res else slice(None)
+        tools = np.unique(res.loc[used, cols].to_numpy(float), axis=0) if cols else np.zeros((1, 3))
+        if len(tools) != 1:
+            return None
+        t = ", ".join(f"{v:g}" for v in tools[0])
+        errors = sorted({n.split("_")[0].split("@")[0] for n in names})
+        return {
+            "cause": "single_tool_offset",
+            "parameters": names,
+            "text": (
+                f"every reading has the same tool offset ({t}) mm: lengths to one reflector "
+                "position see an angular error of the tool-side axes only through that "
+                "offset's lever arm, so rotations and translations that move the one point "
+                f"alike cannot be told apart. Left out: {len(names)} parameter(s) of "
+                f"{', '.join(errors)} ({', '.join(names)}). To determine them, measure at "
+                "three or more tool offsets not on one line (e.g. 0,0,0; 0,0,100; 80,0,60 "
+                "mm: `volcal simulate --tools`, `volcal plan --tools`) or, on a machine with a "
+                "swivelling head, in more spindle orientations"
+            ),
+        }
+
     @property
     def residual_rms_um(self) -> float:
         r = self.residuals.loc[~self.residuals["rejected"], "residual_um"]
         return float(np.sqrt(np.mean(r**2))) if len(r) else float("nan")
 
     def parameters(self) -> pd.DataFrame:
-        """name, value, unit, u (standard uncertainty), identifiable (values and u in um /
-        urad)."""
+        """name, value, unit, u (standard uncertainty), identifiable, imposed (values and u
+        in um / urad; imposed: set to zero by the datum, a convention with u = 0, not a
+        measurement)."""
         units = self.error_model.param_units
         f = report_factors(units)
         std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
@@ -200,6 +245,11 @@ class IdentificationResult:
                 "unit": [report_unit(u) for u in units],
                 "u": std,
                 "identifiable": self.identifiable,
+                "imposed": (
+                    np.zeros(len(self.theta), bool)
+                    if self.imposed is None
+                    else np.asarray(self.imposed, bool)
+                ),
             }
         )
 
@@ -405,29 +455,52 @@ class Identifier:
     # ---- pieces ---------------------------------------------------------------------
     def jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Whitened residuals and Jacobian wrt the scaled variables at physical x.  The
-        last evaluation is kept: the datum selection, the analysis and the covariance ask
-        for the same point in turn, and the dense Jacobian is the expensive part."""
+        last two evaluations are kept: the datum selection and the analysis ask for the
+        structural point (:meth:`structural`), the covariance for x, in turn, and the dense
+        Jacobian is the expensive part."""
         key = (np.asarray(x, float).tobytes(), np.asarray(p, float).tobytes())
-        if getattr(self, "_jac_key", None) != key:
+        cache: dict = self.__dict__.setdefault("_jac_cache", {})
+        if key not in cache:
             if getattr(self, "_jac_call", None) is None:
                 self._jac_call = DenseJacobian(self.problem)
             r, J = self._jac_call(self.problem.to_scaled(x), p)
             r = r.ravel()
             r.flags.writeable = J.flags.writeable = False  # shared: read-only
-            self._jac_key, self._jac = key, (r, J)
-        return self._jac
+            if len(cache) >= 2:
+                cache.pop(next(iter(cache)))
+            cache[key] = (r, J)
+        return cache[key]
+
+    def structural(self, x: np.ndarray) -> np.ndarray:
+        """x (physical) with the error parameters at zero: where gauge, datum and
+        identifiability are decided.  There the first-order model's gauge (a rigid motion
+        of the point cloud expressed through the error parameters) is exact; at non-zero
+        errors it is broken by second-order terms, which turn null directions into
+        directions with singular values near 1e-6 that a rank tolerance near 1e-13 counts as
+        determined (and the datum then leaves free).  Deciding here makes the decision the
+        same whatever the linearisation point (analyze, identify, mc, plan)."""
+        x0 = np.array(x, float)
+        x0[: self.problem.n_theta] = 0.0
+        return x0
 
     def analyse(
         self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray, constrained: bool = True
     ) -> Identifiability:
+        """Identifiability at x (physical): rank, null space and pivots decided at the
+        structural point (:meth:`structural`), singular values, condition numbers and weak
+        directions of the identifiable part at x."""
         _, J = self.jacobian(x, p)
+        _, J0 = self.jacobian(self.structural(x), p)
         C = self._scaled_constraints() if constrained else None
-        return analyse_jacobian(J, self.problem.names, C, fixed=fixed, prefer=self.prefer)
+        return analyse_jacobian(
+            J, self.problem.names, C, fixed=fixed, prefer=self.prefer, decide_on=J0
+        )
 
     def select_datum(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray) -> np.ndarray:
         """Put in force the candidate datum conditions that remove a null direction of the
-        Jacobian at x (physical) with ``fixed`` held (:func:`volcal.model.datum.select_conditions`);
-        returns the mask over the candidates."""
+        Jacobian at the structural point of x (physical; :meth:`structural`) with ``fixed``
+        held (:func:`volcal.model.datum.select_conditions`); returns the mask over the
+        candidates."""
         pr = self.problem
         Call = np.zeros((pr.C_all.shape[0], pr.n_x))
         Call[:, : pr.n_theta] = pr.C_all * pr.scale[None, : pr.n_theta]
@@ -447,7 +520,7 @@ class Identifier:
             act[rows[_independent_rows(pr.C_all[rows])]] = True
             pr.set_datum(act)
             return pr.datum_active
-        _, J = self.jacobian(x, p)
+        _, J = self.jacobian(self.structural(x), p)
         pr.set_datum(select_conditions(J, Call, fixed))
         return pr.datum_active
 
@@ -462,18 +535,14 @@ class Identifier:
         """How the null directions of the full Jacobian (no datum; ``fixed`` held) act on
         the volumetric error.
 
-        The null space is taken at x with the error parameters at zero: there the
-        first-order and the exact model have the same Jacobian and the gauge of the model
-        is exact (at theta != 0 the first-order model represents a rigid motion of the
-        cloud only to first order, which turns exact null directions into weak ones).  The
-        measured set is the data's distinct (pose, tool offset) pairs q_meas (N, n_axes;
-        mm, rad), tools_meas (N, 3) mm; the declared set a Halton sample of the travel of
-        every axis at each measured tool offset."""
+        The null space is taken at the structural point of x (:meth:`structural`), as
+        every other decision of gauge and datum.  The measured set is the data's distinct
+        (pose, tool offset) pairs q_meas (N, n_axes; mm, rad), tools_meas (N, 3) mm; the
+        declared set a Halton sample of the travel of every axis at each measured tool
+        offset."""
         pr = self.problem
         nt = pr.n_theta
-        x0 = np.array(x, float)
-        x0[:nt] = 0.0
-        _, J = self.jacobian(x0, p)
+        _, J = self.jacobian(self.structural(x), p)
         free, d, N = null_space(J, fixed)
         dirs = np.zeros((pr.n_x, N.shape[1]))
         dirs[free] = N * d[:, None]
@@ -871,6 +940,9 @@ def _identify(
         no_sigma = ~np.isfinite(sigma)
         if no_sigma.any():  # the budget only where the table gives no sigma
             sigma[no_sigma] = reading_sigma(machine, bud, meas, st0, ins)[no_sigma]
+            uncovered = bud.warn_uncovered(spec)
+            if uncovered:
+                notes.append(uncovered)
     sigma_source = (
         "table"
         if not no_sigma.any()
@@ -988,6 +1060,7 @@ def _identify(
     # value depends on which variable was held (reported), so it gets no uncertainty
     identifiable = ~ident.unidentifiable[:nt]
     datum_table = condition_table(pr.conditions, pr.datum_active, theta)
+    imposed = imposed_parameters(pr.conditions, pr.datum_active, nt) & identifiable
     n_not = int((~datum_table["imposed"]).sum())
     if n_not:
         notes.append(
@@ -1050,4 +1123,5 @@ def _identify(
         null_field,
         state,
         identifier=ider,
+        imposed=imposed,
     )

@@ -23,6 +23,7 @@ _COMMANDS = [
     "volcal.cli.commands.simulate",
     "volcal.cli.commands.demo",
     "volcal.cli.commands.identify",
+    "volcal.cli.commands.compare",
     "volcal.cli.commands.predict",
     "volcal.cli.commands.codegen",
     "volcal.cli.commands.analyze",

@@ -1280,8 +1280,9 @@ def _warn_geometry(
             f"{name}: the tool offset is the same in every row "
             f"({', '.join(f'{v:g}' for v in tool[0])}) mm; with a single tool offset "
             f"the angular error motions of the last axis of the chain ({last}: "
-            f"EA{last}, EB{last}, EC{last}) cannot be separated from its translational "
-            "error motions with these data",
+            f"EA{last}, EB{last}, EC{last}, and what they mix with) cannot be separated "
+            "from translational error motions with these data; the identification names "
+            "every parameter it leaves out",
             DataWarning,
             stacklevel=3,
         )

@@ -15,7 +15,11 @@ declarations, radians inside.
   re-aimed at every station set-up: then it points from the workspace centre to the
   station and every beam of that station must lie within the half-angle of it.
 * :class:`Constraints`: all of the above plus the minimum station-to-point distance and the
-  tracker's maximum range.
+  tracker's maximum range.  :meth:`Constraints.with_margins` gives the stricter set a plan
+  is searched in (``margin_deg`` off the acceptance angle, ``margin_mm`` inside every
+  region, added to the minimum distance and the obstacles, off the range), so that a
+  tracker set up a little off its planned spot, or a reflector aimed a little off, still
+  keeps the declared limits.
 
 :func:`reading_violations` lists every reading that breaks a constraint (the check every
 plan passes before it is written), :func:`station_feasible` says whether a station
@@ -44,6 +48,7 @@ __all__ = [
     "stations_ok",
     "aim_axes",
     "constraints_from_dict",
+    "constraint_slack",
 ]
 
 _AXES = {"x": 0, "y": 1, "z": 2}
@@ -134,6 +139,40 @@ class Region:
         area = 0.5 * abs(np.sum(v[:, 0] * np.roll(v[:, 1], -1) - np.roll(v[:, 0], -1) * v[:, 1]))
         return float(area * max(self.high - self.low, 1e-9))
 
+    def inset(self, margin_mm: float) -> Region:
+        """The region shrunk by ``margin_mm`` (mm) on every face (edges and height limits);
+        :class:`InputError` when nothing is left."""
+        m = float(margin_mm)
+        if m == 0:
+            return self
+        v = self.vertices
+        e = np.roll(v, -1, axis=0) - v
+        n = np.column_stack([e[:, 1], -e[:, 0]])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)  # outward unit normals (CCW polygon)
+        c = np.sum(n * v, axis=1) - m  # edge k: n_k . x = c_k
+        # vertex k of the inset polygon: where edges k - 1 and k meet
+        out = np.empty_like(v)
+        for k in range(len(v)):
+            A = np.array([n[k - 1], n[k]])
+            out[k] = np.linalg.solve(A, np.array([c[k - 1], c[k]]))
+        x, y = out[:, 0], out[:, 1]
+        area2 = float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+        inside = np.all(out @ n.T <= c + 1e-6 * max(1.0, np.abs(c).max()), axis=1)
+        if area2 <= 0 or not inside.all() or self.high - self.low < 2 * m:
+            raise InputError(
+                f"region {self.name!r}: a margin of {m:g} mm on every face leaves no room "
+                "for the tracker; enlarge the region or lower the margin (margin_mm)"
+            )
+        return Region(out, self.low + m, self.high - m, self.up, self.name)
+
+    def clearance(self, s: np.ndarray) -> np.ndarray:
+        """(M,) mm: how far each point (M, 3) lies inside the region, i.e. its distance to
+        the nearest face (negative outside)."""
+        A, b = self.halfspaces()
+        nrm = np.linalg.norm(A, axis=1)
+        s = np.atleast_2d(np.asarray(s, float))
+        return np.min((b - s @ A.T) / nrm, axis=1)
+
 
 @dataclass(frozen=True)
 class Obstacle:
@@ -183,6 +222,57 @@ class Constraints:
     reflector: Reflector = field(default_factory=Reflector)
     min_distance_mm: float = 0.0
     max_range_mm: float = np.inf
+
+    def with_margins(self, margin_deg: float = 0.0, margin_mm: float = 0.0) -> Constraints:
+        """The stricter constraints a plan is searched in: the acceptance half-angle less
+        ``margin_deg`` (deg), every region shrunk by ``margin_mm`` (mm) on every face, the
+        minimum distance plus and the range less ``margin_mm``, every obstacle grown by
+        ``margin_mm``.  :class:`InputError` when a margin is negative or leaves nothing."""
+        md, mm = float(margin_deg), float(margin_mm)
+        if not (np.isfinite(md) and md >= 0 and np.isfinite(mm) and mm >= 0):
+            raise InputError(
+                f"margins must be finite and >= 0, got {md:g} deg and {mm:g} mm "
+                "(margin_deg, margin_mm)"
+            )
+        ref = self.reflector
+        if ref.limited:
+            if not ref.half_angle_deg - md > 0:
+                raise InputError(
+                    f"a margin of {md:g} deg leaves nothing of the reflector's acceptance "
+                    f"half-angle {ref.half_angle_deg:g} deg (margin_deg)"
+                )
+            ref = Reflector(ref.half_angle_deg - md, ref.axis)
+        if self.max_range_mm - mm <= self.min_distance_mm + mm:
+            raise InputError(
+                f"a margin of {mm:g} mm leaves no distance between the minimum distance "
+                f"{self.min_distance_mm:g} mm and the range {self.max_range_mm:g} mm (margin_mm)"
+            )
+        obstacles = []
+        for ob in self.obstacles:
+            if ob.kind == "box":
+                lo = tuple(float(v) - mm for v in ob.lo)
+                hi = tuple(float(v) + mm for v in ob.hi)
+                obstacles.append(
+                    Obstacle("box", lo=lo, hi=hi, moves_with=ob.moves_with, name=ob.name)  # type: ignore[arg-type]
+                )
+            else:
+                obstacles.append(
+                    Obstacle(
+                        "cylinder",
+                        p0=ob.p0,
+                        p1=ob.p1,
+                        radius=ob.radius + mm,
+                        moves_with=ob.moves_with,
+                        name=ob.name,
+                    )
+                )
+        return Constraints(
+            tuple(r.inset(mm) for r in self.regions),
+            tuple(obstacles),
+            ref,
+            self.min_distance_mm + mm,
+            self.max_range_mm - mm,
+        )
 
 
 def _segment_box(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -299,6 +389,77 @@ def reading_violations(
     if constraints.obstacles:
         add(beam_blocked(P, S, constraints.obstacles), "sight", np.ones(len(P)), 0.0)
     return pd.DataFrame(rows, columns=["reading", "station", "constraint", "value", "limit"])
+
+
+def constraint_slack(
+    points: np.ndarray,
+    tool_axes: np.ndarray,
+    station_of: np.ndarray,
+    stations: np.ndarray,
+    constraints: Constraints,
+    centre: np.ndarray,
+) -> pd.DataFrame:
+    """How far the readings stay from each declared limit, worst case per kind (arguments
+    as :func:`reading_violations`).  One row per limit that applies: ``constraint``
+    (angle, distance, range, region, sight), ``worst`` (the value closest to the limit:
+    largest beam angle to the reflector axis in deg, smallest or largest station-to-point
+    distance in mm, smallest distance of a station to a face of its region in mm, smallest
+    clearance of a beam to a cylinder obstacle in mm), ``limit``, ``slack`` (how much room
+    is left, deg or mm; negative: broken), ``unit``, ``station`` (0-based index) and
+    ``reading`` (the reading's row, -1 for a station-only limit)."""
+    station_of = np.asarray(station_of, int)
+    St = np.asarray(stations, float)
+    S = St[station_of]
+    P = np.asarray(points, float)
+    rows: list[dict[str, Any]] = []
+
+    def add(kind: str, worst: float, limit: float, slack: float, unit: str, st: int, r: int):
+        rows.append(
+            {
+                "constraint": kind,
+                "worst": float(worst),
+                "limit": float(limit),
+                "slack": float(slack),
+                "unit": unit,
+                "station": int(st),
+                "reading": int(r),
+            }
+        )
+
+    if len(P):
+        dist = np.linalg.norm(S - P, axis=1)
+        ref = constraints.reflector
+        if ref.limited:
+            ax = aim_axes(P, tool_axes, S, ref, centre)
+            ang = np.degrees(np.arccos(np.clip(np.sum((S - P) / dist[:, None] * ax, 1), -1, 1)))
+            i = int(np.argmax(ang))
+            h = ref.half_angle_deg
+            add("angle", ang[i], h, h - ang[i], "deg", station_of[i], i)
+        if constraints.min_distance_mm > 0:
+            i = int(np.argmin(dist))
+            lim = constraints.min_distance_mm
+            add("distance", dist[i], lim, dist[i] - lim, "mm", station_of[i], i)
+        if np.isfinite(constraints.max_range_mm):
+            i = int(np.argmax(dist))
+            lim = constraints.max_range_mm
+            add("range", dist[i], lim, lim - dist[i], "mm", station_of[i], i)
+        cyl = [ob for ob in constraints.obstacles if ob.kind == "cylinder"]
+        if cyl:
+            clear = np.full(len(P), np.inf)
+            for ob in cyl:
+                shift = P if ob.moves_with == "tool" else np.zeros((1, 3))
+                p0 = np.broadcast_to(np.asarray(ob.p0) + shift, P.shape)
+                p1 = np.broadcast_to(np.asarray(ob.p1) + shift, P.shape)
+                clear = np.minimum(clear, _segment_segment_distance(P, S, p0, p1) - ob.radius)
+            i = int(np.argmin(clear))
+            add("sight", clear[i], 0.0, clear[i], "mm", station_of[i], i)
+    if constraints.regions:
+        depth = np.max([r.clearance(St) for r in constraints.regions], axis=0)
+        k = int(np.argmin(depth))
+        add("region", depth[k], 0.0, depth[k], "mm", k, -1)
+    return pd.DataFrame(
+        rows, columns=["constraint", "worst", "limit", "slack", "unit", "station", "reading"]
+    )
 
 
 def station_feasible(

@@ -14,6 +14,8 @@ override them)::
     grid = 6                        # candidate positions per linear axis
     seed = 0
     degree = 3
+    margin_deg = 5                  # kept off the acceptance half-angle, deg
+    margin_mm = 20                  # kept inside regions, on distances and obstacles, mm
     start_stations = "S.csv"        # start or given stations (relative to the file)
     [travel]                        # the travel to cover, mm / deg
     X = [0, 754]
@@ -50,6 +52,8 @@ SETTING_KEYS = {
     "population": int,
     "generations": int,
     "rounds": int,
+    "margin_deg": float,
+    "margin_mm": float,
     "start_stations": str,
     "travel": dict,
     "constraints": dict,

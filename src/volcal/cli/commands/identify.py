@@ -5,10 +5,13 @@ Example::
     volcal identify --model mcv754_wxyzt --data sim/measurements.csv --out result/
 
 Writes the result folder of DESIGN.md (see :mod:`volcal.outputs.results`) and prints a short
-summary.  When chi2/dof lies outside its 99.9 % interval (the model adequacy test,
-:mod:`volcal.analysis.adequacy`) a warning naming the likely cause goes to the terminal
-(stderr; silenced only by -q), as does a warning for data from a single station.  Exit
-codes: 0 success, 1 the solver did not converge, 2 bad input.  The input
+summary.  The model adequacy test (:mod:`volcal.analysis.adequacy`) has three outcomes:
+the model fits; it fits but the uncertainty budget is pessimistic (chi2/dof below its
+99.9 % interval, no significant residual structure: the uncertainties are conservative,
+exit code 0, no warning); it does not fit (chi2/dof above its interval or significant
+residual structure): then a warning naming the likely cause goes to the terminal (stderr;
+silenced only by -q), as does a warning for data from a single station.  Exit codes: 0
+success (whatever the adequacy), 1 the solver did not converge, 2 bad input.  The input
 files are only read; the output folder is written atomically and replaces only a previous
 result folder, with --force.
 """
@@ -172,7 +175,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--scale-covariance",
         action="store_true",
-        help="scale the covariance by the residual variance factor (chi2/dof)",
+        help="scale the covariance by the residual variance factor (chi2/dof); for a "
+        "budget that is off, not for residual structure (a misfit is not noise)",
     )
     p.add_argument(
         "--out",
@@ -369,27 +373,14 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
             f"  residual RMS             {res.residual_rms_um:.3f} um (chi2/dof "
             f"{res.conditions.get('chi2_per_dof', float('nan')):.3g})"
         )
-        lo, hi = adequacy.interval
-        print(
-            "  model adequacy           "
-            + (
-                f"fits (chi2/dof inside [{lo:.3g}, {hi:.3g}])"
-                if adequacy.adequate
-                else f"INADEQUATE (chi2/dof outside [{lo:.3g}, {hi:.3g}]; likely cause: "
-                + ", ".join(
-                    c.kind + (f" against axis {c.numbers['axis']}" if c.kind == "structure" else "")
-                    for c in adequacy.causes
-                )
-                + ")"
-            )
-        )
+        print("  model adequacy           " + adequacy.summary)
         axes = meta.get("max_volumetric_axes") or []
         fixed = [a for a in spec.axis_names if a not in axes]
         print(
             f"  largest volumetric error {meta['max_volumetric_um']:.2f} um "
             f"(grid over {', '.join(axes) or 'no axis'}"
             + (f", {', '.join(fixed)} at reference" if fixed else "")
-            + ", tool offset 0)"
+            + ", tool offset (0, 0, 0) mm)"
         )
         print("  unidentifiable           " + (", ".join(unid) if unid else "none"))
         if res.datum is not None and len(res.datum):
@@ -411,8 +402,14 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
     # warnings reach the terminal (stderr) unless -q
     if not adequacy.adequate:
         log.warning("%s (report: %s)", adequacy.message, path / "report.md")
+    elif adequacy.verdict == "budget_pessimistic":
+        # not a failure: said once, at info level (the summary line above has it too)
+        log.info("%s (report: %s)", adequacy.message, path / "report.md")
     for w in adequacy.warnings:
         log.warning("%s", w)
+    why = res.unidentifiable_explanation()
+    if why is not None:
+        log.warning("%s (report: %s)", why["text"], path / "report.md")
     if not res.success:
         return 1
     return 0

@@ -20,7 +20,10 @@ the chunks saved in ``--out/samples``.  Exit codes: 0 done, 1 solver failure, 2 
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 MC_FILES = (
     "parameters.csv",
@@ -351,6 +354,9 @@ def _run(args: argparse.Namespace, stages, t_run: float, started: float | None, 
                 "strategy": res.strategy,
                 "chi2_per_dof": res.conditions.get("chi2_per_dof"),
                 "residual_rms_um": res.residual_rms_um,
+                # the verdict on the identification the trials scatter around
+                "adequacy": res.adequacy.verdict,
+                "adequacy_causes": res.adequacy.cause_kinds,
             },
             "verify_against_ipopt": out["verify"],
         }
@@ -379,6 +385,10 @@ def _run(args: argparse.Namespace, stages, t_run: float, started: float | None, 
             - t_write
             - sum(v - inner.get(k, 0.0) for k, v in stages.seconds.items()),
         )
+    if not res.adequacy.adequate:
+        # the trials draw the budget's noise around the identified model: a misfit the
+        # model cannot follow is not in their spread
+        log.warning("%s; the Monte Carlo uncertainties leave that misfit out", res.adequacy.message)
     if not getattr(args, "quiet", False):
         mv, ag = summary["max_volumetric"], summary["agreement_with_linearised"]
         print(
@@ -391,6 +401,7 @@ def _run(args: argparse.Namespace, stages, t_run: float, started: float | None, 
             )
         )
         print(f"  input sources            {', '.join(summary['sources'])}")
+        print(f"  identification           {res.adequacy.summary}")
         print(
             f"  largest volumetric error {mv['max_norm_um']:.2f} um, U(k=2) "
             f"{mv['U_norm_at_max_um']:.2f} um; largest U(|d|) {mv['U_norm_largest_um']:.2f} um"
