@@ -43,6 +43,7 @@ from volcal.analysis import (
 )
 from volcal.analysis.identifiability import FieldSets, rigid_columns
 from volcal.base.exceptions import InputError, SolverError
+from volcal.base.linalg import unique_rows
 from volcal.base.memory import check_memory
 from volcal.base.progress import stage as report_stage
 from volcal.base.units import report_factors, report_unit
@@ -62,7 +63,7 @@ from volcal.model.datum import (
 )
 from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.model.machine import Machine
-from volcal.model.spec import MachineSpec
+from volcal.model.spec import MachineSpec, resolve_model
 from volcal.problem.residuals import DenseJacobian, IdentificationProblem, Layout
 from volcal.problem.strategies import (
     ClassicPipeline,
@@ -655,14 +656,20 @@ def axis_sensitivity(
     """(nominal points (N, 3) mm, d(point)/d(axis) (n_axes, N, 3) in mm per mm or per rad)
     at poses q (N, n_axes; mm, rad) and tool offsets t (N, 3) mm, by forward differences
     of the nominal chain (step 1e-6 mm or rad)."""
-    p0 = machine.nominal_points(q, t)
+    q = np.atleast_2d(np.asarray(q, float))
+    t = np.broadcast_to(np.asarray(t, float), (q.shape[0], 3))
+    # once per distinct pose (a measurement repeats each pose once per station): one
+    # search for the distinct rows, not one per axis inside nominal_points
+    uniq, inv = unique_rows(np.hstack([q, t]))
+    qu, tu = uniq[:, : machine.n_axes], uniq[:, machine.n_axes :]
+    p0 = machine.nominal_points(qu, tu)
     out = np.zeros((machine.n_axes,) + p0.shape)
     h = 1e-6
     for k in range(machine.n_axes):
-        dq = np.zeros_like(q)
+        dq = np.zeros_like(qu)
         dq[:, k] = h
-        out[k] = (machine.nominal_points(q + dq, t) - p0) / h
-    return p0, out
+        out[k] = (machine.nominal_points(qu + dq, tu) - p0) / h
+    return p0[inv], out[:, inv]
 
 
 def combined_variance(
@@ -897,12 +904,9 @@ def _identify(
     from volcal.base.progress import reset_timings
 
     reset_timings()  # the stage timings recorded with the result are this run's
-    if isinstance(model, Machine):
-        machine = model
-    else:
-        with report_stage("building the model"):
-            machine = Machine.from_model(model)
-    spec = machine.spec
+    # the tables are read and checked before the model is built: a bad input is reported
+    # at once, not after the build
+    spec = model.spec if isinstance(model, Machine) else resolve_model(model)
     ins = get_instrument(instrument)
     st_table = None
     if stations is not None:
@@ -927,6 +931,11 @@ def _identify(
                 columns=columns,
             )
         )
+    if isinstance(model, Machine):
+        machine = model
+    else:
+        with report_stage("building the model"):
+            machine = Machine.from_model(spec)
     em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
     bud = budget if isinstance(budget, Budget) else load_budget(budget)
     strat = get_strategy(strategy, station_method=station_method, point_method=point_method)

@@ -37,6 +37,7 @@ __all__ = [
     "clock",
     "timings",
     "reset_timings",
+    "record",
 ]
 
 #: seconds per stage name of this process (kept whether or not reports are on), for the
@@ -56,6 +57,12 @@ def reset_timings() -> None:
 def _record(name: str, seconds: float) -> None:
     key = name.split(" (")[0]
     _TIMINGS[key] = _TIMINGS.get(key, 0.0) + seconds
+
+
+def record(name: str, seconds: float) -> None:
+    """Add ``seconds`` (s) to the stage ``name`` of this process's record: a stage a
+    command ran before the computation that starts a new record (:func:`reset_timings`)."""
+    _record(name, seconds)
 
 
 _STATE: dict = {"on": False, "stream": None, "tty": False, "last": 0.0, "stage": None}

@@ -328,11 +328,18 @@ def _read_raw(source: str | Path | pd.DataFrame, name: str | None, what: str) ->
     body = raw.iloc[1:].reset_index(drop=True)
     body.columns = range(body.shape[1])
     rows = np.arange(body.shape[0], dtype=int) + 2
-    # fully blank lines (often trailing) are skipped; the row numbers stay those of the file
-    blank = np.ones((body.shape[0], 1), bool)
-    if body.shape[1]:
-        blank = np.column_stack([_blank_cells(body[c]) for c in body.columns])
-    keep = ~blank.all(axis=1)
+    # fully blank lines (often trailing) are skipped; the row numbers stay those of the file.
+    # A row is blank when every cell is: each further column is checked only on the rows
+    # still blank (one pass over one column for a table without blank lines)
+    all_blank = np.ones(body.shape[0], bool)
+    for c in body.columns:
+        idx = np.flatnonzero(all_blank)
+        if idx.size == 0:
+            break
+        all_blank[idx] = (
+            _blank_cells(body[c].iloc[idx]) if idx.size < len(body) else (_blank_cells(body[c]))
+        )
+    keep = ~all_blank
     body = body.loc[keep].reset_index(drop=True)
     rows = rows[keep]
     # unnamed columns that are empty throughout (trailing separators) are dropped
@@ -616,11 +623,17 @@ def _parse_float(
         blank = np.isnan(num)
         bools = np.zeros(len(num), bool)
     elif kind == "string":
-        # text cells (a CSV file): the same rules, vectorised
-        text = values.str.strip()
-        blank = (text.eq("") | text.str.lower().isin(_NA_STRINGS)).to_numpy(bool)
-        bools = np.zeros(len(text), bool)
-        num = pd.to_numeric(text, errors="coerce").to_numpy(dtype=float, copy=True)
+        # text cells (a CSV file): the same rules, vectorised.  The numbers are parsed as
+        # read (the parser allows surrounding blanks); only the cells that are not a
+        # number are looked at again (blank, a missing-value word or a bad value)
+        num = pd.to_numeric(values, errors="coerce").to_numpy(dtype=float, copy=True)
+        blank = np.zeros(len(num), bool)
+        bools = np.zeros(len(num), bool)
+        odd = np.flatnonzero(np.isnan(num))
+        if odd.size:
+            text = values.iloc[odd].str.strip()
+            blank[odd] = (text.eq("") | text.str.lower().isin(_NA_STRINGS)).to_numpy(bool)
+            num[odd] = pd.to_numeric(text, errors="coerce").to_numpy(dtype=float)
     else:
         blank = np.array(
             [
@@ -684,8 +697,14 @@ def _id_text(v: Any) -> str | None:
 
 
 def _parse_ids(values: pd.Series, rows: np.ndarray, column: str, problems: _Problems) -> np.ndarray:
-    out = np.array([_id_text(v) for v in values.to_numpy(dtype=object)], dtype=object)
-    missing = np.array([v is None for v in out], dtype=bool)
+    if pd.api.types.infer_dtype(values, skipna=False) == "string":
+        # text cells (a CSV file): _id_text vectorised (stripped; blank is missing)
+        out = values.str.strip().fillna("").to_numpy(dtype=object)
+        missing = out == ""
+        out[missing] = None
+    else:
+        out = np.array([_id_text(v) for v in values.to_numpy(dtype=object)], dtype=object)
+        missing = np.array([v is None for v in out], dtype=bool)
     _report(problems, rows, missing, column, "missing id (empty cell or NaN); expected a text id")
     return out
 

@@ -211,21 +211,57 @@ def _inside(path: Path, folder: Path) -> bool:
         return False
 
 
+def _read_inputs(args: argparse.Namespace):
+    """The measurement table (and the stations table) read and validated first, before
+    the model is built, the solver imported or the plotting processes started: a bad
+    table is reported at once (exit code 2).  Returns (Measurements, stations table or
+    None, seconds spent reading the measurement table)."""
+    import time
+
+    from volcal.measurement.instruments import get_instrument
+    from volcal.measurement.tables import (
+        load_instrument_stations,
+        load_measurements,
+        load_stations,
+    )
+    from volcal.model.spec import resolve_model
+
+    spec = resolve_model(args.model)
+    ins = get_instrument(args.instrument)
+    stations = None
+    if args.stations is not None:
+        stations = (
+            load_stations(args.stations)
+            if ins.name == "tracker"
+            else load_instrument_stations(args.stations, ins.station_param_names)
+        )
+    t0 = time.perf_counter()
+    meas = load_measurements(
+        args.data,
+        spec,
+        stations=stations,
+        relative_lengths=not ins.positive_readings,
+        columns=args.columns,
+    )
+    return meas, stations, time.perf_counter() - t0
+
+
 def run(args: argparse.Namespace) -> int:
     from volcal.outputs.plot_process import plotting
 
-    # first, before the numerics are imported: two children that import matplotlib on the
-    # other core while this process reads and solves, then draw the plots two at a time
-    # while this one writes the report
+    inputs = _read_inputs(args)
+    # then, before the numerics are imported: two children that import matplotlib on the
+    # other core while this process solves, then draw the plots two at a time while this
+    # one writes the report
     with plotting(not args.no_plots) as plotter:
-        code = _run(args, plotter)
+        code = _run(args, plotter, inputs)
     # everything is written and closed: skip the interpreter's teardown (0.1 s of freeing
     # modules; see volcal.cli.main._exit_now)
     args.exit_now = True
     return code
 
 
-def _run(args: argparse.Namespace, plotter) -> int:
+def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
     from volcal.analysis.adequacy import assess
     from volcal.analysis.identify import identify
     from volcal.base.exceptions import InputError
@@ -275,10 +311,11 @@ def _run(args: argparse.Namespace, plotter) -> int:
             )
 
     log.info("identifying: model %s, data %s, strategy %s", args.model, args.data, args.strategy)
+    meas, stations, read_s = inputs
     res = identify(
         args.model,
-        args.data,
-        args.stations,
+        meas,
+        stations,
         strategy=args.strategy,
         degree=degree,
         forms=forms,
@@ -300,6 +337,9 @@ def _run(args: argparse.Namespace, plotter) -> int:
         max_memory_gb=args.max_memory_gb,
     )
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
+    from volcal.base.progress import record
+
+    record("reading the data", read_s)  # read before identify() started its record
     from volcal.base.processes import return_freed_memory
 
     return_freed_memory()  # the solve's freed work memory, before the plotting processes draw
