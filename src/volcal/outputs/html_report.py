@@ -519,6 +519,53 @@ def _uncertainty(res: LoadedResult, grid: pd.DataFrame | None) -> dict[str, Any]
     return {"largest": largest, "volumetric": vol}
 
 
+def _error_motions(
+    res: LoadedResult, comp: pd.DataFrame | None, motions: pd.DataFrame | None
+) -> dict[str, Any]:
+    """The error-motion section: peak-to-peak per motion (error_motions.csv, or computed
+    from the saved result for a folder written before it existed) and the motions at
+    positions along each axis (rows of component_errors.csv)."""
+    from volcal.outputs.results import error_motion_table, error_motions_at_positions
+
+    if motions is None:
+        motions = error_motion_table(res.error_model, res.theta, res.cov_theta, res.identifiable)
+    peak = [
+        {
+            "axis": str(r.axis),
+            "name": str(r.error_motion),
+            "description": str(r.description),
+            "pp": _g(r.peak_to_peak_in_unit, 4),
+            "u": _g(r.u_peak_to_peak_in_unit, 2) or "not identifiable",
+            "unit": _unit(r.unit),
+            "min": _g(r.min_in_unit, 4),
+            "max": _g(r.max_in_unit, 4),
+            "at_min": f"{_g(r.position_of_min_in_axis_unit, 6)} {r.axis_unit}",
+            "at_max": f"{_g(r.position_of_max_in_axis_unit, 6)} {r.axis_unit}",
+        }
+        for r in motions.itertuples(index=False)
+    ]
+    tables = []
+    for axis, t in error_motions_at_positions(comp) if comp is not None else []:
+        pos, cols = t.columns[0], list(t.columns[1:])
+
+        def head(c: str) -> str:
+            name, _, unit = c.rpartition("_")
+            return f"{name} ({_unit(unit)})"
+
+        tables.append(
+            {
+                "axis": axis,
+                "head": [head(pos).replace("position", f"{axis} position")]
+                + [head(c) for c in cols],
+                "rows": [
+                    [_g(r[pos], 6)] + [_g(0.0 if abs(r[c]) < 1e-9 else r[c], 3) for c in cols]
+                    for _, r in t.iterrows()
+                ],
+            }
+        )
+    return {"peak": peak, "tables": tables}
+
+
 def _compensation(doc: Mapping[str, Any], comp_dir: Path) -> dict[str, Any]:
     spacing = doc.get("spacing") or {}
     per_tool = [
@@ -603,6 +650,8 @@ def html_report(
     folder = res.path
     residuals = _read_table(folder, "residuals.csv")
     grid = _read_table(folder, "volumetric_grid.csv")
+    comp_table = _read_table(folder, "component_errors.csv")
+    motions = _read_table(folder, "error_motions.csv")
     context = {
         "header": _header(res, title, compensation_dir),
         "model": _model(res),
@@ -611,6 +660,7 @@ def html_report(
         "ident": _identification(res),
         "unid": _unidentifiable(res),
         "uncertainty": _uncertainty(res, grid),
+        "motions": _error_motions(res, comp_table, motions),
         "parameters": _parameters(res),
         "plots": _plots(res, draw_missing=True, plotter=plotter) if plots else [],
         "compensation": comp,
