@@ -467,7 +467,7 @@ def plot_uncertainty_map(vol: pd.DataFrame, path: Path) -> None:
     P = vol[["x_mm", "y_mm", "z_mm"]].to_numpy()
     sc = ax.scatter(*P.T, c=vol["u_total_um"].to_numpy(), cmap="viridis", s=25)
     fig.colorbar(
-        sc, ax=ax, shrink=0.6, label="standard uncertainty of the volumetric error vector (um)"
+        sc, ax=ax, shrink=0.6, label="standard uncertainty of the volumetric error vector (µm)"
     )
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
