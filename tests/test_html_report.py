@@ -134,7 +134,7 @@ def test_report_is_self_contained_with_every_section(demo, monkeypatch, capsys):
     assert "mcv754_wxyzt" in html and "simulation/measurements.csv" in html
     assert "3576" in html and "Reading uncertainties from" in html
     assert "Datum convention <code>iso230</code>" in html
-    assert "Every error parameter is identifiable" in html and "Gauge freedoms held" in html
+    assert "Every parameter is identifiable" in html and "Gauge freedoms held" in html
     assert "Largest parameter uncertainties" in html and "RMS standard uncertainty" in html
     # every parameter, six significant digits
     params = pd.read_csv(demo["result"] / "parameters.csv")

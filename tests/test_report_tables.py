@@ -5,6 +5,7 @@ against polynomials whose peak-to-peak is known by hand."""
 from __future__ import annotations
 
 import re
+import shutil
 from html.parser import HTMLParser
 
 import numpy as np
@@ -156,4 +157,65 @@ def demo_result(tmp_path_factory):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = identify(ex.machine, ex.simulate().measurements, ex.stations)
-    return save_result(res, tmp_path_factory.mktemp("tables") / "result", plots=False)
+    options = {"project_file": None, "robust": True, "degree": 3, "columns": None}
+    return save_result(
+        res, tmp_path_factory.mktemp("tables") / "result", plots=False, options=options
+    )
+
+
+def test_report_text_is_written_for_a_reader_not_as_python(demo_result):
+    """Options are a table of words (no ``project_file = None``), notes carry no literal
+    backticks (code spans become <code>), the identification time says what it covers
+    and the stages are timed, and the model section says what a parameter is."""
+    html = hr.html_report(demo_result, plots=False)
+    parser = Tables()
+    parser.feed(html)
+    options = next(rows for attrs, rows in parser.tables if attrs.get("id") == "options")
+    assert ["project file", "not given"] in options and ["robust", "yes"] in options
+    assert "None" not in html and "= None" not in html and "True" not in html
+    notes = html.split("<h3>Notes</h3>")[1].split("</ul>")[0]
+    assert "`" not in notes and "<code>iso230</code>" in notes
+    assert "Identification time" in html and "not writing the result folder" in html
+    timings = next(rows for attrs, rows in parser.tables if attrs.get("id") == "timings")
+    assert ["solving"] == [r[0] for r in timings if r[0] == "solving"]
+    assert "error quantities (component error motions" in html
+    assert "parameters (the coefficients of their bases" in html
+    md = (demo_result / "report.md").read_text(encoding="utf-8")
+    assert "identification time" in md and "Per stage" in md
+    assert "error quantities (component error motions" in md
+
+
+def test_code_spans_escape_their_text():
+    assert str(hr.code_spans("datum `<b>` & `x`")) == (
+        "datum <code>&lt;b&gt;</code> &amp; <code>x</code>"
+    )
+    assert str(hr.code_spans("one ` alone <i>")) == "one ` alone &lt;i&gt;"
+
+
+@pytest.mark.skipif(hr.find_browser() is None or shutil.which("pdftotext") is None,
+                    reason="needs a Chromium and pdftotext (poppler-utils)")
+def test_printed_report_never_leaves_the_plots_heading_alone(demo_result, tmp_path,
+                                                              monkeypatch):
+    """A figure as tall as a 5-axis component-error figure (10.4 x 14 in) after the
+    heading: printed, the heading shares its page with the figure, scaled to fit."""
+    import base64
+    import io
+    import subprocess
+
+    from volcal.outputs import figures
+
+    fig = figures.figure(10.4, 14)
+    fig.add_subplot().plot([0, 1], [0, 1])
+    buf = io.BytesIO()
+    figures.save(fig, buf)
+    src = "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
+    tall = [{"name": f"tall{k}.png", "caption": f"tall figure {k}", "src": src}
+            for k in range(2)]
+    monkeypatch.setattr(hr, "_plots", lambda *a, **k: tall)
+    pdf = hr.write_report(demo_result, tmp_path / "r.html", pdf=True)
+    text = subprocess.run(["pdftotext", str(pdf), "-"], capture_output=True, text=True,
+                          check=True).stdout
+    pages = [" ".join(p.split()) for p in text.split("\f")]
+    start = next(k for k, p in enumerate(pages) if p.startswith("Plots"))
+    assert "tall figure 0" in pages[start], pages[start:]
+    assert "tall figure 1" in pages[start + 1]

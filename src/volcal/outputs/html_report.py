@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 import jinja2
 import numpy as np
 import pandas as pd
+from markupsafe import Markup, escape
 
 from volcal import __version__
 from volcal.base.exceptions import InputError
@@ -69,12 +70,13 @@ _MANIFEST = "manifest.json"
 _COMPENSATION_FORMAT = "volcal-compensation"
 _UNITS = {"um": "µm", "urad": "µrad"}
 _PLOT_CAPTIONS = {
-    "component_errors.png": "Component error motions of each axis (error = actual - "
-    "nominal), band = ±2 u",
+    "component_errors.png": "Component error motions of each axis (error = actual − "
+    "nominal), band = ±2u (k = 2)",
     "volumetric_map.png": "Volumetric error over the workspace",
     "residuals.png": "Residuals of the length readings (model - measured)",
     "residuals_vs_axes.png": "Normalised residuals against each axis position, binned means",
-    "correlations.png": "Correlations of the identifiable error parameters",
+    "correlations.png": "Correlations of the identifiable parameters (basis coefficients) "
+    "and the strongest pairs",
 }
 
 
@@ -96,6 +98,31 @@ def _g(v: Any, digits: int = 4) -> str:
 def _unit(u: Any) -> str:
     """Report unit as a reader writes it (um -> µm)."""
     return _UNITS.get(str(u), str(u))
+
+
+def _option(v: Any) -> str:
+    """An identification option as a reader writes it, not as Python does (``None`` ->
+    "not given", ``True`` -> "yes", lists joined)."""
+    if v is None:
+        return "not given"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, (list, tuple)):
+        return ", ".join(_option(x) for x in v) or "none"
+    if isinstance(v, dict):
+        return "; ".join(f"{k} {_option(x)}" for k, x in v.items()) or "none"
+    return str(v)
+
+
+def code_spans(text: Any) -> Markup:
+    """Escaped text whose Markdown code spans (`` `x` ``, as notes and messages write
+    them) become ``<code>x</code>``: no literal backticks in the document."""
+    parts = str(text).split("`")
+    if len(parts) % 2 == 0:  # an unpaired backtick: leave the text as it is
+        return escape(str(text))
+    return Markup("").join(
+        escape(p) if k % 2 == 0 else Markup("<code>%s</code>") % p for k, p in enumerate(parts)
+    )
 
 
 def _axis_unit(axis: Any) -> str:
@@ -441,7 +468,12 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
         "seconds": _g(meta.get("seconds"), 3),
         "phases": phases,
         "conditions": conditions,
-        "options": [f"{k} = {v}" for k, v in options.items()],
+        "options": [
+            {"name": str(k).replace("_", " "), "value": _option(v)} for k, v in options.items()
+        ],
+        "timings": [
+            {"stage": str(k), "seconds": _g(v, 3)} for k, v in (meta.get("timings_s") or {}).items()
+        ],
         "adequacy": verdict,
         "notes": [str(n) for n in meta.get("notes") or []],
     }
@@ -613,13 +645,15 @@ def _compensation(doc: Mapping[str, Any], comp_dir: Path) -> dict[str, Any]:
 @lru_cache(maxsize=1)
 def _environment() -> jinja2.Environment:
     # autoescape on: model descriptions, file names and notes are user text in HTML
-    return jinja2.Environment(
+    env = jinja2.Environment(
         loader=jinja2.FileSystemLoader(str(TEMPLATE_DIR)),
         undefined=jinja2.StrictUndefined,
         autoescape=True,
         trim_blocks=True,
         lstrip_blocks=True,
     )
+    env.filters["code_spans"] = code_spans
+    return env
 
 
 def html_report(

@@ -5,10 +5,11 @@
 =========================  ==================================================================
 file                       content
 =========================  ==================================================================
-``parameters.csv``         ``name, value, unit, u, identifiable``: every error parameter in
-                           um / urad (``unit`` says which); ``u`` its standard uncertainty
-                           (empty for unidentifiable parameters: their values are one
-                           representative of what the data allow, not determined)
+``parameters.csv``         ``name, value, unit, u, identifiable``: every parameter (basis
+                           coefficient of an error quantity) in um / urad (``unit`` says
+                           which); ``u`` its standard uncertainty (empty for
+                           unidentifiable parameters: their values are one representative
+                           of what the data allow, not determined)
 ``stations.csv``           the identified stations: ``station, x_mm, y_mm, z_mm,
                            dead_length_mm`` (+ their standard uncertainties ``u_x_um`` ...
                            ``u_dead_length_um``, ``fixed``)
@@ -37,7 +38,7 @@ file                       content
                            angles
 ``residuals.png``          residual histogram, normal QQ plot of the standardised
                            residuals, residuals per reading by station
-``correlations.png``       correlations of the identifiable error parameters
+``correlations.png``       correlations of the identifiable parameters (basis coefficients)
 ``residuals_vs_axes.png``  normalised residuals against each axis position, binned means
 =========================  ==================================================================
 
@@ -823,6 +824,7 @@ def _report(
     plots: bool,
     comp: pd.DataFrame | None = None,
     motions: pd.DataFrame | None = None,
+    timings: Mapping[str, float] | None = None,
 ) -> str:
     em = result.error_model
     spec = result.machine.spec
@@ -877,7 +879,11 @@ def _report(
     rows += [
         ("unidentifiable parameters", str(len(unid))),
         ("rejected readings", str(int(rej.sum()))),
-        ("total time", f"{result.seconds:.3g} s"),
+        (
+            "identification time",
+            f"{result.seconds:.3g} s (reading and checking the readings, building and solving "
+            "the problem, uncertainty; not writing this folder)",
+        ),
     ]
     add(_md_table(pd.DataFrame(rows, columns=["quantity", "value"])))
     add("")
@@ -915,7 +921,11 @@ def _report(
         else:
             label = f.describe()
         kinds.setdefault(label, []).append(s.name)
-    add(f"{em.n_errors} error quantities, {em.n_params} parameters, datum convention `{em.datum}`:")
+    add(
+        f"{em.n_errors} error quantities (component error motions and location errors, ISO "
+        f"230-1 names), {em.n_params} parameters (the coefficients of their bases, which "
+        f"the identification fits), datum convention `{em.datum}`:"
+    )
     add("")
     for label, names in kinds.items():
         add(f"- {label}: {', '.join(names)}")
@@ -980,9 +990,16 @@ def _report(
     add("")
     m = result.machine
     add(
-        f"Timings: total {result.seconds:.3g} s (solver phases "
-        f"{sum(o.seconds for o in result.outcomes):.3g} s); machine functions "
+        f"Timings: identification {result.seconds:.3g} s (solver phases "
+        f"{sum(o.seconds for o in result.outcomes):.3g} s of it); machine functions "
         f"{'loaded from the cache' if m.from_cache else 'built'} in {m.build_seconds:.3g} s."
+        + (
+            " Per stage, until this report was written: "
+            + "; ".join(f"{k} {v:.3g} s" for k, v in timings.items())
+            + "."
+            if timings
+            else ""
+        )
     )
     add("")
     add("### Condition numbers")
@@ -1013,7 +1030,7 @@ def _report(
             "no uncertainty (empty `std`, `u_` cells; dashed in the plot)."
         )
     else:
-        add("Every error parameter is identifiable from these data.")
+        add("Every parameter is identifiable from these data.")
     add("")
     if result.datum is not None:
         add(_datum_section(result))
@@ -1326,7 +1343,7 @@ def _adequacy_section(ad, plots: bool) -> str:
         lines += [
             "![normalised residuals against each axis](residuals_vs_axes.png)",
             "",
-            "![correlations of the identifiable error parameters](correlations.png)",
+            "![correlations of the identifiable parameters](correlations.png)",
             "",
         ]
     return "\n".join(lines)
@@ -1461,6 +1478,7 @@ def save_result(
                 plots=plots,
                 comp=comp,
                 motions=motions,
+                timings=doc["timings_s"],
             ),
             encoding="utf-8",
         )
