@@ -512,7 +512,7 @@ def _grid_coverage(spec: MachineSpec, grid: pd.DataFrame) -> str:
     text = f"grid over {', '.join(moving) or 'no axis'}"
     if fixed:
         text += f"; {', '.join(fixed)} at reference"
-    return text + ", tool offset 0"
+    return text + ", tool offset (0, 0, 0) mm"
 
 
 def _result_document(
@@ -1111,7 +1111,7 @@ def _report(
         at_ref &= np.isclose(grid[a.name].to_numpy(float), a.reference)
     add(
         f"`volumetric_grid.csv` covers {', '.join(_grid_axes(spec, grid)) or 'no axis'}: "
-        f"{'; '.join(covered)}; tool offset 0; {len(grid)} poses. Largest error "
+        f"{'; '.join(covered)}; tool offset (0, 0, 0) mm; {len(grid)} poses. Largest error "
         f"{grid['norm_um'].max():.4g} um, RMS of the norm "
         f"{float(np.sqrt(np.mean(grid['norm_um'] ** 2))):.4g} um"
         + (
