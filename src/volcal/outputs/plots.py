@@ -180,7 +180,7 @@ def volumetric_slices_data(
         "labels": (f"{ax1.name} (mm)", f"{ax2.name} (mm)"),
         "slices": out,
         "vmax": vmax,
-        "title": f"Volumetric error (actual - nominal), {what}; arrows: in-plane components",
+        "title": f"Volumetric error (actual − nominal), {what}; arrows: in-plane components",
     }
 
 
