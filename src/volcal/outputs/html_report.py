@@ -43,6 +43,7 @@ import pandas as pd
 from markupsafe import Markup, escape
 
 from volcal import __version__
+from volcal.analysis.adequacy import STRUCTURE_P, Adequacy
 from volcal.base.exceptions import InputError
 from volcal.outputs.results import (
     OPTIONAL_FILES,
@@ -57,7 +58,14 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["html_report", "write_report", "find_browser", "missing_plots", "TEMPLATE"]
+__all__ = [
+    "html_report",
+    "write_report",
+    "find_browser",
+    "missing_plots",
+    "find_comparison",
+    "TEMPLATE",
+]
 
 TEMPLATE_DIR = Path(__file__).parent / "templates" / "report"
 TEMPLATE = "report.html.j2"
@@ -411,9 +419,20 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
     verdict = None
     if ad:
         lo, hi = (ad.get("interval") or [None, None])[:2]
+        # the three outcomes (results saved before them read adequate / inadequate)
+        adq = Adequacy.from_dict(ad)
         verdict = {
-            "adequate": ad.get("verdict") == "adequate",
-            "verdict": str(ad.get("verdict", "")),
+            "adequate": adq.adequate,
+            "verdict": adq.verdict,
+            "summary": adq.summary,
+            "threshold": f"{STRUCTURE_P:g}",
+            "where": (
+                "above"
+                if adq.chi2_per_dof > adq.interval[1]
+                else "below"
+                if adq.chi2_per_dof < adq.interval[0]
+                else "inside"
+            ),
             "message": str(ad.get("message", "")),
             "chi2_per_dof": _g(ad.get("chi2_per_dof")),
             "interval": f"[{_g(lo)}, {_g(hi)}]",
@@ -431,7 +450,12 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
             "max_abs": _g((ad.get("outliers") or {}).get("max_abs")),
             "structure": [
                 {
-                    "axis": str(s.get("axis", "")),
+                    "axis": (
+                        f"axis {s.get('axis', '')}"
+                        if s.get("kind", "axis") == "axis"
+                        else str(s.get("axis", ""))
+                    ),
+                    "significant": float(s.get("p_value", 1.0)) < STRUCTURE_P,
                     "bins": s.get("n_bins"),
                     "f": _g(s.get("f"), 3),
                     "p": (
@@ -488,6 +512,7 @@ def _unidentifiable(res: LoadedResult) -> dict[str, Any]:
         "parameters": [str(n) for n in names],
         "combinations": [str(c) for c in meta.get("null_space") or []],
         "gauge": [str(c) for c in meta.get("gauge") or []],
+        "why": str((meta.get("unidentifiable_explanation") or {}).get("text") or ""),
     }
 
 
@@ -499,7 +524,13 @@ def _parameters(res: LoadedResult) -> list[dict[str, Any]]:
             "name": str(r.name),
             "value": _g(r.value, 6),
             "unit": _unit(r.unit),
-            "std": _g(r.u, 6) if r.identifiable else "not identifiable",
+            "std": (
+                "imposed by the datum"
+                if getattr(r, "imposed", False)
+                else _g(r.u, 6)
+                if r.identifiable
+                else "not identifiable"
+            ),
             "identifiable": bool(r.identifiable),
         }
         for r in table.itertuples(index=False)
@@ -510,7 +541,12 @@ def _uncertainty(res: LoadedResult, grid: pd.DataFrame | None) -> dict[str, Any]
     table = res.parameters()
     largest = []
     for unit in dict.fromkeys(table["unit"]):
-        sub = table[(table["unit"] == unit) & table["identifiable"] & np.isfinite(table["u"])]
+        sub = table[
+            (table["unit"] == unit)
+            & table["identifiable"]
+            & ~table["imposed"]
+            & np.isfinite(table["u"])
+        ]
         for r in sub.sort_values("u", ascending=False).head(LARGEST_UNCERTAINTIES).itertuples():
             largest.append(
                 {
@@ -656,10 +692,46 @@ def _environment() -> jinja2.Environment:
     return env
 
 
+def find_comparison(result_dir: Path, compare_dir: Path | None) -> tuple[Path, Path | None]:
+    """(the result folder to report, the ``volcal compare`` folder to embed or None): a
+    compare folder given as the result reports its reference result with the comparison;
+    the reference result inside a compare folder finds its comparison by itself."""
+    from volcal.outputs.compare_report import REFERENCE_DIR, is_comparison
+
+    if result_dir.is_dir() and is_comparison(result_dir):
+        ref = result_dir / REFERENCE_DIR
+        if not ref.is_dir():
+            raise InputError(
+                "this `volcal compare` folder holds no reference result (its reference "
+                "strategy did not solve); give a result folder with --result and this "
+                "folder with --compare",
+                source=str(result_dir),
+            )
+        return ref, compare_dir or result_dir
+    if compare_dir is None and result_dir.name == REFERENCE_DIR:
+        if is_comparison(result_dir.parent):
+            return result_dir, result_dir.parent
+    return result_dir, compare_dir
+
+
+def _comparison(compare_dir: Path, model: str) -> dict[str, Any]:
+    from volcal.outputs.compare_report import load_comparison, section_context
+
+    doc, table, png = load_comparison(compare_dir)
+    if doc.get("model") != model:
+        raise InputError(
+            f"the comparison was made for another model ({doc.get('model')!r}, the result "
+            f"is of {model!r})",
+            source=str(compare_dir),
+        )
+    return section_context(doc, table, png)
+
+
 def html_report(
     result_dir: Path,
     *,
     compensation_dir: Path | None = None,
+    compare_dir: Path | None = None,
     title: str | None = None,
     plots: bool = True,
     plotter: PlotProcess | None = None,
@@ -673,9 +745,16 @@ def html_report(
     processes (:class:`volcal.outputs.plot_process.PlotProcess`) that draw them.  Raises
     :class:`InputError` naming the folder when it is missing or not a result (or the
     compensation folder is not an export for the same model).
+
+    compare_dir: a folder written by ``volcal compare`` (its table, explanation and plot
+    are added as a section); a compare folder given as ``result_dir`` reports its
+    reference result with the comparison, and that reference result finds it by itself.
     """
-    result_dir = Path(result_dir)
+    result_dir, compare_dir = find_comparison(
+        Path(result_dir), None if compare_dir is None else Path(compare_dir)
+    )
     res = _load(result_dir)
+    cmp = _comparison(compare_dir, res.spec.name) if compare_dir is not None else None
     comp = None
     if compensation_dir is not None:
         compensation_dir = Path(compensation_dir)
@@ -698,6 +777,7 @@ def html_report(
         "parameters": _parameters(res),
         "plots": _plots(res, draw_missing=True, plotter=plotter) if plots else [],
         "compensation": comp,
+        "compare": cmp,
     }
     return _environment().get_template(TEMPLATE).render(context)
 
@@ -718,9 +798,16 @@ def find_browser() -> str | None:
 def _protected(folders: Iterable[Path | None]) -> set[Path]:
     """The files of the input folders that the report must never replace: what the
     folder's manifest lists plus the names volcal writes there."""
+    from volcal.outputs.compare_report import COMPARE_FILES
     from volcal.outputs.compensation import COMPENSATION_FILES
 
-    known = set(RESULT_FILES) | set(OPTIONAL_FILES) | set(COMPENSATION_FILES) | {_MANIFEST}
+    known = (
+        set(RESULT_FILES)
+        | set(OPTIONAL_FILES)
+        | set(COMPENSATION_FILES)
+        | set(COMPARE_FILES)
+        | {_MANIFEST}
+    )
     out: set[Path] = set()
     for folder in folders:
         if folder is None or not Path(folder).is_dir():
@@ -791,6 +878,7 @@ def write_report(
     out_file: Path,
     *,
     compensation_dir: Path | None = None,
+    compare_dir: Path | None = None,
     pdf: bool = False,
     title: str | None = None,
     plots: bool = True,
@@ -809,7 +897,7 @@ def write_report(
         out = out.with_suffix(".pdf")
     if out.is_dir():
         raise InputError("expected a file name, got a folder", source=str(out))
-    if out.resolve() in _protected([Path(result_dir), compensation_dir]):
+    if out.resolve() in _protected([Path(result_dir), compensation_dir, compare_dir]):
         raise InputError(
             "the report would overwrite a file of the result or compensation folder; "
             "choose another name",
@@ -828,6 +916,7 @@ def write_report(
     html = html_report(
         Path(result_dir),
         compensation_dir=compensation_dir,
+        compare_dir=compare_dir,
         title=title,
         plots=plots,
         plotter=plotter,

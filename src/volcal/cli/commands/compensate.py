@@ -45,6 +45,17 @@ def _axis(text: str) -> tuple[str, str]:
     return name.strip(), ident.strip()
 
 
+def _datum(text: str) -> tuple[str, float]:
+    name, eq, val = str(text).partition("=")
+    try:
+        v = float(val)
+    except ValueError:
+        v = float("nan")
+    if not eq or not name.strip() or not (v == v and abs(v) != float("inf")):
+        raise argparse.ArgumentTypeError(f"expected AXIS=VALUE (e.g. X=-400), got {text!r}")
+    return name.strip(), v
+
+
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "compensate",
@@ -71,10 +82,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--tolerance",
         type=float,
-        default=0.1,
+        default=None,
         metavar="UM",
         help="largest interpolation error at the tool point the grid spacing must "
-        "meet, um (default 0.1)",
+        "meet, um (default 0.1; generic: the smallest of 0.1 ... 10 whose grid fits "
+        "--max-points, reported)",
     )
     p.add_argument(
         "--tool",
@@ -97,8 +109,30 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "--sign",
         choices=("correction", "error"),
         default="correction",
-        help="what siemens, heidenhain and the generic grid hold: correction "
-        "(-error, default) or error (for a control that negates them itself)",
+        help="what the generic grid holds: correction (-error, default) or error "
+        "(siemens and heidenhain follow the sign their manuals document)",
+    )
+    p.add_argument(
+        "--machine-datum",
+        type=_datum,
+        action="append",
+        metavar="AXIS=VALUE",
+        help="siemens, heidenhain: position (mm / deg) of the model's zero of an axis in "
+        "the control's machine coordinates; table positions are model positions plus "
+        "this (default 0, stated in the files); repeatable",
+    )
+    p.add_argument(
+        "--general-axis-names",
+        action="store_true",
+        help="siemens: name the machine axes AX1, AX2, ... (X, Y, Z, then the rotary "
+        "axes) for multi-channel controls; --axis still wins",
+    )
+    p.add_argument(
+        "--control-dir",
+        default=None,
+        metavar="PATH",
+        help="isg, heidenhain: the folder of the files on the control, written into the "
+        ".lis / .CMA (default: bare file names)",
     )
     p.add_argument(
         "--axis",
@@ -152,7 +186,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(
                 f"expected a positive integer, got {v}", source="--" + name.replace("_", "-")
             )
-    if not (args.tolerance > 0 and args.tolerance != float("inf")):
+    if args.tolerance is not None and not (args.tolerance > 0 and args.tolerance != float("inf")):
         raise InputError(
             f"expected a tolerance > 0 um, got {args.tolerance:g}", source="--tolerance"
         )
@@ -180,6 +214,9 @@ def run(args: argparse.Namespace) -> int:
         max_tables=args.max_tables,
         target=args.target,
         tool_direction=args.tool_direction,
+        machine_datum=dict(args.machine_datum or []),
+        general_axis_names=args.general_axis_names,
+        control_dir=args.control_dir,
     )
     if not getattr(args, "quiet", False):
         print(f"{comp.title}")
@@ -190,6 +227,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"values: {comp.values}")
         print(comp.spacing_line())
         print(comp.residual_line())
+        for line in comp.setup_lines():
+            print(line)
+        for n in comp.notes:
+            print(f"note: {n}")
         for r in comp.per_tool.itertuples():
             print(
                 f"  tool ({r.tool_x_mm:g}, {r.tool_y_mm:g}, {r.tool_z_mm:g}) mm: "

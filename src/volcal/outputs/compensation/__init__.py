@@ -93,6 +93,10 @@ class Built:
     limits: dict[str, Any]
     notes: list[str] = field(default_factory=list)
     table_tool: np.ndarray | None = None
+    #: the tolerance the format chose itself (generic grid with no tolerance given)
+    tolerance_um: float | None = None
+    #: the names of the files ``render`` writes, when known without rendering them
+    file_names: list[str] | None = None
 
 
 @dataclass
@@ -125,6 +129,11 @@ class Compensation:
     created: str
     table_tool: np.ndarray | None = None
     notes: list[str] = field(default_factory=list)
+    #: the rigid motion of the workpiece frame in the residual: translation (3,) um and
+    #: rotation (3,) urad about the centroid of the check points, and the centroid (3,) mm
+    rigid_translation_um: np.ndarray | None = None
+    rigid_rotation_urad: np.ndarray | None = None
+    rigid_centre_mm: np.ndarray | None = None
 
     @property
     def uncorrected_rms_um(self) -> float:
@@ -133,6 +142,11 @@ class Compensation:
     @property
     def residual_rms_um(self) -> float:
         return _pooled(self.per_tool, "residual_rms_um")
+
+    @property
+    def residual_mod_rigid_rms_um(self) -> float:
+        """Residual RMS after removing the one rigid motion of the workpiece frame."""
+        return _pooled(self.per_tool, "residual_mod_rigid_rms_um")
 
     @property
     def residual_max_um(self) -> float:
@@ -156,6 +170,24 @@ class Compensation:
             f" um RMS), max {self.residual_max_um:.3f} um; {self.n_poses} poses over the "
             f"travel x {len(self.per_tool)} tool offset(s)"
         )
+
+    def setup_lines(self) -> list[str]:
+        """The statement of the setup part every file carries."""
+        t = self.rigid_translation_um if self.rigid_translation_um is not None else np.zeros(3)
+        w = self.rigid_rotation_urad if self.rigid_rotation_urad is not None else np.zeros(3)
+        return [
+            "SETUP PART: multilateration does not determine one rigid motion (a translation "
+            "and a small rotation) of the workpiece frame relative to the machine; the "
+            "identification fixed it by its datum only. These files do not correct it: "
+            "after applying them the machine keeps the part of its error that is such a "
+            "motion, and the work offset (G54 ...) and the workpiece alignment (probing, "
+            "rotation of the coordinate system) take it up",
+            "residual modulo that rigid motion (one motion fitted over every tool offset "
+            f"together): RMS {self.residual_mod_rigid_rms_um:.3f} um "
+            f"(raw, for the datum in force: {self.residual_rms_um:.3f} um RMS, of which a "
+            "rigid motion of translation (" + ", ".join(f"{v:.3f}" for v in t) + ") um and "
+            "rotation (" + ", ".join(f"{v:.3f}" for v in w) + ") urad)",
+        ]
 
     def spacing_line(self) -> str:
         sp = ", ".join(f"{a} {v}" for a, v in self.spacing.items())
@@ -189,6 +221,11 @@ class Compensation:
             "uncorrected_rms_um": self.uncorrected_rms_um,
             "residual_rms_um": self.residual_rms_um,
             "residual_max_um": self.residual_max_um,
+            "residual_mod_rigid_rms_um": self.residual_mod_rigid_rms_um,
+            "rigid_translation_um": self.rigid_translation_um,
+            "rigid_rotation_urad": self.rigid_rotation_urad,
+            "rigid_centre_mm": self.rigid_centre_mm,
+            "setup_part": self.setup_lines()[0],
             "ratio": self.ratio,
             "per_tool": _records(self.per_tool),
             "not_carried": self.not_carried,
@@ -220,6 +257,7 @@ class Compensation:
             )
         lines.append(self.spacing_line())
         lines.append(self.residual_line())
+        lines += self.setup_lines()
         for n in self.not_carried:
             lines.append(f"NOT CARRIED: {n}")
         if not self.not_carried:
@@ -229,6 +267,32 @@ class Compensation:
             )
         lines.append("conventions: docs/compensation.md and docs/conventions.md of volcal")
         return lines
+
+
+def rigid_split(r: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split residuals r (N, 3) mm at nominal points (N, 3) mm into the least-squares
+    small rigid motion t + w x (p - centroid) and the rest: (rest (N, 3) mm, t (3,) mm,
+    w (3,) rad).  The rigid motion is the one multilateration does not determine."""
+    r = np.asarray(r, float)
+    ok = np.all(np.isfinite(r), axis=1)
+    p = np.asarray(points, float) - np.asarray(points, float)[ok].mean(axis=0)
+    n = int(ok.sum())
+    if n < 3:
+        return r.copy(), np.zeros(3), np.zeros(3)
+    A = np.zeros((n, 3, 6))
+    A[:, 0, 0] = A[:, 1, 1] = A[:, 2, 2] = 1.0
+    x, y, z = p[ok].T
+    # w x p = (wy z - wz y, wz x - wx z, wx y - wy x)
+    A[:, 0, 4], A[:, 0, 5] = z, -y
+    A[:, 1, 3], A[:, 1, 5] = -z, x
+    A[:, 2, 3], A[:, 2, 4] = y, -x
+    A2 = A.reshape(3 * n, 6)
+    col = np.linalg.norm(A2, axis=0)
+    col[col == 0] = 1.0
+    sol = np.linalg.lstsq(A2 / col, r[ok].ravel(), rcond=None)[0] / col
+    out = r.copy()
+    out[ok] = r[ok] - (A2 @ sol).reshape(n, 3)
+    return out, sol[:3], sol[3:]
 
 
 def _pooled(df: pd.DataFrame, col: str) -> float:
@@ -321,7 +385,7 @@ def compensate(
     format: str,
     out_dir: str | Path | None,
     *,
-    tolerance_um: float = 0.1,
+    tolerance_um: float | None = None,
     tools=None,
     table_tool=(0.0, 0.0, 0.0),
     sign: str = "correction",
@@ -330,6 +394,9 @@ def compensate(
     max_tables: int | None = None,
     target: str | None = None,
     tool_direction: str = "-z",
+    machine_datum: dict[str, float] | None = None,
+    general_axis_names: bool = False,
+    control_dir: str | None = None,
     force: bool | None = None,
 ) -> Compensation:
     """Write the compensation files of ``format`` for an identification ``result`` to
@@ -341,19 +408,29 @@ def compensate(
         ``machine``, ``error_model`` and ``theta``; never modified.
     format: one of :data:`FORMATS`.
     tolerance_um: the largest interpolation error at the tool point the node spacing must
-        meet (default 0.1 um).
+        meet (default 0.1 um; for the generic grid with no tolerance given, the smallest
+        of 0.1, 0.2, 0.5, 1, 2, 5, 10 um whose grid fits ``max_points``, reported).
     tools: tool offsets (K, 3) mm of the residual report and of the generic volumetric
         grids (default: the tool offsets of the measurement, else (0, 0, 0)).
     table_tool: the tool offset the 1-D tables (siemens, heidenhain) are built for.
-    sign: ``"correction"`` (default, -error) or ``"error"``: what the siemens, heidenhain
-        and generic grid values hold (ISG files and the generic ISO tables always hold
-        errors, the controller computes the correction).
+    sign: ``"correction"`` (default, -error) or ``"error"``: what the generic grid holds.
+        ISG files and the generic ISO tables hold errors (the controller computes the
+        correction); SINUMERIK and HEIDENHAIN tables hold the compensation values with
+        the sign their manuals document (``"error"`` is refused there).
     axis_names: controller axis identifiers by model axis name (ISG logical axis
         numbers, SINUMERIK machine axis names, HEIDENHAIN axis keys).
     max_points, max_tables, target: controller limits (see each format; ``target``
         ``"840d"`` or ``"828d"`` for siemens); exceeding them raises :class:`LimitError`
         naming the limit.
     tool_direction: ISG's tool zero orientation N0 (``-z`` default).
+    machine_datum: {axis: position (mm / deg) of the model's zero of that axis in the
+        control's machine coordinates}; table positions (SINUMERIK MIN / MAX, HEIDENHAIN
+        AXISPOS, which the manuals give from the machine datum) are model positions plus
+        this offset (default 0 for every axis, stated in the files).
+    general_axis_names: SINUMERIK: name the machine axes AX1, AX2, ... (model order;
+        for multi-channel controls) instead of X1, Y1, ...; ``axis_names`` still wins.
+    control_dir: the folder of the files on the control (ISG ``.lis`` file names,
+        HEIDENHAIN ``.CMA`` entries); default: bare file names, stated in the files.
     """
     fmt = str(format).lower()
     if fmt not in FORMATS:
@@ -362,8 +439,9 @@ def compensate(
         )
     if sign not in ("correction", "error"):
         raise InputError(f"expected 'correction' or 'error', got {sign!r}", source="--sign")
+    auto_tolerance = tolerance_um is None
     try:
-        tolerance_um = float(tolerance_um)
+        tolerance_um = 0.1 if tolerance_um is None else float(tolerance_um)
     except (TypeError, ValueError):
         raise InputError(f"expected a number, got {tolerance_um!r}", source="--tolerance") from None
     if not (math.isfinite(tolerance_um) and tolerance_um > 0):
@@ -382,6 +460,13 @@ def compensate(
         )
     tools = np.unique(tools, axis=0)
     table_tool = _parse_tool(table_tool, "--table-tool")
+    if sign == "error" and fmt in ("siemens", "heidenhain"):
+        raise InputError(
+            f"the {fmt} tables hold compensation values with the sign the control's manual "
+            "documents (docs/compensation.md); --sign applies to the generic grid only",
+            source="--sign",
+        )
+    datum = _parse_datum(machine_datum, [a.name for a in fld.axes])
     created = datetime.now(UTC).isoformat(timespec="seconds")
     options = dict(
         axis_names=dict(axis_names or {}),
@@ -389,6 +474,10 @@ def compensate(
         max_tables=max_tables,
         target=target,
         tool_direction=tool_direction,
+        auto_tolerance=auto_tolerance,
+        machine_datum=datum,
+        general_axis_names=bool(general_axis_names),
+        control_dir=control_dir,
     )
     ctx = Context(
         fld,
@@ -398,7 +487,7 @@ def compensate(
         sign,
         options,
         created,
-        str(src) if src is not None else "(in memory)",
+        source_name(result, src, theta),
     )
     built = _builder(fmt)(ctx)
     # the residual over the workspace at every tool offset
@@ -410,9 +499,17 @@ def compensate(
         report_tools = np.vstack([built.table_tool, tools])
     q = check_poses(fld)
     rows = []
+    res_all, pts_all = [], []
     for t in report_tools:
+        res_all.append(built.residual(q, t))
+        pts_all.append(fld.nominal(q, t))
+    # one rigid motion of the workpiece frame for the whole setup (every tool offset)
+    mod_all, rig_t, rig_w = rigid_split(np.vstack(res_all), np.vstack(pts_all))
+    centre = np.vstack(pts_all).mean(axis=0)
+    for k, t in enumerate(report_tools):
         dp = fld.volumetric(q, t) * 1e3
-        r = built.residual(q, t) * 1e3
+        r = res_all[k] * 1e3
+        rm = mod_all[k * len(q) : (k + 1) * len(q)] * 1e3
         nd, nr = np.linalg.norm(dp, axis=1), np.linalg.norm(r, axis=1)
         rows.append(
             {
@@ -423,6 +520,7 @@ def compensate(
                 "uncorrected_max_um": float(nd.max()),
                 "residual_rms_um": float(np.sqrt(np.mean(nr**2))),
                 "residual_max_um": float(nr.max()),
+                "residual_mod_rigid_rms_um": float(np.sqrt(np.mean(np.sum(rm**2, axis=1)))),
                 "ratio": float(np.sqrt(np.mean(nr**2)) / np.sqrt(np.mean(nd**2))),
             }
         )
@@ -437,7 +535,7 @@ def compensate(
         path=None,
         files=[],
         values=built.values,
-        tolerance_um=tolerance_um,
+        tolerance_um=built.tolerance_um if built.tolerance_um is not None else tolerance_um,
         spacing=spacing,
         interpolation_bound_um=built.bound_um,
         interpolation_max_um=built.measured_um,
@@ -452,6 +550,9 @@ def compensate(
         created=created,
         table_tool=built.table_tool,
         notes=built.notes,
+        rigid_translation_um=rig_t * 1e3,
+        rigid_rotation_urad=rig_w * 1e6,
+        rigid_centre_mm=centre,
     )
     ident = getattr(result, "identifiable", None)
     if ident is not None and not np.all(ident):
@@ -459,6 +560,10 @@ def compensate(
             f"{int(np.sum(~np.asarray(ident, bool)))} parameter(s) were not "
             "identifiable: the files carry the values the datum chose for them"
         )
+    if out_dir is None and built.file_names is not None:
+        # a report only: large grids are not formatted for nothing
+        comp.files = sorted(built.file_names)
+        return comp
     files = built.render(comp)
     comp.files = sorted(files)
     if out_dir is None:
@@ -487,6 +592,44 @@ def compensate(
         force=force,
     )
     return comp
+
+
+def _parse_datum(datum, axes: list[str]) -> dict[str, float]:
+    out = {a: 0.0 for a in axes}
+    for k, v in dict(datum or {}).items():
+        if k not in out:
+            raise InputError(
+                f"unknown axis {k!r} in the machine datum; the model has {axes}",
+                source="--machine-datum",
+            )
+        try:
+            out[k] = float(v)
+        except (TypeError, ValueError):
+            raise InputError(
+                f"expected a number (mm / deg) for axis {k}, got {v!r}", source="--machine-datum"
+            ) from None
+        if not math.isfinite(out[k]):
+            raise InputError(f"expected a finite number for axis {k}", source="--machine-datum")
+    return out
+
+
+def control_path(folder: str | None, name: str) -> str:
+    """``name`` in the control's ``folder`` (its own separator: backslash when the folder
+    has one or a drive colon, else slash); the bare name without a folder."""
+    if not folder:
+        return name
+    sep = "\\" if ("\\" in folder or ":" in folder) else "/"
+    return folder.rstrip("\\/") + sep + name
+
+
+def source_name(result: Any, src: Path | None, theta: np.ndarray) -> str:
+    """How the files name the identification result: the name of its folder (never an
+    absolute path of the user's machine) and a fingerprint of its parameters."""
+    import hashlib
+
+    fp = hashlib.sha256(np.ascontiguousarray(theta, dtype="<f8").tobytes()).hexdigest()[:12]
+    name = Path(src).name if src is not None else "(in memory)"
+    return f"{name} (parameters sha256 {fp})"
 
 
 def _json_safe(obj: Any) -> Any:
@@ -530,6 +673,8 @@ def report_markdown(comp: Compensation) -> str:
         "deg on full-turn rotary axes).",
         "",
         table(comp.per_tool),
+        "",
+        "**Setup part.** " + ". ".join(comp.setup_lines()) + ".",
         "",
     ]
     if comp.table_tool is not None:

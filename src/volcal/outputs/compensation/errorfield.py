@@ -184,6 +184,7 @@ class ErrorField:
             "e": ca.Function("e", [q], [e]),
             "ab": ca.Function("ab", [q], [a0, ca.reshape(B0, 9, 1)]),
             "dpe": ca.Function("dpe", [q, t, es], [tp(q, t, es)[1]]),
+            "P": ca.Function("P", [q, t], [machine["nominal"](q, t)]),
             "M": ca.Function(
                 "M", [q, t], [ca.reshape(ca.jacobian(machine["nominal"](q, t), q), 3 * n, 1)]
             ),
@@ -266,6 +267,11 @@ class ErrorField:
         return self._map(
             "dpe", q, self._tools(tools, len(q)), np.ascontiguousarray(e, dtype=float)
         )[0]
+
+    def nominal(self, q: np.ndarray, tools=None) -> np.ndarray:
+        """Nominal tool points (N, 3) mm in the workpiece frame at poses q."""
+        q = np.atleast_2d(np.asarray(q, float))
+        return self._map("P", q, self._tools(tools, len(q)))[0]
 
     def axis_jacobian(self, q: np.ndarray, tools=None) -> np.ndarray:
         """d p_nominal / d q (N, 3, n_axes): mm per mm (linear axes), mm per rad (rotary)."""

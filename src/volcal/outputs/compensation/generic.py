@@ -36,6 +36,7 @@ import numpy as np
 
 from . import Built, Context
 from .grid import (
+    LimitError,
     check_limit,
     choose_spacing,
     component_tables,
@@ -46,6 +47,8 @@ from .grid import (
 )
 
 MAX_GRID_POINTS = 2_000_000
+#: tolerances (um) tried in turn for the grid when none is given
+AUTO_TOLERANCES = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
 
 _MEANING = {
     "location": "location error (constant)",
@@ -88,38 +91,83 @@ def build(ctx: Context) -> Built:
     qv = workspace_sample(lo, hi, 1500, skip=5000)
     exact = [fld.volumetric(qv, t) for t in tools]
     per = [a.full_turn for a in axes]
-    scale, measured = 1.0, np.inf
-    for _ in range(5):
-        sp = choose_spacing(
-            [a.length for a in axes],
-            S * scale,
-            ctx.tolerance_um,
-            min_intervals=[8 if a.full_turn else 1 for a in axes],
-        )
-        nodes = [uniform_nodes(a.lo, a.hi, sp.h[j]) for j, a in enumerate(axes)]
-        shape = tuple(len(n) for n in nodes)
-        n_nodes = int(np.prod(shape))
-        check_limit(
-            n_nodes * len(tools),
-            max_points,
-            f"volumetric grid points ({' x '.join(map(str, shape))} nodes x "
-            f"{len(tools)} tool offset(s))",
-            "--max-points (default 2,000,000)",
-            "raise --tolerance, give fewer --tool offsets or raise --max-points",
-        )
-        Q = np.stack(np.meshgrid(*nodes, indexing="ij"), axis=-1).reshape(-1, len(axes))
-        a0, B0 = fld.affine(Q)
-        vals = np.stack(
-            [(a0 + np.einsum("nij,j->ni", B0, t)).reshape(*shape, 3) for t in tools]
-        )  # error, mm
-        err = 0.0
-        for k in range(len(tools)):
-            d = multilinear(nodes, vals[k], qv, per) - exact[k]
-            err = max(err, float(np.max(np.linalg.norm(d, axis=1))) * 1e3)
-        measured = err
-        if measured <= ctx.tolerance_um:
+    mins = [8 if a.full_turn else 1 for a in axes]
+
+    def n_nodes(tol: float) -> int:
+        sp = choose_spacing([a.length for a in axes], S, tol, min_intervals=mins)
+        return int(np.prod([len(uniform_nodes(a.lo, a.hi, sp.h[j])) for j, a in enumerate(axes)]))
+
+    def grid(tol: float):
+        scale, measured = 1.0, np.inf
+        for _ in range(5):
+            sp = choose_spacing([a.length for a in axes], S * scale, tol, min_intervals=mins)
+            nodes = [uniform_nodes(a.lo, a.hi, sp.h[j]) for j, a in enumerate(axes)]
+            shape = tuple(len(n) for n in nodes)
+            check_limit(
+                int(np.prod(shape)) * len(tools),
+                max_points,
+                f"volumetric grid points ({' x '.join(map(str, shape))} nodes x "
+                f"{len(tools)} tool offset(s))",
+                "--max-points (default 2,000,000)",
+                "raise --tolerance, give fewer --tool offsets or raise --max-points",
+            )
+            Q = np.stack(np.meshgrid(*nodes, indexing="ij"), axis=-1).reshape(-1, len(axes))
+            a0, B0 = fld.affine(Q)
+            vals = np.stack(
+                [(a0 + np.einsum("nij,j->ni", B0, t)).reshape(*shape, 3) for t in tools]
+            )  # error, mm
+            err = 0.0
+            for k in range(len(tools)):
+                d = multilinear(nodes, vals[k], qv, per) - exact[k]
+                err = max(err, float(np.max(np.linalg.norm(d, axis=1))) * 1e3)
+            measured = err
+            if measured <= tol:
+                break
+            scale *= max(1.2, 1.1 * measured / tol)
+        return sp, nodes, vals, measured
+
+    grid_tol = ctx.tolerance_um
+    chosen_note = None
+    if not ctx.options.get("auto_tolerance"):
+        try:
+            sp, nodes, vals, measured = grid(grid_tol)
+        except LimitError as exc:
+            fits = [t for t in AUTO_TOLERANCES if n_nodes(t) * len(tools) <= max_points]
+            if fits and fits[0] > grid_tol:
+                raise LimitError(f"{exc}; --tolerance {fits[0]:g} fits") from None
+            raise
+    else:
+        # no tolerance given: the smallest of the ladder whose grid fits the limit
+        built = None
+        for tol in AUTO_TOLERANCES:
+            if n_nodes(tol) * len(tools) > max_points:
+                continue
+            try:
+                built = grid(tol)
+            except LimitError:
+                continue
+            grid_tol = tol
             break
-        scale *= max(1.2, 1.1 * measured / ctx.tolerance_um)
+        if built is None:
+            one = next(
+                (t for t in AUTO_TOLERANCES if n_nodes(t) <= max_points), AUTO_TOLERANCES[-1]
+            )
+            raise LimitError(
+                f"volumetric grid: {n_nodes(AUTO_TOLERANCES[-1]) * len(tools)} points at "
+                f"{AUTO_TOLERANCES[-1]:g} um for {len(tools)} tool offset(s), more than the "
+                f"limit of {max_points} (--max-points); propose --tolerance {one:g} with "
+                "one --tool offset (e.g. --tool "
+                + ",".join(f"{v:g}" for v in tools[0])
+                + "), or raise --max-points"
+            )
+        sp, nodes, vals, measured = built
+        if grid_tol != ctx.tolerance_um:
+            chosen_note = (
+                f"volumetric grid tolerance chosen automatically: {grid_tol:g} um (the "
+                f"default {ctx.tolerance_um:g} um would need {n_nodes(ctx.tolerance_um):,} "
+                f"nodes x {len(tools)} tool offset(s), more than the limit of "
+                f"{max_points:,}); give --tolerance to choose another"
+            )
     grid_bound = sp.bound_um
     sgn = -1.0 if ctx.sign == "correction" else 1.0
     tag = "corr" if ctx.sign == "correction" else "err"
@@ -223,7 +271,7 @@ def build(ctx: Context) -> Built:
             "reference_position": {a.name: float(a.to_file(a.reference)) for a in axes},
             "model": fld.spec.name,
             "model_fingerprint": fld.spec.fingerprint(),
-            "tolerance_um": ctx.tolerance_um,
+            "tolerance_um": grid_tol,
             "spacing": {a.name: float(a.to_file(sp.h[j])) for j, a in enumerate(axes)},
             "interpolation_bound_um": grid_bound,
             "interpolation_max_um": measured,
@@ -270,6 +318,8 @@ def build(ctx: Context) -> Built:
         "the volumetric grid exists at its tool offsets only; at others use the per-axis "
         "tables with the kinematic chain",
     ]
+    if chosen_note:
+        notes.insert(0, chosen_note)
     limits = {
         "grid points": f"{int(np.prod([len(n) for n in nodes])) * len(tools)} of {max_points}"
     }
@@ -284,4 +334,7 @@ def build(ctx: Context) -> Built:
         tables,
         limits,
         notes,
+        tolerance_um=grid_tol,
+        file_names=[f"errors_{ax}.csv" for ax in tabs.axes]
+        + ["constants.csv", "volumetric_grid.csv", "volumetric_grid.npz"],
     )

@@ -316,6 +316,7 @@ def component_tables(
     fold_tool: bool,
     sample: int = 400,
     max_iter: int = 5,
+    turn_start: float | None = None,
 ) -> ComponentTables:
     """Tabulate every component error motion of the model on uniform nodes per axis,
     spaced from the curvature of the motions times their lever arm at the tool point (the
@@ -323,7 +324,9 @@ def component_tables(
     the volumetric interpolation error stays within ``tolerance_um``; then measure it on a
     sample of the workspace and refine until it does.  With ``fold_tool`` the tool's
     zero position and orientation go into the last tool-branch axis' columns
-    (:func:`tool_fold`); else they stay constants."""
+    (:func:`tool_fold`); else they stay constants.  ``turn_start`` (rad): the tables of
+    full-turn axes with periodic errors span [turn_start, turn_start + 2 pi] (the range the
+    control reports, e.g. [0, 360) deg) instead of the travel."""
     errs = field.errors_list
     names = [s.name for s in errs]
     e_ref = field.errors(field.reference[None])[0]
@@ -390,7 +393,8 @@ def component_tables(
         nodes, values = {}, {}
         diff = np.zeros((len(q), len(names)))
         for i, a in enumerate(axes):
-            nodes[a.name] = uniform_nodes(a.lo, a.hi, sp.h[i])
+            lo = a.lo if turn_start is None or not a.full_turn else turn_start
+            nodes[a.name] = uniform_nodes(lo, lo + (a.hi - a.lo), sp.h[i])
             values[a.name] = fun(a.name, nodes[a.name])
             if a.full_turn:
                 values[a.name][-1] = values[a.name][0]

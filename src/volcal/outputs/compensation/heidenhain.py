@@ -11,9 +11,15 @@ Written files:
 * ``CONFIG.CMA``: one line assigning each ``*.COM`` to the column of its axis, marked
   active (``*`` in ``ACTIVE``).
 
-The values are **corrections** (= -error; ``sign="error"`` writes the errors) in mm on
-linear axes and deg on rotary axes, linear between the AXISPOS points; a full-turn rotary
-axis' table spans one turn and repeats.  TNC tables have no comment syntax: the statement
+**Sign.**  The values are the **errors** of the column's axis (actual - nominal, = -the
+correction the control applies) in mm on linear axes and deg on rotary axes, linear
+between the AXISPOS points: HEIDENHAIN's technical manuals enter the measured axis error
+("The axis-error is entered, with the correct sign ... The error is positive if the table
+travel is too long", TNC 407 technical manual, 1.6.3; the nonlinear compensation example
+of 1.6.4 tabulates the "Error in Z [mm]" over Y).  A full-turn rotary axis' table spans
+one turn and repeats.  **AXISPOS** is "given with respect to the machine datum
+(MP_refPosition)" (MANUALplus 620 technical manual, 6.10.3): model positions plus
+``machine_datum`` (stated after ``[END]``).  TNC tables have no comment syntax: the statement
 of what the file holds (sign, tool offset, residual) follows the ``[END]`` line, which the
 control does not read.
 
@@ -36,7 +42,7 @@ import numpy as np
 
 from volcal.base.exceptions import InputError
 
-from . import Built, Context, render_template, table_residuals
+from . import Built, Context, control_path, render_template, table_residuals
 from .grid import (
     AxisTable,
     check_limit,
@@ -60,7 +66,11 @@ def build(ctx: Context) -> Built:
     targets = correction_targets(fld, ctx.table_tool)
     inputs = [a.name for a in fld.axes]
     sp, _ = correction_spacing(fld, targets, ctx.tolerance_um, inputs)
-    nodes = {a.name: uniform_nodes(a.lo, a.hi, sp.h[i]) for i, a in enumerate(fld.axes)}
+    # a full-turn axis' table spans [0, 360] deg, the range the control reports it in
+    nodes = {
+        a.name: uniform_nodes(*((0.0, a.hi - a.lo) if a.full_turn else (a.lo, a.hi)), sp.h[i])
+        for i, a in enumerate(fld.axes)
+    }
     per = {a.name: a.full_turn for a in fld.axes}
     lin = targets.linear
     tables: list[AxisTable] = []
@@ -103,7 +113,21 @@ def build(ctx: Context) -> Built:
     if unknown:
         raise InputError(f"unknown axis name(s) {unknown}; the model has {inputs}", source="--axis")
     key = {a: str(keys.get(a, a)) for a in inputs}
-    sgn = -1.0 if ctx.sign == "error" else 1.0
+    # the manuals enter the axis error: the negative of the fitted correction
+    sgn = -1.0
+    datum = ctx.options.get("machine_datum") or {a: 0.0 for a in inputs}
+    cdir = ctx.options.get("control_dir")
+    notes = [
+        "AXISPOS from the machine datum: model positions plus the model-to-machine datum "
+        + ", ".join(f"{a} {datum[a]:g}" for a in inputs)
+        + " (mm / deg; --machine-datum)",
+        (
+            f"CONFIG.CMA names the tables in {cdir}"
+            if cdir
+            else "CONFIG.CMA names the tables without a folder; give --control-dir (e.g. "
+            "TNC:\\table) if the control expects their path"
+        ),
+    ]
 
     def residual(q, t):
         return correction_residual(fld, tables, q, t)
@@ -124,15 +148,13 @@ def build(ctx: Context) -> Built:
             + ") mm"
         )
     values = (
-        "corrections (= -error) added to the column's axis, mm on linear axes, deg on "
-        "rotary axes, at AXISPOS of the table's axis (mm / deg)"
-        if ctx.sign == "correction"
-        else "errors (actual - nominal; the correction is their negative), mm on linear "
-        "axes, deg on rotary axes, at AXISPOS of the table's axis (mm / deg)"
+        "errors of the column's axis (actual - nominal, as the HEIDENHAIN technical manuals "
+        "enter the axis error; the control applies their negative), mm on linear axes, deg "
+        "on rotary axes, at AXISPOS of the table's axis (mm / deg from the machine datum)"
     )
 
     def render(comp) -> dict[str, str]:
-        head = comp.header()
+        head = comp.header() + notes
         out: dict[str, str] = {}
         for J, ts in by_input.items():
             a = fld.axis(J)
@@ -145,7 +167,7 @@ def build(ctx: Context) -> Built:
                     if fld.axis(t.output).rotary:
                         v = np.rad2deg(v)
                     cells.append(f"{v + 0.0:+.{DECIMALS}f}")
-                rows.append((n, f"{a.to_file(x) + 0.0:+.4f}", cells))
+                rows.append((n, f"{a.to_file(x) + datum[J] + 0.0:+.4f}", cells))
             out[f"{J}.COM"] = render_template(
                 "heidenhain.com.j2",
                 name=f"{J}.COM",
@@ -162,7 +184,7 @@ def build(ctx: Context) -> Built:
             "heidenhain.cma.j2",
             header=head,
             columns=[key[J] for J in by_input],
-            files=[f"{J}.COM" for J in by_input],
+            files=[control_path(cdir, f"{J}.COM") for J in by_input],
         )
         return out
 
@@ -189,5 +211,6 @@ def build(ctx: Context) -> Built:
         not_carried,
         summary,
         limits,
+        notes,
         table_tool=np.asarray(ctx.table_tool, float),
     )

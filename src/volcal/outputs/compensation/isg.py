@@ -11,12 +11,23 @@ Written files:
   position ``P0X P0Y P0Z`` and zero orientation ``N0X N0Y N0Z`` (ISG parameters).
 * ``volcomp.lis``: the compensation list: axis assignment (logical axis numbers), the
   kinematic chain from the workpiece to the tool and the number of workpiece axes,
-  ``interpolation GRID`` (linear on the grid), ``negate 0``, the parameter files with
-  ``file_format ISG_CSV``.
+  ``interpolation GRID`` (linear on the grid), the parameter files with
+  ``file_format ISG_CSV`` (bare names, or in ``control_dir``).
 
 The files hold **errors** (actual - nominal, ISO 230-1), as the ISG kernel expects: the
-control evaluates its kinematic model with them and corrects the axis setpoints itself
-(``negate 0``).  The tool's zero position and orientation errors (volcal's ``EX0T ...
+control evaluates its kinematic model with them and corrects the axis setpoints itself.
+``negate`` is not written: the parameter takes a string of axis names whose values are
+negated (default "-", none), and no value needs negating.
+
+Rotary axes: the table of a full-turn axis whose errors are periodic spans [0, 360] deg,
+the range the control reports its position in (ISG gives rotary arguments over e.g.
+[0, 360)); the first and last rows are equal.  Other rotary axes span their travel.
+
+Tool: ISG knows the tool by its length along the zero orientation N0; a reflector offset
+across N0 (lateral) is not something the control can be told, so the effect of the
+angular errors on the lateral part of a tool offset is not carried (NOT CARRIED, with the
+residual it leaves at the lateral tool offsets of the measurement).  The tool's zero
+position and orientation errors (volcal's ``EX0T ...
 EC0T``), which ISG's parameter list has no name for, are folded into the component errors
 of the last tool-side axis (:func:`volcal.outputs.compensation.grid.tool_fold`: exact to first
 order), so the files carry the whole identified model: what remains is the interpolation
@@ -34,7 +45,7 @@ import numpy as np
 
 from volcal.base.exceptions import InputError
 
-from . import Built, Context, render_template
+from . import Built, Context, control_path, render_template
 from .grid import check_limit, component_tables
 
 #: parameter files per compensation (TF5280 documentation)
@@ -95,7 +106,7 @@ def build(ctx: Context) -> Built:
     _check_topology(fld)
     n0 = _direction(ctx.options.get("tool_direction") or "-z")
     tools = np.vstack([np.zeros(3), ctx.tools])
-    tabs = component_tables(fld, tools, ctx.tolerance_um, fold_tool=True)
+    tabs = component_tables(fld, tools, ctx.tolerance_um, fold_tool=True, turn_start=0.0)
     names = {s.name: s for s in fld.errors_list}
     files = [f"component_{ax}.csv" for ax in tabs.axes] + ["position_errors.csv"]
     check_limit(
@@ -131,8 +142,20 @@ def build(ctx: Context) -> Built:
             k += 1
     p0 = fld.machine["nominal"](np.zeros(fld.n_axes), np.zeros(3)).full().ravel()
 
+    unit_n0 = n0 / np.linalg.norm(n0)
+
+    def known_tool(t):
+        # what the control knows of the tool: its length along N0
+        return unit_n0 * float(np.dot(t, unit_n0))
+
     def residual(q, t):
-        return fld.volumetric(q, t) - fld.volumetric_from_errors(q, t, tabs.errors_at(fld, q))
+        # the control reports a full-turn axis in [0, 360): the tables are looked up there
+        qq = np.array(q, float)
+        for a in fld.axes:
+            if a.full_turn:
+                qq[:, a.index] = np.mod(qq[:, a.index], 2 * np.pi)
+        e = tabs.errors_at(fld, qq)
+        return fld.volumetric(q, t) - fld.volumetric_from_errors(q, known_tool(t), e)
 
     values = (
         "errors (actual - nominal, ISO 230-1; component errors in mm and rad at axis "
@@ -140,17 +163,40 @@ def build(ctx: Context) -> Built:
         "kinematic model (negate 0)"
     )
     not_carried = list(tabs.not_carried)
+    lateral = [t for t in ctx.tools if np.linalg.norm(t - known_tool(t)) > 1e-9]
+    if lateral:
+        from . import check_poses, rms_um
+
+        qc = check_poses(fld)
+        worst = max((rms_um(residual(qc, np.asarray(t, float))), tuple(t)) for t in lateral)
+        not_carried.append(
+            "the effect of the angular errors on the part of a tool offset across the tool "
+            f"direction N0 ({ctx.options.get('tool_direction') or '-z'}): ISG applies the "
+            f"tool length along N0 only; up to {worst[0]:.3g} um RMS at tool offset ("
+            + ", ".join(f"{v:g}" for v in worst[1])
+            + ") mm"
+        )
     notes = []
+    turns = [a.name for a in fld.axes if a.full_turn]
+    if turns:
+        notes.append(
+            f"rotary tables of {', '.join(turns)} span [0, 360] deg: the control must report "
+            "those axes modulo 360 deg in [0, 360)"
+        )
+    cdir = ctx.options.get("control_dir")
+    notes.append(
+        f"the list names the parameter files in {cdir}"
+        if cdir
+        else "the list names the parameter files without a folder (relative to the list); "
+        "give --control-dir with their absolute path on the control if it expects one, as "
+        "the TF5280 examples do"
+    )
     if tabs.folded:
         notes.append(
             f"the tool's zero position and orientation errors "
             f"({', '.join(tabs.folded)}) are folded into the component errors of "
             f"{tabs.fold_axis}, the last tool-side axis (exact to first order)"
         )
-    notes.append(
-        "ISG applies the tool length along N0; the model's error at lateral "
-        "reflector offsets is reproduced by the same parameters"
-    )
 
     def render(comp) -> dict[str, str]:
         head = comp.header() + notes
@@ -197,7 +243,7 @@ def build(ctx: Context) -> Built:
         out["volcomp.lis"] = render_template(
             "isg_volcomp.lis.j2",
             header=head,
-            files=files,
+            files=[control_path(cdir, f) for f in files],
             axes=[(a.name, numbers[a.name]) for a in fld.axes],
             chain="".join(a.name for a in fld.axes),
             workpiece_axes=sum(a.branch == "workpiece" for a in fld.axes),

@@ -6,39 +6,41 @@ Written files:
   compensation, "inter-axis"): per table t ``$AN_CEC[t,N]`` (values at the nodes),
   ``$AN_CEC_INPUT_AXIS[t]``, ``$AN_CEC_OUTPUT_AXIS[t]``, ``$AN_CEC_STEP[t]``,
   ``$AN_CEC_MIN[t]``, ``$AN_CEC_MAX[t]``, ``$AN_CEC_DIRECTION[t]`` (0: both directions),
-  ``$AN_CEC_IS_MODULO[t]`` (1 for a full-turn rotary input) and, where a product is
-  needed, ``$AN_CEC_MULT_BY_TABLE[t]``;
+  ``$AN_CEC_IS_MODULO[t]`` (1 for a full-turn rotary input);
 * ``AX_EEC.INI``: init program ``%_N_AX_EEC_INI`` with the LEC tables (leadscrew /
   encoder error compensation of each axis over its own position): ``$AA_ENC_COMP[0,N,AX]``,
   ``$AA_ENC_COMP_STEP``, ``_MIN``, ``_MAX``, ``_IS_MODULO``.
 
-The values are **corrections** (= -error; ``sign="error"`` writes the errors instead)
-added to the output axis' position: mm on linear axes, deg on rotary axes.
+**Sign.**  Siemens' function manual (K3, interpolatory compensation) says for LEC / MSEC
+that "a positive compensation value causes the corresponding machine axis to move in the
+negative direction"; the CEC values add to the same total compensation value of the
+output axis.  So every value written is the *error* of the output axis (= -the correction
+the control applies), mm on linear axes, deg on rotary axes.
 
-How the correction is split (:mod:`volcal.outputs.compensation.grid`):
+**Every value is small.**  K3 says LEC values are "not limited and not monitored ... small
+compensation values must be selected".  Table multiplication (``$AN_CEC_MULT_BY_TABLE``)
+adds the product of two tables *in addition to* their own values, so carrying a lever-arm
+product ``z EBY(y)`` needs a factor table that holds the position ``z`` and a second table
+that cancels it: values of hundreds of mm that move the axis by that much whenever the
+two are not active together.  volcal therefore writes no products: every table is a
+function of one axis, fitted by least squares, and the lever-arm products are listed under
+NOT CARRIED with the residual they leave.
 
-* a rotary axis' own angular positioning error (``ECC`` for C) is corrected on that axis
-  by its LEC table (exact to first order);
-* what remains of the volumetric error at the tables' tool offset is turned into
-  corrections of the three linear axes, ``c(q)``, and fitted (least squares over a sample
-  of the travel) by: the LEC table of each linear axis (its own position), one CEC table
-  per other input axis and output axis (straightness, squareness, sag) and, for each
-  product of an axis position and a function of another axis (an angular error times its
-  lever arm: ``z EBY(y)``; on a 5-axis machine also a function of one rotary axis times
-  the cosine or sine of another), a CEC table multiplied
-  (``$AN_CEC_MULT_BY_TABLE``) by a table holding the lever axis' position (or the cosine
-  or sine).  SINUMERIK adds the product *in addition* to the multiplied table's own value,
-  so the multiplier table holds ``h - 1`` (the sum is then ``g * h``) and its own
-  contribution, ``h - 1`` on its output axis, is taken out by that axis' LEC table (or
-  the table of that output over the multiplier's input axis).  Tables whose
-  contribution is negligible (together at most half the tolerance) are left out.
+How the correction is split (:mod:`volcal.outputs.compensation.grid`): a rotary axis' own
+angular positioning error (``ECC`` for C) is corrected on that axis by its LEC table
+(exact to first order); what remains of the volumetric error at the tables' tool offset
+is turned into corrections of the three linear axes and fitted by the LEC table of each
+linear axis and one CEC table per other input axis and output axis (straightness,
+squareness, sag).  Tables whose contribution is negligible (together at most half the
+tolerance) are left out.
 
-What it cannot carry: the tables know no tool offset, so the tool-length-dependent part
-of the angular errors is corrected only at the tables' tool offset (``table_tool``); and
-an error that depends on more than two axes, or on two axes other than through a lever
-arm (the motions of rotary axes seen through other rotary axes on a 5-axis machine), is
-carried only as far as the sum of 1-D tables and lever-arm products reaches.  Both
-residuals are reported.
+What it cannot carry: the lever-arm products and couplings of several axes (their best
+additive approximation is carried), and the tool-length-dependent part of the angular
+errors away from the tables' tool offset (``table_tool``).  Both residuals are reported.
+
+Axis names: ``X1``, ``Y1``, ... or general names ``AX1`` ... (``general_axis_names``; for
+multi-channel controls), ``axis_names`` for any other.  Table positions are from the
+machine datum: model positions plus ``machine_datum``.
 
 Limits (``target``): ``840d`` 62 CEC tables of at most 2000 points (MD18342
 $MN_MM_CEC_MAX_POINTS), LEC 5000 points per axis (MD38000 $MA_MM_ENC_COMP_MAX_POINTS);
@@ -47,8 +49,6 @@ $MN_MM_CEC_MAX_POINTS), LEC 5000 points per axis (MD38000 $MA_MM_ENC_COMP_MAX_PO
 """
 
 from __future__ import annotations
-
-from typing import Any
 
 import numpy as np
 
@@ -95,40 +95,6 @@ def _limits(ctx: Context) -> dict:
     return lim
 
 
-def _output_values(fld, tables: list[AxisTable], Q: np.ndarray, out: str) -> np.ndarray:
-    """What the tables add to the command of axis ``out`` at poses Q."""
-    v = np.zeros(len(Q))
-    for t in tables:
-        if t.output != out:
-            continue
-        x = t(Q[:, fld.axis(t.input).index])
-        v += x
-        if t.multiplier is not None:
-            m = tables[t.multiplier]
-            v += x * m(Q[:, fld.axis(m.input).index])
-    return v
-
-
-def _reindex(tables: list[AxisTable], keep: list[int]) -> list[AxisTable]:
-    new = {old: k for k, old in enumerate(keep)}
-    out = []
-    for i in keep:
-        t = tables[i]
-        out.append(
-            AxisTable(
-                t.input,
-                t.output,
-                t.nodes,
-                t.values.copy(),
-                t.periodic,
-                t.kind,
-                None if t.multiplier is None else new[t.multiplier],
-                t.label,
-            )
-        )
-    return out
-
-
 def _prune(
     fld,
     tables: list[AxisTable],
@@ -137,20 +103,20 @@ def _prune(
     lin: list[str],
     budget_um: float,
 ) -> list[AxisTable]:
-    """Backward elimination, per output axis: leave out a CEC table (base or carrier,
-    least significant first) when the refit without it moves the largest residual at the
-    fit sample by no more than what is left of ``budget_um`` (split over the outputs);
-    multipliers nobody uses go too.  Returns the pruned, refitted tables."""
+    """Backward elimination, per output axis: leave out a CEC table (least significant
+    first) when the refit without it moves the largest residual at the fit sample by no
+    more than what is left of ``budget_um`` (split over the outputs).  Returns the pruned,
+    refitted tables."""
     from scipy import sparse
 
     from .grid import hat_matrix
 
-    fixed = [i for i, t in enumerate(tables) if t.kind in ("own", "multiplier")]
+    fixed = [i for i, t in enumerate(tables) if t.kind == "own"]
     fixed_vals = {i: tables[i](Q[:, fld.axis(tables[i].input).index]) for i in fixed}
     per_out = budget_um / np.sqrt(len(lin)) * 1e-3  # mm
     drop: set[int] = set()
-    for o_i, o in enumerate(lin):
-        y = target[:, o_i].copy()
+    for o in lin:
+        y = target[:, lin.index(o)].copy()
         for i in fixed:
             if tables[i].output == o:
                 y -= fixed_vals[i]
@@ -159,8 +125,6 @@ def _prune(
         for i in idx:
             t = tables[i]
             H = hat_matrix(t.nodes, Q[:, fld.axis(t.input).index], periodic=t.periodic)
-            if t.multiplier is not None:
-                H = sparse.diags(1.0 + fixed_vals[t.multiplier]) @ H
             cols.append(H)
             blocks[i] = np.arange(k, k + H.shape[1])
             k += H.shape[1]
@@ -180,23 +144,12 @@ def _prune(
         sig = []
         for i in idx:
             t = tables[i]
-            if t.kind not in ("base", "carrier"):
+            if t.kind != "base":
                 continue
             g = hat_matrix(t.nodes, Q[:, fld.axis(t.input).index], periodic=t.periodic) @ (
                 D[blocks[i]] * x[blocks[i]]
             )
-            if t.kind == "carrier":
-                assert t.multiplier is not None  # a carrier always names its multiplier
-                a = fld.axis(tables[t.multiplier].input)
-                # a lever arm about the middle of the travel; a rotary factor as it is
-                v = g * (
-                    Q[:, a.index] - 0.5 * (a.lo + a.hi)
-                    if not a.rotary
-                    else 1.0 + fixed_vals[t.multiplier]
-                )
-            else:
-                v = g - 0.5 * (g.max() + g.min())
-            sig.append((float(np.max(np.abs(v))), i))
+            sig.append((float(np.max(np.abs(g - 0.5 * (g.max() + g.min())))), i))
         for _, i in sorted(sig):
             B = np.flatnonzero(np.isin(act, blocks[i]))
             K = np.flatnonzero(~np.isin(act, blocks[i]))
@@ -208,19 +161,33 @@ def _prune(
                 P = P[np.ix_(K, K)] - PKB @ W[:, 1:]
                 x, act = x_new, act[K]
                 drop.add(i)
-    used = {t.multiplier for i, t in enumerate(tables) if t.kind == "carrier" and i not in drop}
-    out = _reindex(
-        tables,
-        [
-            i
-            for i, t in enumerate(tables)
-            if i not in drop and (t.kind != "multiplier" or i in used)
-        ],
-    )
-    fit_tables(
-        fld, out, Q, target, lin, [i for i, t in enumerate(out) if t.kind in ("own", "multiplier")]
-    )
+    out = [
+        AxisTable(t.input, t.output, t.nodes, t.values.copy(), t.periodic, t.kind)
+        for i, t in enumerate(tables)
+        if i not in drop
+    ]
+    fit_tables(fld, out, Q, target, lin, [i for i, t in enumerate(out) if t.kind == "own"])
     return out
+
+
+def machine_axis_names(ctx: Context) -> dict[str, str]:
+    """SINUMERIK machine axis name of every model axis: ``--axis`` first, else ``AX<n>``
+    (general names: linear axes X, Y, Z as AX1 to AX3 by direction, then the rotary axes in
+    model order) with ``general_axis_names``, else ``<axis>1``."""
+    fld = ctx.field
+    inputs = [a.name for a in fld.axes]
+    names = dict(ctx.options.get("axis_names") or {})
+    unknown = sorted(set(names) - set(inputs))
+    if unknown:
+        raise InputError(f"unknown axis name(s) {unknown}; the model has {inputs}", source="--axis")
+    if ctx.options.get("general_axis_names"):
+        order = sorted((a for a in fld.axes if not a.rotary), key=lambda a: a.dir_index) + [
+            a for a in fld.axes if a.rotary
+        ]
+        default = {a.name: f"AX{k + 1}" for k, a in enumerate(order)}
+    else:
+        default = {a: f"{a}1" for a in inputs}
+    return {a: str(names.get(a, default[a])) for a in inputs}
 
 
 def build(ctx: Context) -> Built:
@@ -229,7 +196,11 @@ def build(ctx: Context) -> Built:
     targets = correction_targets(fld, ctx.table_tool)
     inputs = [a.name for a in fld.axes]
     sp, _ = correction_spacing(fld, targets, ctx.tolerance_um, inputs)
-    nodes = {a.name: uniform_nodes(a.lo, a.hi, sp.h[i]) for i, a in enumerate(fld.axes)}
+    # a full-turn axis' table spans [0, 360] deg, the range the control reports it in
+    nodes = {
+        a.name: uniform_nodes(*((0.0, a.hi - a.lo) if a.full_turn else (a.lo, a.hi)), sp.h[i])
+        for i, a in enumerate(fld.axes)
+    }
     per = {a.name: a.full_turn for a in fld.axes}
     lin = targets.linear
     tables: list[AxisTable] = []
@@ -237,39 +208,18 @@ def build(ctx: Context) -> Built:
         tables.append(AxisTable(o, o, nodes[o], np.zeros(len(nodes[o])), False, "lec"))
     for r in targets.own:
         tables.append(AxisTable(r, r, nodes[r], targets.own_value(fld, r, nodes[r]), per[r], "own"))
-    mult: dict[Any, int] = {}
-    for L in lin:
-        mult[L] = len(tables)
-        tables.append(
-            AxisTable(L, L, nodes[L], nodes[L] - 1.0, False, "multiplier", label=f"position of {L}")
-        )
-    for r in [a.name for a in fld.axes if a.rotary]:
-        for fn, h in (("cos", np.cos), ("sin", np.sin)):
-            mult[(r, fn)] = len(tables)
-            tables.append(
-                AxisTable(
-                    r, lin[0], nodes[r], h(nodes[r]) - 1.0, per[r], "multiplier", label=f"{fn}({r})"
-                )
-            )
+    # CEC: one table per other input axis and output axis; no table multiplication (a
+    # factor table would hold a position, see the module docstring)
     for o in lin:
         for J in inputs:
             if J != o:
                 tables.append(AxisTable(J, o, nodes[J], np.zeros(len(nodes[J])), per[J]))
-            for L in mult:
-                if (L if isinstance(L, str) else L[0]) != J and (
-                    isinstance(L, str) or fld.axis(J).rotary
-                ):
-                    tables.append(
-                        AxisTable(
-                            J, o, nodes[J], np.zeros(len(nodes[J])), per[J], "carrier", mult[L]
-                        )
-                    )
     n_fit = int(min(40000, max(6000, 40 * max(len(v) for v in nodes.values()))))
     Q = workspace_sample(fld.lower, fld.upper, n_fit, skip=3)
     target = targets.linear_values(fld, Q)
 
     def fixed(tabs):
-        return [i for i, t in enumerate(tabs) if t.kind in ("own", "multiplier")]
+        return [i for i, t in enumerate(tabs) if t.kind == "own"]
 
     fit_tables(fld, tables, Q, target, lin, fixed(tables))
     tables = _prune(fld, tables, Q, target, lin, 0.5 * ctx.tolerance_um)
@@ -301,21 +251,22 @@ def build(ctx: Context) -> Built:
             f"{lim['max_lec_points']} (MD38000 $MA_MM_ENC_COMP_MAX_POINTS)",
             "raise --tolerance",
         )
-    names = dict(ctx.options.get("axis_names") or {})
-    unknown = sorted(set(names) - set(inputs))
-    if unknown:
-        raise InputError(f"unknown axis name(s) {unknown}; the model has {inputs}", source="--axis")
-    mach = {a: str(names.get(a, f"{a}1")) for a in inputs}
-    sgn = -1.0 if ctx.sign == "error" else 1.0
+    mach = machine_axis_names(ctx)
+    datum = ctx.options.get("machine_datum") or {a: 0.0 for a in inputs}
+    # K3: "a positive compensation value causes the corresponding machine axis to move in
+    # the negative direction": the value is the negative of the axis motion wanted
+    sgn = -1.0
 
     def residual(q, t):
         return correction_residual(fld, tables, q, t)
 
     at_table, others = table_residuals(fld, tables, ctx)
     not_carried = [
-        f"what 1-D tables and products of two tables cannot represent (errors coupling more "
-        f"than two axes, or two axes other than through a lever arm) and the interpolation: "
-        f"{at_table:.3g} um RMS left at the tables' tool offset"
+        "the lever-arm products (an angular error of one axis times the position of "
+        "another, z EBY(y)), couplings of more than one axis and the interpolation: the "
+        "tables add functions of one axis each (table multiplication is not used: its "
+        "factor table would hold a position, not a small correction); this leaves "
+        f"{at_table:.3g} um RMS at the tables' tool offset"
     ]
     if others:
         worst, wt = max(others, key=lambda x: x[0])
@@ -325,50 +276,36 @@ def build(ctx: Context) -> Built:
             f"{worst:.3g} um RMS at tool offset (" + ", ".join(f"{v:g}" for v in wt) + ") mm"
         )
     values = (
-        "corrections (= -error) added to the output axis position, mm on linear axes, "
-        "deg on rotary axes (input positions mm / deg)"
-        if ctx.sign == "correction"
-        else "errors (actual - nominal; the correction is their negative), mm on linear "
-        "axes, deg on rotary axes (input positions mm / deg)"
+        "compensation values as SINUMERIK documents them (K3: a positive compensation "
+        "value causes the machine axis to move in the negative direction; the same sign "
+        "for the CEC tables, whose values add to the axis' total compensation value): each "
+        "value is the error of the output axis (actual - nominal, = -the correction the "
+        "control applies), mm on linear axes, deg on rotary axes (input positions mm / deg "
+        "from the machine datum)"
     )
+    notes = [
+        "machine axes: "
+        + ", ".join(f"{a} = {mach[a]}" for a in inputs)
+        + "; table positions are model positions plus the model-to-machine datum "
+        + ", ".join(f"{a} {datum[a]:g}" for a in inputs)
+        + " (mm / deg; --machine-datum)"
+    ]
 
     def axis_val(name, x):
-        return fld.axis(name).to_file(x)
+        return fld.axis(name).to_file(x) + datum[name]
 
     def render(comp) -> dict[str, str]:
-        head = comp.header()
+        head = comp.header() + notes
         ctab = []
-        idx = {id(t): k for k, t in enumerate(cec)}
         for k, t in enumerate(cec):
-            a = fld.axis(t.input)
-            out_rot = fld.axis(t.output).rotary
-            vals = t.values if t.kind == "multiplier" else sgn * t.values
-            if out_rot:
+            vals = sgn * t.values
+            if fld.axis(t.output).rotary:
                 vals = np.rad2deg(vals)
             xs = axis_val(t.input, t.nodes)
-            if t.kind == "carrier":
-                assert t.multiplier is not None
-                m = tables[t.multiplier]
-                desc = (
-                    f"{t.output} = F({t.input}) x (table {idx[id(m)] + 1}: {m.label} minus "
-                    "1, the product added to this table's own value)"
-                )
-            elif t.kind == "multiplier":
-                where = (
-                    f"the LEC table of {t.output}"
-                    if t.input == t.output
-                    else f"the table {t.output} = F({t.input})"
-                )
-                desc = (
-                    f"{t.label} minus 1 (factor of products; its own value on {t.output} "
-                    f"is taken out by {where})"
-                )
-            else:
-                desc = f"{t.output} = F({t.input})"
             ctab.append(
                 dict(
                     index=k,
-                    desc=desc,
+                    desc=f"{t.output} = F({t.input})",
                     values=[f"{v:.{DECIMALS}f}" for v in vals + 0.0],
                     input=mach[t.input],
                     output=mach[t.output],
@@ -376,18 +313,13 @@ def build(ctx: Context) -> Built:
                     min=f"{xs[0]:.6f}",
                     max=f"{xs[-1]:.6f}",
                     modulo=int(t.periodic),
-                    mult=(idx[id(tables[t.multiplier])] + 1 if t.multiplier is not None else None),
+                    mult=None,
                 )
             )
         ltab = []
-        mult_of = {m.input: m for m in cec if m.kind == "multiplier"}
         for t in lec:
             a = fld.axis(t.input)
             vals = sgn * t.values
-            if ctx.sign == "error" and t.input in mult_of:
-                # the multiplier table keeps its sign (it is a factor): its own value, taken
-                # out here, must flip with everything else
-                vals = vals - 2 * mult_of[t.input].values
             if a.rotary:
                 vals = np.rad2deg(vals)
             xs = axis_val(t.input, t.nodes)
@@ -450,5 +382,6 @@ def build(ctx: Context) -> Built:
         not_carried,
         summary,
         limits,
+        notes,
         table_tool=np.asarray(ctx.table_tool, float),
     )
