@@ -142,6 +142,12 @@ def test_report_is_self_contained_with_every_section(demo, monkeypatch, capsys):
     # the compensation summary
     assert "generic: per-axis ISO 230-1 error tables" in html
     assert "Residual after compensation" in html and "errors_X.csv" in html
+    # ... and the rigid motion the files cannot correct (work offset and alignment take it
+    # up), with the residual modulo that motion, as compensation.json states them
+    comp = json.loads((demo["comp"] / "compensation.json").read_text())
+    assert "Set-up part." in html and "work offset" in comp["setup_part"]
+    assert comp["setup_part"].split(";")[0] in html
+    assert "Residual modulo the set-up" in html
 
 
 def test_an_inadequate_fit_says_so_in_a_red_banner(poor):

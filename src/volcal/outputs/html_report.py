@@ -664,6 +664,12 @@ def _compensation(doc: Mapping[str, Any], comp_dir: Path) -> dict[str, Any]:
         "residual_rms": _g(doc.get("residual_rms_um")),
         "residual_max": _g(doc.get("residual_max_um")),
         "ratio": _g(100.0 * float(ratio), 3) if ratio is not None else "",
+        # the rigid motion multilateration does not determine (exports written before the
+        # export stated it have none of these keys: the rows are left out)
+        "setup_part": str(doc.get("setup_part") or ""),
+        "residual_mod_rigid": _g(doc.get("residual_mod_rigid_rms_um")),
+        "rigid_translation": ", ".join(_g(v) for v in doc.get("rigid_translation_um") or []),
+        "rigid_rotation": ", ".join(_g(v) for v in doc.get("rigid_rotation_urad") or []),
         "n_poses": doc.get("n_poses"),
         "per_tool": per_tool,
         "not_carried": [str(n) for n in doc.get("not_carried") or []],
