@@ -6,6 +6,7 @@ The main entry points, mirroring the command line, are importable from here (laz
 bare ``import volcal`` loads neither CasADi nor SymPy)::
 
     volcal.identify(...)   # volcal identify
+    volcal.compare(...)    # volcal compare (strategies side by side)
     volcal.plan(...)       # volcal plan
     volcal.plots           # the plots of a result (volcal.outputs.plots)
 """
@@ -16,6 +17,7 @@ __version__ = "0.1.0"
 
 _LAZY = {
     "identify": ("volcal.analysis.identify", "identify"),
+    "compare": ("volcal.analysis.compare", "compare"),
     "plan": ("volcal.analysis.planning.plan", "plan"),
     "plots": ("volcal.outputs.plots", None),
 }

@@ -40,8 +40,10 @@ from typing import TYPE_CHECKING, Any
 import jinja2
 import numpy as np
 import pandas as pd
+from markupsafe import Markup, escape
 
 from volcal import __version__
+from volcal.analysis.adequacy import STRUCTURE_P, Adequacy
 from volcal.base.exceptions import InputError
 from volcal.outputs.results import (
     OPTIONAL_FILES,
@@ -56,7 +58,14 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["html_report", "write_report", "find_browser", "missing_plots", "TEMPLATE"]
+__all__ = [
+    "html_report",
+    "write_report",
+    "find_browser",
+    "missing_plots",
+    "find_comparison",
+    "TEMPLATE",
+]
 
 TEMPLATE_DIR = Path(__file__).parent / "templates" / "report"
 TEMPLATE = "report.html.j2"
@@ -69,12 +78,13 @@ _MANIFEST = "manifest.json"
 _COMPENSATION_FORMAT = "volcal-compensation"
 _UNITS = {"um": "µm", "urad": "µrad"}
 _PLOT_CAPTIONS = {
-    "component_errors.png": "Component error motions of each axis (error = actual - "
-    "nominal), band = ±2 u",
+    "component_errors.png": "Component error motions of each axis (error = actual − "
+    "nominal), band = ±2u (k = 2)",
     "volumetric_map.png": "Volumetric error over the workspace",
     "residuals.png": "Residuals of the length readings (model - measured)",
     "residuals_vs_axes.png": "Normalised residuals against each axis position, binned means",
-    "correlations.png": "Correlations of the identifiable error parameters",
+    "correlations.png": "Correlations of the identifiable parameters (basis coefficients) "
+    "and the strongest pairs",
 }
 
 
@@ -96,6 +106,31 @@ def _g(v: Any, digits: int = 4) -> str:
 def _unit(u: Any) -> str:
     """Report unit as a reader writes it (um -> µm)."""
     return _UNITS.get(str(u), str(u))
+
+
+def _option(v: Any) -> str:
+    """An identification option as a reader writes it, not as Python does (``None`` ->
+    "not given", ``True`` -> "yes", lists joined)."""
+    if v is None:
+        return "not given"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, (list, tuple)):
+        return ", ".join(_option(x) for x in v) or "none"
+    if isinstance(v, dict):
+        return "; ".join(f"{k} {_option(x)}" for k, x in v.items()) or "none"
+    return str(v)
+
+
+def code_spans(text: Any) -> Markup:
+    """Escaped text whose Markdown code spans (`` `x` ``, as notes and messages write
+    them) become ``<code>x</code>``: no literal backticks in the document."""
+    parts = str(text).split("`")
+    if len(parts) % 2 == 0:  # an unpaired backtick: leave the text as it is
+        return escape(str(text))
+    return Markup("").join(
+        escape(p) if k % 2 == 0 else Markup("<code>%s</code>") % p for k, p in enumerate(parts)
+    )
 
 
 def _axis_unit(axis: Any) -> str:
@@ -384,9 +419,20 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
     verdict = None
     if ad:
         lo, hi = (ad.get("interval") or [None, None])[:2]
+        # the three outcomes (results saved before them read adequate / inadequate)
+        adq = Adequacy.from_dict(ad)
         verdict = {
-            "adequate": ad.get("verdict") == "adequate",
-            "verdict": str(ad.get("verdict", "")),
+            "adequate": adq.adequate,
+            "verdict": adq.verdict,
+            "summary": adq.summary,
+            "threshold": f"{STRUCTURE_P:g}",
+            "where": (
+                "above"
+                if adq.chi2_per_dof > adq.interval[1]
+                else "below"
+                if adq.chi2_per_dof < adq.interval[0]
+                else "inside"
+            ),
             "message": str(ad.get("message", "")),
             "chi2_per_dof": _g(ad.get("chi2_per_dof")),
             "interval": f"[{_g(lo)}, {_g(hi)}]",
@@ -404,7 +450,12 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
             "max_abs": _g((ad.get("outliers") or {}).get("max_abs")),
             "structure": [
                 {
-                    "axis": str(s.get("axis", "")),
+                    "axis": (
+                        f"axis {s.get('axis', '')}"
+                        if s.get("kind", "axis") == "axis"
+                        else str(s.get("axis", ""))
+                    ),
+                    "significant": float(s.get("p_value", 1.0)) < STRUCTURE_P,
                     "bins": s.get("n_bins"),
                     "f": _g(s.get("f"), 3),
                     "p": (
@@ -441,7 +492,12 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
         "seconds": _g(meta.get("seconds"), 3),
         "phases": phases,
         "conditions": conditions,
-        "options": [f"{k} = {v}" for k, v in options.items()],
+        "options": [
+            {"name": str(k).replace("_", " "), "value": _option(v)} for k, v in options.items()
+        ],
+        "timings": [
+            {"stage": str(k), "seconds": _g(v, 3)} for k, v in (meta.get("timings_s") or {}).items()
+        ],
         "adequacy": verdict,
         "notes": [str(n) for n in meta.get("notes") or []],
     }
@@ -456,6 +512,7 @@ def _unidentifiable(res: LoadedResult) -> dict[str, Any]:
         "parameters": [str(n) for n in names],
         "combinations": [str(c) for c in meta.get("null_space") or []],
         "gauge": [str(c) for c in meta.get("gauge") or []],
+        "why": str((meta.get("unidentifiable_explanation") or {}).get("text") or ""),
     }
 
 
@@ -467,7 +524,13 @@ def _parameters(res: LoadedResult) -> list[dict[str, Any]]:
             "name": str(r.name),
             "value": _g(r.value, 6),
             "unit": _unit(r.unit),
-            "std": _g(r.u, 6) if r.identifiable else "not identifiable",
+            "std": (
+                "imposed by the datum"
+                if getattr(r, "imposed", False)
+                else _g(r.u, 6)
+                if r.identifiable
+                else "not identifiable"
+            ),
             "identifiable": bool(r.identifiable),
         }
         for r in table.itertuples(index=False)
@@ -478,7 +541,12 @@ def _uncertainty(res: LoadedResult, grid: pd.DataFrame | None) -> dict[str, Any]
     table = res.parameters()
     largest = []
     for unit in dict.fromkeys(table["unit"]):
-        sub = table[(table["unit"] == unit) & table["identifiable"] & np.isfinite(table["u"])]
+        sub = table[
+            (table["unit"] == unit)
+            & table["identifiable"]
+            & ~table["imposed"]
+            & np.isfinite(table["u"])
+        ]
         for r in sub.sort_values("u", ascending=False).head(LARGEST_UNCERTAINTIES).itertuples():
             largest.append(
                 {
@@ -517,6 +585,53 @@ def _uncertainty(res: LoadedResult, grid: pd.DataFrame | None) -> dict[str, Any]
             n = grid["norm_um"].to_numpy(float)
             vol["rms_error"] = _g(np.sqrt(np.mean(n[np.isfinite(n)] ** 2)))
     return {"largest": largest, "volumetric": vol}
+
+
+def _error_motions(
+    res: LoadedResult, comp: pd.DataFrame | None, motions: pd.DataFrame | None
+) -> dict[str, Any]:
+    """The error-motion section: peak-to-peak per motion (error_motions.csv, or computed
+    from the saved result for a folder written before it existed) and the motions at
+    positions along each axis (rows of component_errors.csv)."""
+    from volcal.outputs.results import error_motion_table, error_motions_at_positions
+
+    if motions is None:
+        motions = error_motion_table(res.error_model, res.theta, res.cov_theta, res.identifiable)
+    peak = [
+        {
+            "axis": str(r.axis),
+            "name": str(r.error_motion),
+            "description": str(r.description),
+            "pp": _g(r.peak_to_peak_in_unit, 4),
+            "u": _g(r.u_peak_to_peak_in_unit, 2) or "not identifiable",
+            "unit": _unit(r.unit),
+            "min": _g(r.min_in_unit, 4),
+            "max": _g(r.max_in_unit, 4),
+            "at_min": f"{_g(r.position_of_min_in_axis_unit, 6)} {r.axis_unit}",
+            "at_max": f"{_g(r.position_of_max_in_axis_unit, 6)} {r.axis_unit}",
+        }
+        for r in motions.itertuples(index=False)
+    ]
+    tables = []
+    for axis, t in error_motions_at_positions(comp) if comp is not None else []:
+        pos, cols = t.columns[0], list(t.columns[1:])
+
+        def head(c: str) -> str:
+            name, _, unit = c.rpartition("_")
+            return f"{name} ({_unit(unit)})"
+
+        tables.append(
+            {
+                "axis": axis,
+                "head": [head(pos).replace("position", f"{axis} position")]
+                + [head(c) for c in cols],
+                "rows": [
+                    [_g(r[pos], 6)] + [_g(0.0 if abs(r[c]) < 1e-9 else r[c], 3) for c in cols]
+                    for _, r in t.iterrows()
+                ],
+            }
+        )
+    return {"peak": peak, "tables": tables}
 
 
 def _compensation(doc: Mapping[str, Any], comp_dir: Path) -> dict[str, Any]:
@@ -566,19 +681,57 @@ def _compensation(doc: Mapping[str, Any], comp_dir: Path) -> dict[str, Any]:
 @lru_cache(maxsize=1)
 def _environment() -> jinja2.Environment:
     # autoescape on: model descriptions, file names and notes are user text in HTML
-    return jinja2.Environment(
+    env = jinja2.Environment(
         loader=jinja2.FileSystemLoader(str(TEMPLATE_DIR)),
         undefined=jinja2.StrictUndefined,
         autoescape=True,
         trim_blocks=True,
         lstrip_blocks=True,
     )
+    env.filters["code_spans"] = code_spans
+    return env
+
+
+def find_comparison(result_dir: Path, compare_dir: Path | None) -> tuple[Path, Path | None]:
+    """(the result folder to report, the ``volcal compare`` folder to embed or None): a
+    compare folder given as the result reports its reference result with the comparison;
+    the reference result inside a compare folder finds its comparison by itself."""
+    from volcal.outputs.compare_report import REFERENCE_DIR, is_comparison
+
+    if result_dir.is_dir() and is_comparison(result_dir):
+        ref = result_dir / REFERENCE_DIR
+        if not ref.is_dir():
+            raise InputError(
+                "this `volcal compare` folder holds no reference result (its reference "
+                "strategy did not solve); give a result folder with --result and this "
+                "folder with --compare",
+                source=str(result_dir),
+            )
+        return ref, compare_dir or result_dir
+    if compare_dir is None and result_dir.name == REFERENCE_DIR:
+        if is_comparison(result_dir.parent):
+            return result_dir, result_dir.parent
+    return result_dir, compare_dir
+
+
+def _comparison(compare_dir: Path, model: str) -> dict[str, Any]:
+    from volcal.outputs.compare_report import load_comparison, section_context
+
+    doc, table, png = load_comparison(compare_dir)
+    if doc.get("model") != model:
+        raise InputError(
+            f"the comparison was made for another model ({doc.get('model')!r}, the result "
+            f"is of {model!r})",
+            source=str(compare_dir),
+        )
+    return section_context(doc, table, png)
 
 
 def html_report(
     result_dir: Path,
     *,
     compensation_dir: Path | None = None,
+    compare_dir: Path | None = None,
     title: str | None = None,
     plots: bool = True,
     plotter: PlotProcess | None = None,
@@ -592,9 +745,16 @@ def html_report(
     processes (:class:`volcal.outputs.plot_process.PlotProcess`) that draw them.  Raises
     :class:`InputError` naming the folder when it is missing or not a result (or the
     compensation folder is not an export for the same model).
+
+    compare_dir: a folder written by ``volcal compare`` (its table, explanation and plot
+    are added as a section); a compare folder given as ``result_dir`` reports its
+    reference result with the comparison, and that reference result finds it by itself.
     """
-    result_dir = Path(result_dir)
+    result_dir, compare_dir = find_comparison(
+        Path(result_dir), None if compare_dir is None else Path(compare_dir)
+    )
     res = _load(result_dir)
+    cmp = _comparison(compare_dir, res.spec.name) if compare_dir is not None else None
     comp = None
     if compensation_dir is not None:
         compensation_dir = Path(compensation_dir)
@@ -603,6 +763,8 @@ def html_report(
     folder = res.path
     residuals = _read_table(folder, "residuals.csv")
     grid = _read_table(folder, "volumetric_grid.csv")
+    comp_table = _read_table(folder, "component_errors.csv")
+    motions = _read_table(folder, "error_motions.csv")
     context = {
         "header": _header(res, title, compensation_dir),
         "model": _model(res),
@@ -611,9 +773,11 @@ def html_report(
         "ident": _identification(res),
         "unid": _unidentifiable(res),
         "uncertainty": _uncertainty(res, grid),
+        "motions": _error_motions(res, comp_table, motions),
         "parameters": _parameters(res),
         "plots": _plots(res, draw_missing=True, plotter=plotter) if plots else [],
         "compensation": comp,
+        "compare": cmp,
     }
     return _environment().get_template(TEMPLATE).render(context)
 
@@ -634,9 +798,16 @@ def find_browser() -> str | None:
 def _protected(folders: Iterable[Path | None]) -> set[Path]:
     """The files of the input folders that the report must never replace: what the
     folder's manifest lists plus the names volcal writes there."""
+    from volcal.outputs.compare_report import COMPARE_FILES
     from volcal.outputs.compensation import COMPENSATION_FILES
 
-    known = set(RESULT_FILES) | set(OPTIONAL_FILES) | set(COMPENSATION_FILES) | {_MANIFEST}
+    known = (
+        set(RESULT_FILES)
+        | set(OPTIONAL_FILES)
+        | set(COMPENSATION_FILES)
+        | set(COMPARE_FILES)
+        | {_MANIFEST}
+    )
     out: set[Path] = set()
     for folder in folders:
         if folder is None or not Path(folder).is_dir():
@@ -707,6 +878,7 @@ def write_report(
     out_file: Path,
     *,
     compensation_dir: Path | None = None,
+    compare_dir: Path | None = None,
     pdf: bool = False,
     title: str | None = None,
     plots: bool = True,
@@ -725,7 +897,7 @@ def write_report(
         out = out.with_suffix(".pdf")
     if out.is_dir():
         raise InputError("expected a file name, got a folder", source=str(out))
-    if out.resolve() in _protected([Path(result_dir), compensation_dir]):
+    if out.resolve() in _protected([Path(result_dir), compensation_dir, compare_dir]):
         raise InputError(
             "the report would overwrite a file of the result or compensation folder; "
             "choose another name",
@@ -744,6 +916,7 @@ def write_report(
     html = html_report(
         Path(result_dir),
         compensation_dir=compensation_dir,
+        compare_dir=compare_dir,
         title=title,
         plots=plots,
         plotter=plotter,

@@ -5,10 +5,13 @@
 =========================  ==================================================================
 file                       content
 =========================  ==================================================================
-``parameters.csv``         ``name, value, unit, u, identifiable``: every error parameter in
-                           um / urad (``unit`` says which); ``u`` its standard uncertainty
-                           (empty for unidentifiable parameters: their values are one
-                           representative of what the data allow, not determined)
+``parameters.csv``         ``name, value, unit, u, identifiable, imposed``: every parameter
+                           (basis coefficient of an error quantity) in um / urad (``unit``
+                           says which); ``u`` its standard uncertainty (empty for
+                           unidentifiable parameters: their values are one representative
+                           of what the data allow, not determined);
+                           ``imposed``: set to zero by the datum (a convention, u = 0, not
+                           a measurement; the conditions are in ``datum.csv``)
 ``stations.csv``           the identified stations: ``station, x_mm, y_mm, z_mm,
                            dead_length_mm`` (+ their standard uncertainties ``u_x_um`` ...
                            ``u_dead_length_um``, ``fixed``)
@@ -19,8 +22,12 @@ file                       content
                            per component error motion of that axis with its unit
                            (``EXX_um``, ``EAX_urad``) and its standard uncertainty
                            (``u_EXX_um``); cells of other axes' errors are empty
+``error_motions.csv``      per component error motion: ``axis``, ``error_motion``,
+                           ``description``, ``unit`` (um / urad), ``peak_to_peak_in_unit``
+                           over the travel and its standard uncertainty, the extremes and
+                           where they lie (``axis_unit``: mm / deg)
 ``volumetric_grid.csv``    a grid over the box of the linear axes and, on a coarse grid,
-                           the rotary axes' whole travel (tool offset 0): axis columns
+                           the rotary axes' whole travel (tool offset (0, 0, 0) mm): axis columns
                            (mm / deg), ``dx_um, dy_um, dz_um``, ``u_dx_um, u_dy_um,
                            u_dz_um`` and ``norm_um``
 ``report.md``              the human-readable report (links the plots)
@@ -33,7 +40,7 @@ file                       content
                            angles
 ``residuals.png``          residual histogram, normal QQ plot of the standardised
                            residuals, residuals per reading by station
-``correlations.png``       correlations of the identifiable error parameters
+``correlations.png``       correlations of the identifiable parameters (basis coefficients)
 ``residuals_vs_axes.png``  normalised residuals against each axis position, binned means
 =========================  ==================================================================
 
@@ -74,7 +81,7 @@ import numpy as np
 import pandas as pd
 
 from volcal import __version__
-from volcal.analysis.adequacy import assess
+from volcal.analysis.adequacy import STRUCTURE_P, assess
 from volcal.analysis.identifiability import FieldNullSpace
 from volcal.analysis.identify import IdentificationResult, SolverState, predict_volumetric
 from volcal.base import progress
@@ -96,6 +103,8 @@ __all__ = [
     "check_out_dir",
     "read_points",
     "component_error_table",
+    "error_motion_table",
+    "error_motions_at_positions",
     "volumetric_grid_table",
     "RESULT_FORMAT",
     "RESULT_FORMAT_VERSION",
@@ -115,6 +124,7 @@ DATA_FILES = (
     "residuals.csv",
     "datum.csv",
     "component_errors.csv",
+    "error_motions.csv",
     "volumetric_grid.csv",
     "report.md",
     "result.json",
@@ -138,6 +148,11 @@ GRID_POINTS = 7
 GRID_POINTS_WITH_ROTARY = 5
 #: positions per axis of the component error table
 COMPONENT_POINTS = 41
+#: positions per axis on which the peak-to-peak value of each error motion is found
+PEAK_POINTS = 401
+#: positions per axis of the printed error-motion tables (report.md, HTML report): every
+#: tenth of the travel, as ISO 230-1 reports and tracker software print them
+TABLE_POSITIONS = 11
 
 _VOL = ["dx_um", "dy_um", "dz_um"]
 _UVOL = ["u_dx_um", "u_dy_um", "u_dz_um"]
@@ -212,6 +227,129 @@ def component_error_table(
     return pd.concat(frames, ignore_index=True)[cols]
 
 
+def describe_error_motion(spec: MachineSpec, symbol: Any) -> str:
+    """What an ISO 230-1 component error motion is, in words (``EXX``: "positioning error
+    of X"; ``EYX``: "straightness of X in Y"; ``EBX``: "tilt of X about B")."""
+    axis = spec.axis(symbol.axis)
+    own = symbol.component == axis.dir_index
+    letter = ("XYZ" if symbol.quantity == "translation" else "ABC")[symbol.component]
+    if not axis.is_rotary:
+        if symbol.quantity == "translation":
+            return (
+                f"positioning error of {axis.name}"
+                if own
+                else (f"straightness of {axis.name} in {letter}")
+            )
+        return f"roll of {axis.name}" if own else f"tilt of {axis.name} about {letter}"
+    if symbol.quantity == "translation":
+        if own:
+            return f"axial motion of {axis.name}"
+        return f"radial motion of {axis.name} in {letter}"
+    return (
+        f"angular positioning error of {axis.name}"
+        if own
+        else (f"tilt of {axis.name} about {letter}")
+    )
+
+
+def error_motion_table(
+    error_model: ErrorModel,
+    theta: np.ndarray,
+    cov_theta: np.ndarray | None = None,
+    identifiable: np.ndarray | None = None,
+    n: int = PEAK_POINTS,
+) -> pd.DataFrame:
+    """The peak-to-peak value of every component error motion over its axis' travel (other
+    axes at their reference), as ISO 230-1 reports it: one row per motion, chain order.
+
+    Columns: ``axis``, ``error_motion`` (ISO name), ``description``, ``unit`` (um or urad:
+    the unit of every ``*_in_unit`` column), ``peak_to_peak_in_unit`` (largest minus
+    smallest value on ``n`` evenly spaced positions), ``u_peak_to_peak_in_unit`` (its
+    standard uncertainty, k = 1, propagated through the two positions; empty where the
+    motion involves an unidentifiable parameter or without ``cov_theta``),
+    ``min_in_unit``, ``max_in_unit``, ``axis_unit`` (mm or deg) and
+    ``position_of_min_in_axis_unit``, ``position_of_max_in_axis_unit``.  Location errors
+    (constants) have no peak-to-peak value and are not listed."""
+    em = error_model
+    spec = em.spec
+    theta = np.asarray(theta, float)
+    ident = np.ones(em.n_params, bool) if identifiable is None else np.asarray(identifiable, bool)
+    cov = None if cov_theta is None else np.nan_to_num(np.asarray(cov_theta, float))
+    ref = np.array([np.deg2rad(a.reference) if a.is_rotary else a.reference for a in spec.axes])
+    rows = []
+    for j, a in enumerate(spec.axes):
+        comps = [k for k, s in enumerate(em.errors) if s.axis == a.name and s.kind == "component"]
+        if not comps:
+            continue
+        pos = np.linspace(a.travel[0], a.travel[1], n)
+        q = np.tile(ref, (n, 1))
+        q[:, j] = np.deg2rad(pos) if a.is_rotary else pos
+        B = em.basis(q)
+        for k in comps:
+            s = em.errors[k]
+            f, u_name = _unit_factor(s.unit)
+            y = B[:, k, :] @ theta * f
+            y[np.abs(y) < 1e-9] = 0.0  # rounding noise of a value the datum makes zero
+            lo, hi = int(np.argmin(y)), int(np.argmax(y))
+            u = float("nan")
+            if cov is not None and ident[em.param_error_arr == k].all():
+                d = B[hi, k, :] - B[lo, k, :]
+                u = float(np.sqrt(max(float(d @ cov @ d), 0.0))) * f
+            rows.append(
+                {
+                    "axis": a.name,
+                    "error_motion": s.name,
+                    "description": describe_error_motion(spec, s),
+                    "unit": u_name,
+                    "peak_to_peak_in_unit": float(y[hi] - y[lo]),
+                    "u_peak_to_peak_in_unit": u,
+                    "min_in_unit": float(y[lo]),
+                    "max_in_unit": float(y[hi]),
+                    "axis_unit": _axis_unit(spec, a.name),
+                    "position_of_min_in_axis_unit": float(pos[lo]),
+                    "position_of_max_in_axis_unit": float(pos[hi]),
+                }
+            )
+    cols = [
+        "axis",
+        "error_motion",
+        "description",
+        "unit",
+        "peak_to_peak_in_unit",
+        "u_peak_to_peak_in_unit",
+        "min_in_unit",
+        "max_in_unit",
+        "axis_unit",
+        "position_of_min_in_axis_unit",
+        "position_of_max_in_axis_unit",
+    ]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def error_motions_at_positions(
+    component_table: pd.DataFrame, n: int = TABLE_POSITIONS
+) -> list[tuple[str, pd.DataFrame]]:
+    """The printed tables of the error motions at positions along each axis: per axis
+    ``(axis, table)`` with the position column and that axis' error-motion columns of
+    ``component_table`` (:func:`component_error_table`, e.g. read back from
+    component_errors.csv), on ``n`` of its rows evenly spread over the travel (every fourth
+    of the 41 rows by default: exact rows, nothing interpolated)."""
+    out = []
+    t = component_table
+    for axis in dict.fromkeys(t["axis"].astype(str)):
+        sub = t[t["axis"].astype(str) == axis]
+        keep = [
+            c
+            for c in sub.columns
+            if c != "axis" and not c.startswith("u_") and sub[c].notna().all()
+        ]
+        if len(keep) < 2:  # a position column and at least one motion
+            continue
+        rows = np.unique(np.round(np.linspace(0, len(sub) - 1, min(n, len(sub)))).astype(int))
+        out.append((axis, sub.iloc[rows][keep].reset_index(drop=True)))
+    return out
+
+
 def volumetric_grid_table(
     machine: Machine,
     error_model: ErrorModel,
@@ -221,7 +359,7 @@ def volumetric_grid_table(
     *,
     rotary: bool = True,
 ) -> pd.DataFrame:
-    """Volumetric error on a grid over the workspace, tool offset 0: ``n`` positions per
+    """Volumetric error on a grid over the workspace, tool offset (0, 0, 0) mm: ``n`` positions per
     linear axis over its travel (at most :data:`GRID_POINTS_WITH_ROTARY` for a model with
     rotary axes) and, with ``rotary`` (default), the rotary axes over their whole travel
     on the coarse grid of :func:`volcal.measurement.plans.summary_grid` (8 angles 45 deg apart for a
@@ -376,7 +514,7 @@ def _grid_coverage(spec: MachineSpec, grid: pd.DataFrame) -> str:
     text = f"grid over {', '.join(moving) or 'no axis'}"
     if fixed:
         text += f"; {', '.join(fixed)} at reference"
-    return text + ", tool offset 0"
+    return text + ", tool offset (0, 0, 0) mm"
 
 
 def _result_document(
@@ -409,6 +547,11 @@ def _result_document(
         "theta": result.theta,
         "cov_theta": result.cov_theta,
         "identifiable": result.identifiable,
+        "imposed": (
+            np.zeros(len(result.theta), bool)
+            if getattr(result, "imposed", None) is None
+            else np.asarray(result.imposed, bool)
+        ),
         "strategy": result.strategy,
         "status": result.status,
         "success": result.success,
@@ -435,12 +578,19 @@ def _result_document(
         "max_volumetric_pose": (
             {a: float(grid[a].iloc[imax]) for a in spec.axis_names} if imax is not None else None
         ),
-        # the axes the volumetric grid (and so max_volumetric_um) spans, tool offset 0
+        # the axes the volumetric grid (and so max_volumetric_um) spans, tool offset (0, 0, 0) mm
         "max_volumetric_axes": _grid_axes(spec, grid),
         "adequacy": assess(result).to_dict(),
         "unidentifiable": list(np.asarray(em.param_names)[~np.asarray(result.identifiable)]),
         "null_space": (list(ident.unidentifiable_combinations) if ident is not None else []),
         "gauge": (list(ident.gauge_combinations) if ident is not None else []),
+        # why parameters are left out and what to measure (None: all identifiable, or no
+        # known cause)
+        "unidentifiable_explanation": (
+            result.unidentifiable_explanation()
+            if hasattr(result, "unidentifiable_explanation")
+            else None
+        ),
         "datum": (result.datum.to_dict(orient="records") if result.datum is not None else None),
         "null_space_field": (
             result.null_space.to_dict() if result.null_space is not None else None
@@ -488,8 +638,15 @@ class LoadedResult:
         written before the test existed."""
         return self.meta.get("adequacy")
 
+    @property
+    def imposed(self) -> np.ndarray:
+        """Parameters the datum set to zero (all False for results saved without it)."""
+        rec = self.meta.get("imposed")
+        n = len(self.theta)
+        return np.asarray(rec, bool) if rec is not None and len(rec) == n else np.zeros(n, bool)
+
     def parameters(self) -> pd.DataFrame:
-        """``name, value, unit, u, identifiable`` in um / urad (as parameters.csv)."""
+        """``name, value, unit, u, identifiable, imposed`` in um / urad (as parameters.csv)."""
         units = self.error_model.param_units
         f = np.array([_unit_factor(u)[0] for u in units])
         std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
@@ -501,6 +658,7 @@ class LoadedResult:
                 "unit": [_unit_factor(u)[1] for u in units],
                 "u": std,
                 "identifiable": self.identifiable,
+                "imposed": self.imposed,
             }
         )
 
@@ -686,6 +844,9 @@ def _report(
     n_grid: int,
     n_comp: int,
     plots: bool,
+    comp: pd.DataFrame | None = None,
+    motions: pd.DataFrame | None = None,
+    timings: Mapping[str, float] | None = None,
 ) -> str:
     em = result.error_model
     spec = result.machine.spec
@@ -719,10 +880,7 @@ def _report(
     rows.append(
         (
             "model adequacy",
-            "the model fits (chi2/dof inside its 99.9 % interval)"
-            if adequacy.adequate
-            else "**INADEQUATE**: chi2/dof outside its 99.9 % interval; likely cause: "
-            + ", ".join(c.kind for c in adequacy.causes)
+            (adequacy.summary if adequacy.adequate else f"**{adequacy.summary}**")
             + " (see Model adequacy)",
         )
     )
@@ -740,7 +898,11 @@ def _report(
     rows += [
         ("unidentifiable parameters", str(len(unid))),
         ("rejected readings", str(int(rej.sum()))),
-        ("total time", f"{result.seconds:.3g} s"),
+        (
+            "identification time",
+            f"{result.seconds:.3g} s (reading and checking the readings, building and solving "
+            "the problem, uncertainty; not writing this folder)",
+        ),
     ]
     add(_md_table(pd.DataFrame(rows, columns=["quantity", "value"])))
     add("")
@@ -778,7 +940,11 @@ def _report(
         else:
             label = f.describe()
         kinds.setdefault(label, []).append(s.name)
-    add(f"{em.n_errors} error quantities, {em.n_params} parameters, datum convention `{em.datum}`:")
+    add(
+        f"{em.n_errors} error quantities (component error motions and location errors, ISO "
+        f"230-1 names), {em.n_params} parameters (the coefficients of their bases, which "
+        f"the identification fits), datum convention `{em.datum}`:"
+    )
     add("")
     for label, names in kinds.items():
         add(f"- {label}: {', '.join(names)}")
@@ -843,9 +1009,16 @@ def _report(
     add("")
     m = result.machine
     add(
-        f"Timings: total {result.seconds:.3g} s (solver phases "
-        f"{sum(o.seconds for o in result.outcomes):.3g} s); machine functions "
+        f"Timings: identification {result.seconds:.3g} s (solver phases "
+        f"{sum(o.seconds for o in result.outcomes):.3g} s of it); machine functions "
         f"{'loaded from the cache' if m.from_cache else 'built'} in {m.build_seconds:.3g} s."
+        + (
+            " Per stage, until this report was written: "
+            + "; ".join(f"{k} {v:.3g} s" for k, v in timings.items())
+            + "."
+            if timings
+            else ""
+        )
     )
     add("")
     add("### Condition numbers")
@@ -875,8 +1048,12 @@ def _report(
             "so their values are one representative among equally good ones and they have "
             "no uncertainty (empty `std`, `u_` cells; dashed in the plot)."
         )
+        why = result.unidentifiable_explanation()
+        if why is not None:
+            add("")
+            add(f"**Why, and what to measure:** {_sentence(why['text'])}")
     else:
-        add("Every error parameter is identifiable from these data.")
+        add("Every parameter is identifiable from these data.")
     add("")
     if result.datum is not None:
         add(_datum_section(result))
@@ -938,6 +1115,7 @@ def _report(
     if plots:
         add("![component error motions](component_errors.png)")
         add("")
+    L.extend(_error_motion_lines(spec, comp, motions))
 
     add("## Volumetric error")
     add("")
@@ -956,7 +1134,7 @@ def _report(
         at_ref &= np.isclose(grid[a.name].to_numpy(float), a.reference)
     add(
         f"`volumetric_grid.csv` covers {', '.join(_grid_axes(spec, grid)) or 'no axis'}: "
-        f"{'; '.join(covered)}; tool offset 0; {len(grid)} poses. Largest error "
+        f"{'; '.join(covered)}; tool offset (0, 0, 0) mm; {len(grid)} poses. Largest error "
         f"{grid['norm_um'].max():.4g} um, RMS of the norm "
         f"{float(np.sqrt(np.mean(grid['norm_um'] ** 2))):.4g} um"
         + (
@@ -1001,7 +1179,8 @@ def _report(
         "Legendre coefficient on the normalised travel, `<error>_0`, `<error>_c<k>`, "
         "`<error>_s<k>` the Fourier coefficients of 1, cos(k x), sin(k x), `<error>_b<j>` "
         "the j-th B-spline coefficient, `<error>@<pos>` a table value, `<error>` a "
-        "constant."
+        "constant. `imposed`: set to zero by the datum (a convention with u = 0, not a "
+        "measurement; the conditions are in `datum.csv`)."
     )
     add("")
     add(_md_table(result.parameters()))
@@ -1024,7 +1203,8 @@ def _report(
     add("")
     add(
         "`parameters.csv`, `stations.csv`, `residuals.csv`, `component_errors.csv`, "
-        "`volumetric_grid.csv`, `result.json` (everything `volcal predict --result` needs)"
+        "`error_motions.csv`, `volumetric_grid.csv`, `result.json` (everything "
+        "`volcal predict --result` needs)"
         + (
             ", `component_errors.png`, `volumetric_map.png`, `residuals.png`, "
             "`residuals_vs_axes.png`, `correlations.png`"
@@ -1035,6 +1215,57 @@ def _report(
     )
     add("")
     return "\n".join(L)
+
+
+def _error_motion_lines(
+    spec: MachineSpec, comp: pd.DataFrame | None, motions: pd.DataFrame | None
+) -> list[str]:
+    """Report text: peak-to-peak per error motion (error_motions.csv) and the error motions
+    at positions along each axis (rows of component_errors.csv)."""
+    L: list[str] = []
+    if motions is not None and len(motions):
+        L += [
+            "### Peak-to-peak per error motion",
+            "",
+            f"`error_motions.csv`: largest minus smallest value of each error motion over "
+            f"its axis' travel ({PEAK_POINTS} positions, other axes at their reference), "
+            "with its standard uncertainty and where the extremes lie.",
+            "",
+        ]
+        view = pd.DataFrame(
+            {
+                "error motion": motions["error_motion"],
+                "what": motions["description"],
+                "peak-to-peak": motions["peak_to_peak_in_unit"],
+                "u (k = 1)": motions["u_peak_to_peak_in_unit"],
+                "unit": motions["unit"],
+                "min at": [
+                    f"{p:g} {u}"
+                    for p, u in zip(motions["position_of_min_in_axis_unit"], motions["axis_unit"])
+                ],
+                "max at": [
+                    f"{p:g} {u}"
+                    for p, u in zip(motions["position_of_max_in_axis_unit"], motions["axis_unit"])
+                ],
+            }
+        )
+        L += [_md_table(view, ".3g"), ""]
+    if comp is not None and len(comp):
+        L += [
+            "### Error motions at positions along each axis",
+            "",
+            "Rows of `component_errors.csv` every tenth of the travel (other axes at their "
+            "reference); um for translational, urad for angular motions.",
+            "",
+        ]
+        for axis, table in error_motions_at_positions(comp):
+            table = table.copy()
+            pos = table.columns[0]
+            table[pos] = [f"{v:g}" for v in table[pos]]  # positions in full, not 3 digits
+            vals = table.columns[1:]
+            table[vals] = table[vals].mask(table[vals].abs() < 1e-9, 0.0)
+            L += [f"Axis {axis}:", "", _md_table(table, ".3g"), ""]
+    return L
 
 
 def _write_order_selection(result: IdentificationResult, folder: Path) -> None:
@@ -1080,30 +1311,48 @@ def _order_selection_lines(result: IdentificationResult) -> list[str]:
 # writing
 
 
+def _sentence(text: str) -> str:
+    """A message as a sentence: capital first letter, full stop."""
+    return (text[:1].upper() + text[1:]).rstrip(".") + "."
+
+
 def _adequacy_section(ad, plots: bool) -> str:
     """Report text: the model adequacy test (see :mod:`volcal.analysis.adequacy`)."""
     lo, hi = ad.interval
     lines = ["## Model adequacy", ""]
-    if ad.adequate:
+    if ad.verdict == "fits":
         lines.append(
             f"**The model fits the data within their uncertainty**: chi2/dof = "
             f"{ad.chi2_per_dof:.4g} lies inside its 99.9 % interval "
             f"[{lo:.4g}, {hi:.4g}] for {ad.dof} degrees of freedom "
-            f"({ad.n_readings} readings used)."
+            f"({ad.n_readings} readings used), and no residual structure is significant "
+            f"(p < {STRUCTURE_P:g})."
         )
+    elif ad.verdict == "budget_pessimistic":
+        lines.append(
+            f"**The model fits; the uncertainty budget is pessimistic.** {_sentence(ad.message)}"
+        )
+        lines += ["", "The reported uncertainties are conservative; the result can be used as is."]
     else:
+        where = "above" if ad.chi2_per_dof > hi else "below" if ad.chi2_per_dof < lo else "inside"
+        sig = [s.label for s in ad.significant_structure]
         lines.append(
             f"**WARNING: the model does not fit the data within their uncertainty.** "
-            f"chi2/dof = {ad.chi2_per_dof:.4g} lies outside its 99.9 % interval "
+            f"chi2/dof = {ad.chi2_per_dof:.4g} lies {where} its 99.9 % interval "
             f"[{lo:.4g}, {hi:.4g}] for {ad.dof} degrees of freedom "
-            f"({ad.n_readings} readings used). The identified errors and their "
-            "uncertainties are not to be trusted until the cause is removed."
+            f"({ad.n_readings} readings used)"
+            + (
+                f"; the residuals are structured (F-test p < {STRUCTURE_P:g} against "
+                + ", ".join(sig)
+                + ")"
+                if sig
+                else ""
+            )
+            + ". The identified errors and their uncertainties are not to be trusted until "
+            "the cause is removed."
         )
         lines += ["", "Likely cause" + ("s, most likely first:" if len(ad.causes) > 1 else ":"), ""]
-        lines += [
-            f"- **{c.kind}** ({100 * c.share:.0f} % of the excess chi2): {c.text}"
-            for c in ad.causes
-        ]
+        lines += [f"- **{c.kind}**: {c.text}" for c in ad.causes]
     lines.append("")
     for w in ad.warnings:
         lines += [f"**Warning:** {w}.", ""]
@@ -1115,28 +1364,36 @@ def _adequacy_section(ad, plots: bool) -> str:
         f"| readings beyond 5 robust sigma / 5 budget sigma | "
         f"{o['n_beyond_5_robust']} / {o['n_beyond_5_sigma']} |",
         f"| excess kurtosis of the normalised residuals | {_fmt(o['excess_kurtosis'])} |",
-        f"| budget factor (sigma multiplier the residuals call for) | {_fmt(ad.budget_factor)} |",
+        f"| budget factor (sigma multiplier the residuals call for) | {_fmt(ad.budget_factor)}"
+        + (
+            " (not a property of the budget while the residuals are structured) |"
+            if ad.significant_structure
+            else " |"
+        ),
     ]
     lines += [
         "",
-        "Residual structure against each axis' position (nested F-test of the "
-        "binned means per station against the station means; share: of the residual "
-        "sum of squares the binned means explain beyond chance):",
+        "Residual structure (nested F-tests: against an axis' position, the tool offset "
+        "or the time of the reading, the group means per station against the station "
+        "means; against the station, the station means against the overall mean; "
+        f"significant below p = {STRUCTURE_P:g}; share: of the residual sum of squares "
+        "the group means explain beyond chance):",
         "",
-        "| axis | bins | F | p-value | share |",
-        "|---|---:|---:|---:|---:|",
+        "| against | groups | F | p-value | share | significant |",
+        "|---|---:|---:|---:|---:|---|",
     ]
     for st in ad.structure:
         p = f"{st.p_value:.2g}" if st.log10_p > -300 else "< 1e-300"
         lines.append(
-            f"| {st.axis} | {st.n_bins} | {st.f:.3g} | {p} | {100 * st.explained_share:.1f} % |"
+            f"| {st.label} | {st.n_bins} | {st.f:.3g} | {p} | "
+            f"{100 * st.explained_share:.1f} % | {'**yes**' if st.significant else 'no'} |"
         )
     lines.append("")
     if plots:
         lines += [
             "![normalised residuals against each axis](residuals_vs_axes.png)",
             "",
-            "![correlations of the identifiable error parameters](correlations.png)",
+            "![correlations of the identifiable parameters](correlations.png)",
             "",
         ]
     return "\n".join(lines)
@@ -1245,6 +1502,8 @@ def save_result(
                     tmp / "datum.csv", index=False
                 )
             comp.to_csv(tmp / "component_errors.csv", index=False)
+            motions = error_motion_table(em, result.theta, result.cov_theta, result.identifiable)
+            motions.to_csv(tmp / "error_motions.csv", index=False)
             log.info("evaluating the volumetric error on the grid")
             grid = volumetric_grid_table(machine, em, result.theta, result.cov_theta, grid_points)
             grid.to_csv(tmp / "volumetric_grid.csv", index=False)
@@ -1267,6 +1526,9 @@ def save_result(
                 n_grid=grid_points,
                 n_comp=component_points,
                 plots=plots,
+                comp=comp,
+                motions=motions,
+                timings=doc["timings_s"],
             ),
             encoding="utf-8",
         )

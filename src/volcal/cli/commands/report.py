@@ -11,7 +11,9 @@ its model adequacy verdict (a fit that does not fit says so in a red banner), wh
 data do not determine, the uncertainties, every parameter (six significant digits), the
 plots of the result folder (those it lacks, e.g. written with ``volcal identify
 --no-plots``, are drawn from the saved result: the same figures) and, with
-``--compensation``, the summary of a ``volcal compensate`` export.  It is one file: CSS
+``--compensation``, the summary of a ``volcal compensate`` export, and with ``--compare``
+the table and plot of a ``volcal compare`` folder (given a compare folder as ``--result``,
+the report is of its reference result with the comparison).  It is one file: CSS
 inline, plots embedded as data URIs, no script, no external address.  Everything is
 read from the folders; nothing is identified again.  See :mod:`volcal.outputs.html_report`.
 
@@ -57,6 +59,15 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="folder written by `volcal compensate` from this result: add its summary (only read)",
     )
     p.add_argument(
+        "--compare",
+        type=Path,
+        metavar="DIR",
+        default=None,
+        help="folder written by `volcal compare` for the same model: add its strategies "
+        "table and plot (only read; found by itself when --result is that folder or the "
+        "reference result inside it)",
+    )
+    p.add_argument(
         "--out", required=True, type=Path, metavar="FILE", help="output file (e.g. report.html)"
     )
     p.add_argument("--title", default=None, help="document title (default: the model's name)")
@@ -77,7 +88,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from volcal.base.exceptions import InputError
-    from volcal.outputs.html_report import find_browser, missing_plots, write_report
+    from volcal.outputs.html_report import (
+        find_browser,
+        find_comparison,
+        missing_plots,
+        write_report,
+    )
 
     out: Path = args.out.with_suffix(".pdf") if args.pdf else args.out
     if out.is_dir():
@@ -99,12 +115,14 @@ def run(args: argparse.Namespace) -> int:
 
     # plots to draw: two children import matplotlib while this process reads the result,
     # then draw the figures two at a time
-    draws = not args.no_plots and args.result.is_dir() and bool(missing_plots(args.result))
+    result_dir, _ = find_comparison(args.result, args.compare)
+    draws = not args.no_plots and result_dir.is_dir() and bool(missing_plots(result_dir))
     with plotting(draws) as plotter:
         written = write_report(
             args.result,
             args.out,
             compensation_dir=args.compensation,
+            compare_dir=args.compare,
             pdf=args.pdf,
             title=args.title,
             plots=not args.no_plots,
