@@ -22,6 +22,7 @@ from volcal.analysis import analyse_jacobian
 from volcal.analysis.identifiability import rigid_columns
 from volcal.base.exceptions import SolverError
 from volcal.base.units import solver_scale
+from volcal.measurement.instruments import get_instrument
 from volcal.measurement.multilateration import calibrate_stations, multilaterate
 from volcal.measurement.tables import Measurements
 from volcal.model.datum import candidate_conditions, condition_table, select_conditions
@@ -161,9 +162,12 @@ def classic_pipeline(
     e = em.values(meas.q_internal, theta)
     p, _, _ = machine.evaluate(meas.q_internal, meas.tool, e)
     frame_a, frame_w = x[em.n_params : em.n_params + 3], x[em.n_params + 3 :]
-    # the fitted rigid motion moves the points; move the stations the opposite way
+    # the fitted rigid motion moves the points; move the stations the opposite way (the
+    # tracker's frame motion, so the reading itself is the instrument's one Function)
+    tracker = get_instrument("tracker")
     Sm = S - frame_a - np.cross(frame_w, S)
-    model = np.linalg.norm(p - Sm[meas.station_index], axis=1) - d[meas.station_index]
+    stations = np.c_[S, d][meas.station_index]
+    model, _ = tracker.evaluate(p, stations, np.r_[-frame_a, -frame_w])
     res_mm = model - meas.length
     residuals = meas.table.copy()
     residuals["residual_um"] = res_mm * 1e3

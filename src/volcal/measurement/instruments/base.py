@@ -23,10 +23,12 @@ nothing in the problem, the solvers or the analyses changes.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import casadi as ca
 import numpy as np
+
+from volcal.model.numpy_call import NumpyCall
 
 
 class Instrument(ABC):
@@ -95,9 +97,17 @@ class Instrument(ABC):
         glob = np.zeros(self.n_global_params) if glob is None else np.asarray(glob, float)
         if N == 0:
             return np.zeros(0), np.zeros((0, 3))
-        v, d = self.reading_function.map(N)(points.T, np.asarray(stations, float).T, glob)
+        try:
+            mapped = _mapped(self, N)
+        except TypeError:  # an instrument that cannot be hashed is mapped every time
+            mapped = self.reading_function.map(N)
+        # through the raw buffers (DM conversions cost more than the evaluation); every
+        # input of a mapped Function has N columns
+        v, d = NumpyCall(mapped)(
+            points.T, np.asarray(stations, float).T, np.repeat(glob[:, None], N, axis=1)
+        )
         # map stacks the (1, 3) gradients side by side: (1, 3N)
-        return np.asarray(v.full()).ravel(), np.asarray(d.full()).reshape(N, 3)
+        return v.ravel(), d.reshape(N, 3)
 
     # ---- start values --------------------------------------------------------------------
     @abstractmethod
@@ -142,3 +152,10 @@ class Instrument(ABC):
             f"{', '.join(self.station_param_names)}; global: "
             f"{', '.join(self.global_param_names) or 'none'})"
         )
+
+
+@lru_cache(maxsize=16)
+def _mapped(instrument: Instrument, n: int) -> ca.Function:
+    """The reading Function mapped over ``n`` readings, shared by equal instruments
+    (building it costs more than evaluating it on thousands of readings)."""
+    return instrument.reading_function.map(n)

@@ -35,6 +35,7 @@ from volcal import __version__
 from volcal.analysis.identify import Identifier, build_error_model, initial_stations
 from volcal.base.exceptions import InputError
 from volcal.measurement.budget import Budget, load_budget
+from volcal.measurement.instruments import get_instrument
 from volcal.measurement.tables import DataWarning, load_measurements, load_stations
 from volcal.model.errors import Datum, ErrorModel
 from volcal.model.machine import Machine
@@ -432,9 +433,7 @@ def _define(
     else:
         # nominal distances stand in for the lengths (budget and analysis only)
         p0, _, _ = machine.evaluate(meas.q_internal, meas.tool, np.zeros(machine.n_errors))
-        length = (
-            np.linalg.norm(p0 - st0[meas.station_index, :3], axis=1) - st0[meas.station_index, 3]
-        )
+        length, _ = get_instrument("tracker").evaluate(p0, st0[meas.station_index])
         sigma = S.analysis_sigma(machine, bud, dataclasses.replace(meas, length=length), st0)
     p = pr.pack_data(meas.q_internal, meas.tool, length, 1.0 / sigma)
     x0 = pr.pack_x(np.zeros(em.n_params), st0)

@@ -73,6 +73,7 @@ import scipy.linalg as sla
 from volcal.analysis.identify import Identifier, reading_sigma
 from volcal.base.exceptions import InputError
 from volcal.measurement.budget import Budget
+from volcal.measurement.instruments import get_instrument
 from volcal.model.errors import ErrorModel
 from volcal.model.machine import Machine
 from volcal.problem.residuals import IdentificationProblem
@@ -382,12 +383,12 @@ def station_start_function(
     lin_solve = ca.Function("lin_solve", [Ms], [y[:4]], {"cse": True})
     y = lin_solve.map(K)(ca.mtimes(lin.map(N)(Pc, m.T), sel))  # 4 x K
     u: Any = ca.vertcat(y[:3, :] + c, y[3, :])
-    # Gauss-Newton on the sqrt residual ||P - Q|| - d - l
+    # Gauss-Newton on the sqrt residual ||P - Q|| - d - l: the tracker's own reading (its
+    # frame motion zero), so the C solver computes the reading the identification fits
+    tracker = get_instrument("tracker")
     us = ca.SX.sym("u", 4)
-    diff = us[:3] - ps
-    dist = ca.sqrt(ca.sumsqr(diff))
-    rr = dist - us[3] - ls
-    row = ca.vertcat(diff / dist, -1.0)
+    rr = tracker.reading(ps, us, ca.SX.zeros(tracker.n_global_params)) - ls
+    row = ca.jacobian(rr, us).T
     gn = ca.Function(
         "gn", [ps, ls, us], [ca.vertcat(ca.vec(ca.mtimes(row, row.T)), row * rr), rr * rr]
     )

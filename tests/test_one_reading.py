@@ -1,0 +1,134 @@
+"""One definition of each instrument's reading (issue 30).
+
+The places in src/ that compute a distance reading are found on the AST: a distance of a
+difference (``norm(a - b)``, ``sqrt(sumsqr(a - b))``, ``sqrt(sum((a - b)**2))``,
+``sqrt(einsum(.., d, d))``, also through local names) from which something is subtracted
+(the dead length, the reading).  Each instrument module holds exactly one; outside the
+instruments only the places listed in ``REMAINING`` may, each with the reason it is still
+there.  A new copy of the reading anywhere else fails this test.
+
+Not seen by this finder: the Monte Carlo engine's batched gradient
+(analysis/uncertainty/engine.py writes the tracker's reading in place, ``np.sqrt(L,
+out=L)``, for speed); it is compared with the problem's CasADi functions, which evaluate
+the instrument's reading, each time it is built (``StructuredLSQ.build(check=True)``)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "volcal"
+INSTRUMENTS = SRC / "measurement" / "instruments"
+
+#: files outside the instruments that still write a distance reading, and why
+REMAINING = {
+    # paper 002's linear and Gauss-Newton multilateration, vectorised over thousands of
+    # small problems (start values of the tracker's stations, the classic pipeline)
+    "measurement/multilateration.py",
+    # paper 001's own pipeline; moving it onto measurement/instruments/multilaser.py
+    # through identify is the open part of issue 30
+    "analysis/multilaser.py",
+}
+
+
+def _name(call: ast.Call) -> str:
+    f = call.func
+    return f.attr if isinstance(f, ast.Attribute) else (f.id if isinstance(f, ast.Name) else "")
+
+
+def _is_sub(e: ast.AST) -> bool:
+    return isinstance(e, ast.BinOp) and isinstance(e.op, ast.Sub)
+
+
+def reading_lines(source: str) -> list[int]:
+    """Line numbers where ``source`` subtracts something from a distance of a difference."""
+    hits: set[int] = set()
+    for fn in ast.walk(ast.parse(source)):
+        if isinstance(fn, ast.FunctionDef):
+            hits |= _function_hits(fn)
+    return sorted(hits)
+
+
+def _function_hits(fn: ast.FunctionDef) -> set[int]:
+    hits: set[int] = set()
+    assigns = [
+        n
+        for n in ast.walk(fn)
+        if isinstance(n, ast.Assign) and len(n.targets) == 1 and isinstance(n.targets[0], ast.Name)
+    ]
+    diffs: set[str] = set()
+    dists: set[str] = set()
+
+    def is_diff(e: ast.AST) -> bool:
+        return _is_sub(e) or (isinstance(e, ast.Name) and e.id in diffs)
+
+    def is_dist(e: ast.AST) -> bool:
+        if isinstance(e, ast.Name):
+            return e.id in dists
+        if not isinstance(e, ast.Call) or not e.args:
+            return False
+        name, a = _name(e), e.args[0]
+        if name in ("norm", "norm_2"):
+            return is_diff(a)
+        if name != "sqrt" or not isinstance(a, ast.Call) or not a.args:
+            return False
+        inner = _name(a)
+        if inner == "sumsqr":
+            return is_diff(a.args[0])
+        if inner == "sum":
+            b = a.args[0]
+            return isinstance(b, ast.BinOp) and isinstance(b.op, ast.Pow) and is_diff(b.left)
+        return inner == "einsum" and len(a.args) == 3 and all(map(is_diff, a.args[1:]))
+
+    for _ in range(3):  # names defined from names
+        for n in assigns:
+            target = n.targets[0].id  # type: ignore[attr-defined]
+            if is_diff(n.value):
+                diffs.add(target)
+            if is_dist(n.value):
+                dists.add(target)
+    for n in ast.walk(fn):
+        if _is_sub(n) and is_dist(n.left):  # type: ignore[attr-defined]
+            hits.add(n.lineno)
+        if isinstance(n, ast.Call) and _name(n) == "subtract" and n.args:
+            if is_dist(n.args[0]):
+                hits.add(n.lineno)
+    return hits
+
+
+def test_the_finder_sees_the_forms_the_reading_was_written_in():
+    """The copies this issue removed (classic, the export's nominal lengths, the C
+    solver's station start) are found; a distance nothing is subtracted from is not."""
+    old_classic = "def f(p, Sm, d, i):\n    return np.linalg.norm(p - Sm[i], axis=1) - d[i]\n"
+    old_solver = (
+        "def f(us, ps, ls):\n    diff = us[:3] - ps\n    dist = ca.sqrt(ca.sumsqr(diff))\n"
+        "    rr = dist - us[3] - ls\n    return rr\n"
+    )
+    batched = (
+        "def f(P, Q, d, out):\n    D = P - Q\n    L = np.sqrt(np.einsum('ni,ni->n', D, D))\n"
+        "    np.subtract(L, d, out=out)\n"
+    )
+    assert reading_lines(old_classic) == [2]
+    assert reading_lines(old_solver) == [4]
+    assert reading_lines(batched) == [4]
+    assert reading_lines("def f(u):\n    return u / ca.sqrt(ca.sumsqr(u - 1))\n") == []
+
+
+def test_each_instrument_writes_its_reading_once_and_nothing_else_does():
+    found = {
+        str(p.relative_to(SRC)): lines
+        for p in sorted(SRC.rglob("*.py"))
+        if (lines := reading_lines(p.read_text()))
+    }
+    instruments = [
+        str(p.relative_to(SRC))
+        for p in sorted(INSTRUMENTS.glob("*.py"))
+        if p.name not in ("__init__.py", "base.py")
+    ]
+    for rel in instruments:
+        assert len(found.get(rel, [])) == 1, f"{rel}: reading written at lines {found.get(rel)}"
+    elsewhere = {rel: lines for rel, lines in found.items() if rel not in instruments}
+    assert set(elsewhere) <= REMAINING, (
+        "a reading is written outside its instrument (evaluate the instrument's reading "
+        f"Function instead): {elsewhere}"
+    )
