@@ -9,6 +9,8 @@ import re
 import sys
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "paper003"
 sys.path.insert(0, str(ROOT / "studies"))
@@ -30,12 +32,32 @@ def test_paper003_smoke(capsys):
     assert ROOT not in out.resolve().parents
     tables = json.loads((out / "tables.json").read_text())
     assert rt.check_readme_against(STUDY / "README.md", tables) == []
-    # every coefficient of eq. 11-12 within 4 standard uncertainties of the paper's value,
-    # and the k = 2 intervals cover in most data sets
+    # Coverage is counted over 400 seeded data sets (config.toml smoke_repetitions): at the
+    # nominal 95 % a binomial count has a standard deviation of sqrt(.95 .05 / 400) = 1.09
+    # points, so 91.5 % is 3.2 of them below nominal (one-sided p = 7e-4 per coefficient,
+    # < 1 % for all eight); eq. 10's expected ~92 % (full run) is not required to pass it.
+    # The fitted coefficients of the seeded data set: |z| < 3 for all eight has p ~ 2 %
+    # of failing by chance (the full study's seeded set has max |z| = 1.24).
+    cov_gum, cov_paper = [], []
     for line in tables["regression"].splitlines()[2:]:
         cells = [c.strip() for c in line.strip("|").split("|")]
-        assert abs(float(cells[4])) < 4.0, cells
-        assert float(cells[5]) > 85.0, cells
+        assert abs(float(cells[4])) < 3.0, cells
+        assert float(cells[5]) > 91.5, cells
+        cov_gum.append(float(cells[5]))
+        cov_paper.append(float(cells[6]))
+    # eq. 10 (s / sqrt(n)) is narrower than GUM-S1's type A on the same data: it covers less
+    assert all(p <= g for p, g in zip(cov_paper, cov_gum)) and np.mean(cov_paper) < 94.0
+    # eq. 13 with 5 cycles: weights estimated point by point under-cover (full run 91.7-93.7
+    # %), one pooled variance restores the nominal 95 % (full run 94.5-95.8 %). Means over
+    # the 7 coefficients (their counts are correlated, so each mean still has a standard
+    # deviation of up to 1.09 points): the paired difference is 3.0 points in the full run.
+    per_point, pooled = [], []
+    for line in tables["plane"].splitlines()[2:]:
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        per_point.append(float(cells[5]))
+        pooled.append(float(cells[6]))
+    assert min(pooled) > 91.5 and np.mean(pooled) > 94.0
+    assert np.mean(pooled) - np.mean(per_point) > 1.5
     # eq. 13 without interactions: the chi-square test rejects a P R term, not the truth
     adeq = tables["plane_adequacy"].splitlines()[2:]
     no_int = [c.strip() for c in adeq[0].strip("|").split("|")]
