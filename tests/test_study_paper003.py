@@ -1,6 +1,7 @@
 """studies/paper003 in its smoke mode: volcal's ISO 230-2 regression recovers paper 003's
 eq. 11-12 from data simulated on them, with k = 2 intervals that cover; the README's
 tables are the ones run.py prints; a smoke run writes nothing into the repository."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -28,7 +29,7 @@ def test_paper003_smoke(capsys):
     before = rt.folder_state(STUDY)
     assert _load().main(["--smoke"]) == 0
     out = Path(re.search(r"results in (\S+)", capsys.readouterr().out).group(1))
-    assert rt.folder_state(STUDY) == before           # nothing written into the repository
+    assert rt.folder_state(STUDY) == before  # nothing written into the repository
     assert ROOT not in out.resolve().parents
     tables = json.loads((out / "tables.json").read_text())
     assert rt.check_readme_against(STUDY / "README.md", tables) == []
