@@ -81,7 +81,8 @@ def searches(cfg, ev, sel, sampler, manual, size: dict, workers: int):
     seed = int(cfg["search"]["seed"])
     out = {}
     t = time.perf_counter()
-    g = gradient_placement(ev, sampler, selected=sel, starts=int(size["gradient_starts"]), seed=seed)
+    g = gradient_placement(ev, sampler, selected=sel, starts=int(size["gradient_starts"]),
+                           seed=seed)
     out["gradient (IPOPT, CasADi derivatives of I)"] = (g, time.perf_counter() - t)
     sc_i = ev.scorer
     sc_nl = copy.copy(ev.scorer)
@@ -119,10 +120,12 @@ def time_to_reach(res, target: float) -> float | None:
     return None
 
 
-def achieved(machine, em, ev, sel, S, tools, budget, trials: int, seed: int) -> float:
+def achieved(machine, em, ev, sel, S, tools, budget, trials: int, seed: int
+             ) -> tuple[float, float]:
     """RMS error (um) of the identified volumetric error at the evaluation poses, modulo the
     rigid motion no multilateration sees, over ``trials`` simulated measurements of the
-    plan (volcal's simulator, the budget's noise, a random truth) identified by volcal."""
+    plan (volcal's simulator, the budget's noise, a random truth) identified by volcal, and
+    its standard error (um) over the trials (delta method: se(mean square) / (2 RMS))."""
     import pandas as pd
 
     from volcal.analysis.identify import field_jacobian, identify, rigid_fit
@@ -147,7 +150,10 @@ def achieved(machine, em, ev, sel, S, tools, budget, trials: int, seed: int) -> 
         pred = fit.predict(Q, T, with_uncertainty=False)[["dx_um", "dy_um", "dz_um"]].to_numpy()
         _, resid = rigid_fit(p0, (pred - true_mm * 1e3).ravel())
         sq.append(np.mean(np.sum(resid**2, axis=1)))
-    return float(np.sqrt(np.mean(sq)))
+    sq = np.asarray(sq)
+    rms = float(np.sqrt(np.mean(sq)))
+    se = float(np.std(sq, ddof=1) / np.sqrt(len(sq)) / (2 * rms)) if len(sq) > 1 else np.nan
+    return rms, se
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -186,24 +192,27 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for name, S in layouts.items():
         pred = sc.score(S, sel)
-        ach = achieved(machine, em, ev, sel, S, tools, budget, trials, seed)
-        rows.append({"plan": name, "pred": pred, "ach": ach, "ratio": ach / pred,
+        ach, se = achieved(machine, em, ev, sel, S, tools, budget, trials, seed)
+        rows.append({"plan": name, "pred": pred, "ach": ach, "se": se, "ratio": ach / pred,
                      "paper": PAPER_UM.get(name)})
     # random feasible layouts: the first is simulated, all are scored
     rv = np.array([sc.score(S, sel) for S in rand])
-    ach_r = achieved(machine, em, ev, sel, rand[0], tools, budget, trials, seed)
+    ach_r, se_r = achieved(machine, em, ev, sel, rand[0], tools, budget, trials, seed)
     rows.append({"plan": "random feasible layout",
-                 "pred": float(rv[0]), "ach": ach_r, "ratio": ach_r / rv[0], "paper": None,
+                 "pred": float(rv[0]), "ach": ach_r, "se": se_r, "ratio": ach_r / rv[0],
+                 "paper": None,
                  "spread": f"{rv.min():.3g} .. {rv.max():.3g} (mean {rv.mean():.3g}, "
                            f"{len(rand)} layouts)"})
     tables = {}
     tables["comparison"] = rt.markdown(
-        [{**r, "pred": f"{r['pred']:.3g}", "ach": f"{r['ach']:.3g}", "ratio": f"{r['ratio']:.2f}",
+        [{**r, "pred": f"{r['pred']:.3g}", "ach": f"{r['ach']:.3g} ± {r['se']:.2g}",
+          "ratio": f"{r['ratio']:.2f} ± {r['se'] / r['pred']:.2f}",
           "paper": "-" if r["paper"] is None else f"{r['paper']:.1f}",
           "spread": r.get("spread", "-")} for r in rows],
         ["plan", "pred", "spread", "ach", "ratio", "paper"],
         ["plan", "predicted volumetric u, RMS, um", "range over random layouts, um",
-         "achieved RMS error, simulated measurements, um", "achieved / predicted",
+         "achieved RMS error ± its standard error over the simulated measurements, um",
+         "achieved / predicted ± standard error",
          "paper 004, um"])
     grad = res["gradient (IPOPT, CasADi derivatives of I)"][0]
     srows = []
