@@ -568,6 +568,45 @@ def write_csv(path: Path, rows: list[dict]) -> None:
     pd.DataFrame(rows).to_csv(path, index=False)
 
 
+NOISE_SCENARIOS = ("paper", "paper_per_laser")
+
+
+def noise_alternatives(cfg: dict, args) -> int:
+    """The sphere intersection's errors under the two readings of how f(t) enters d12, d13,
+    d23 (one phase set for the three lasers, or one per laser), next to the paper's Table 1
+    sphere row: the table ``sphere_noise``."""
+    cfg = dict(cfg)
+    cfg["case"] = [c for c in cfg["case"] if c["strategy"] == "sphere"]
+    st = cfg.setdefault("study", {})
+    trials = args.trials or (int(st.get("smoke_trials", 4)) if args.smoke else 1000)
+    out = rt.output_folder(args.out, True, HERE / "results", "paper001-noise")
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [ScenarioJob(cfg, sc) for sc in NOISE_SCENARIOS]
+    stats = run_jobs(jobs, {j.name: trials for j in jobs}, out,
+                     int(st.get("chunk_trials", 250)), progress=not args.no_progress)
+    paper = next(p for p in cfg["paper_table1"] if p["case"] == "sphere")
+    tab = [{"s": "paper 001, Table 1", "mode": "-", "n": 10000, "mean": paper["mean"],
+            "std": paper["std"], "max": paper["max"]}]
+    for j in jobs:
+        r = summarize(stats[j.name][0], j.labels, bootstrap=int(st.get("bootstrap", 200)),
+                      seed=int(st.get("seed", 1)))[0]
+        tab.append({"s": j.name, "mode": cfg["scenario"][j.name]["drift_mode"],
+                    "n": r["trials"], "mean": _pm(r["mean_um"], r["mean_se_um"]),
+                    "std": _pm(r["std_um"], r["std_se_um"]),
+                    "max": _pm(r["max_um"], r["max_se_um"])})
+    md = rt.markdown(tab, ["s", "mode", "n", "mean", "std", "max"],
+                     ["scenario", "f on d12 d13 d23", "trials", "sphere: mean ± SE um",
+                      "std ± SE um", "max ± SE um"])
+    rt.write_tables(out, {"sphere_noise": md})
+    print(md)
+    print(f"results in {out}", file=sys.stderr)
+    if args.update_readme:
+        if args.smoke:
+            raise SystemExit("--update-readme with --smoke would put smoke figures in the README")
+        rt.update_readme(HERE / "README.md", {"sphere_noise": md})
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--smoke", action="store_true", help="a handful of trials (config "
@@ -591,6 +630,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fixed-from", type=Path, default=None, metavar="CSV",
                     help="print (and with --update-readme write) the table1_fixed table "
                          "from a finished run's table_paper.csv; compute nothing")
+    ap.add_argument("--noise-alternatives", action="store_true",
+                    help="only the sphere intersection, on scenario `paper` (one f for the "
+                         "three lasers) and `paper_per_laser` (own phases per laser); "
+                         "--trials of each (default 1000)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     if args.fixed_from is not None:
@@ -601,6 +644,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     cfg = load_config(args.config)
+    if args.noise_alternatives:
+        return noise_alternatives(cfg, args)
     st = cfg.setdefault("study", {})
     if args.initial_accuracy_applies_to:
         st["initial_accuracy_applies_to"] = args.initial_accuracy_applies_to
