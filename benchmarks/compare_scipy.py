@@ -1,7 +1,8 @@
-"""volcal identify against the plain scipy script, whole process and per stage.
+"""volcal identify against the fastest plain scipy script, whole process and per stage.
 
-    python benchmarks/compare_scipy.py                  # 1e2 .. 3e4 readings, 1 and 2 threads
-    python benchmarks/compare_scipy.py --sizes 100 1000 --threads 1 --repeat 3
+    python benchmarks/compare_scipy.py                  # 1e3 .. 2e5 readings, 1 and 2 threads
+    python benchmarks/compare_scipy.py --million        # and 10^6 readings
+    python benchmarks/compare_scipy.py --sizes 1000 10000 --threads 1 --repeat 3
     python benchmarks/compare_scipy.py --smoke          # tiny, for the tests
 
 Both sides run as separate processes on the same simulated data (the bundled MCV 754
@@ -11,20 +12,29 @@ OMP_NUM_THREADS, MKL_NUM_THREADS):
 
 * volcal: ``volcal identify --model mcv754_wxyzt --data DATA.csv --out DIR`` with default
   outputs (tables, report and plots) and with ``--no-plots``;
-* scipy: ``benchmarks/scipy_reference.py`` (read it: the script a competent user writes,
-  sparse analytic Jacobian, trf + LSMR, covariance, a CSV), given start stations 1 mm from
-  the truth (volcal computes its own start values from the data).
+* scipy: ``benchmarks/scipy_reference.py`` (read it: the script a competent user writes
+  with the analytic Jacobian, covariance, a CSV) in every configuration of its
+  ``CONFIGS``: dense exact TRF (scipy's default), Levenberg-Marquardt and sparse TRF +
+  LSMR, each with scipy's default and with tight tolerances, given start stations 1 mm
+  from the truth (volcal computes its own start values from the data).  A configuration
+  counts only when it reached the minimum (its cost within 1e-6 relative of the lowest
+  cost of all configurations at that size); the fastest of those is the reference of
+  the ratios.  A configuration whose time, extrapolated linearly from the previous size,
+  would exceed ``--max-seconds`` is not run at the larger sizes (printed as skipped).
 
 Measured from outside: whole-process wall time, CPU time of the process tree, and peak
 memory two ways: the largest process's resident set (``os.wait4``) and the sum over the
 process and its children (volcal draws its plots in two child processes) of their
-proportional set sizes, sampled every 20 ms in one more, untimed run.  The stages come
-from each side's own timings (scipy: the script's JSON; volcal: the stage record in
-result.json, ``timings_s``, of the run without plots; volcal's plots are the difference of
-its two whole-process times, its start-up the rest).  The best of ``--repeat`` runs is
-kept.  Prints side-by-side tables with the fitted scaling exponent of each column
-(log-log slope over the sizes), writes benchmarks/results/compare_scipy.csv and
-compare_scipy.png.
+proportional set sizes, sampled every 20 ms in one more, untimed run (volcal and the
+fastest configuration; up to ``--tree-max`` readings).  The stages come from each side's
+own timings (scipy: the script's JSON; volcal: the stage record in result.json,
+``timings_s``, of the run without plots; volcal's plots are the difference of its two
+whole-process times, its start-up the rest).  The best of ``--repeat`` runs is kept
+(``--repeat-large`` runs from 50,000 readings).  Prints every configuration's time and
+memory, side-by-side tables against the fastest with the fitted scaling exponent of each
+column and stage (log-log slope over the sizes), writes benchmarks/results/
+compare_scipy.csv (one row per size and thread count), compare_scipy_configs.csv (one
+row per scipy run) and compare_scipy.png (log-log).
 """
 
 from __future__ import annotations
@@ -174,7 +184,16 @@ def _run(cmd: list[str], threads: int, sample: bool = False) -> dict:
     return m
 
 
-def measure(n: int, threads: int, repeat: int, work: Path) -> dict:
+def _scipy_cmd(data: Path, stations: Path, folder: Path, config: str) -> list[str]:
+    return [sys.executable, str(HERE / "scipy_reference.py"), str(data), str(stations),
+            "--model", "mcv754_wxyzt", "--out", str(folder / f"scipy_{config}.csv"),
+            "--timings", str(folder / f"timings_{config}.json"), "--config", config]
+
+
+def measure(n: int, threads: int, repeat: int, work: Path, configs: list[str],
+            tree: bool, runs: list[dict]) -> dict:
+    """One size and thread count: every volcal and scipy command ``repeat`` times (the
+    best kept); appends one record per scipy configuration to ``runs``."""
     folder = work / f"n{n}"
     folder.mkdir(parents=True, exist_ok=True)
     data, stations, N = make_data(n, folder)
@@ -182,7 +201,6 @@ def measure(n: int, threads: int, repeat: int, work: Path) -> dict:
     row: dict = {"readings": N, "threads": threads}
     best: dict[str, tuple] = {}
     pss: dict[str, float] = {}
-    tim = folder / "timings.json"
     cmds = {}
     for label, extra in (("volcal", []), ("volcal_no_plots", ["--no-plots"])):
         out = folder / f"out_{label}"
@@ -191,11 +209,8 @@ def measure(n: int, threads: int, repeat: int, work: Path) -> dict:
              "--out", str(out), "--force", *extra],
             out,
         )
-    cmds["scipy"] = (
-        [sys.executable, str(HERE / "scipy_reference.py"), str(data), str(stations),
-         "--model", "mcv754_wxyzt", "--out", str(folder / "scipy.csv"), "--timings", str(tim)],
-        None,
-    )
+    for c in configs:
+        cmds[f"scipy:{c}"] = (_scipy_cmd(data, stations, folder, c), None)
     for _ in range(repeat):
         for label, (cmd, out) in cmds.items():
             m = _run(cmd, threads)
@@ -203,13 +218,25 @@ def measure(n: int, threads: int, repeat: int, work: Path) -> dict:
                 doc = json.loads((out / "result.json").read_text())
                 solve, st = sum(ph["seconds"] for ph in doc["phases"]), doc.get("timings_s", {})
             else:
-                t = json.loads(tim.read_text())
+                t = json.loads((folder / f"timings_{label[6:]}.json").read_text())
                 solve, st = t["solve"], t
             if label not in best or m["wall"] < best[label][0]["wall"]:
                 best[label] = (m, solve, st)
+    # which configurations reached the minimum; the fastest of them is the reference
+    costs = {c: best[f"scipy:{c}"][2]["cost"] for c in configs}
+    low = min(costs.values())
+    ok = {c: costs[c] <= low * (1 + 1e-6) + 1e-12 for c in configs}
+    fastest = min((c for c in configs if ok[c]), key=lambda c: best[f"scipy:{c}"][0]["wall"])
+    for c in configs:
+        m, solve, t = best[f"scipy:{c}"]
+        runs.append({"readings": N, "threads": threads, "config": c, "wall_s": m["wall"],
+                     "cpu_s": m["cpu"], "MiB": m["rss"], "solve_s": solve,
+                     "nfev": t["nfev"], "cost_rel": t["cost"] / low - 1.0,
+                     "status": t["status"], "reached_minimum": ok[c],
+                     "fastest": c == fastest})
     # the whole process tree's memory, in one more (untimed) run each
-    for label, (cmd, _) in cmds.items():
-        pss[label] = _run(cmd, threads, sample=True)["pss"]
+    for label in ("volcal", "volcal_no_plots", f"scipy:{fastest}"):
+        pss[label] = _run(cmds[label][0], threads, sample=True)["pss"] if tree else float("nan")
     for label in ("volcal", "volcal_no_plots"):
         m, solve, _ = best[label]
         row[f"{label}_s"] = m["wall"]
@@ -226,14 +253,16 @@ def measure(n: int, threads: int, repeat: int, work: Path) -> dict:
     row["volcal_startup_s"] = max(
         row["volcal_no_plots_s"] - sum(row[f"volcal_{k}_s"] for k in VOLCAL_STAGES), 0.0
     )
-    m, solve, t = best["scipy"]
+    m, solve, t = best[f"scipy:{fastest}"]
+    row["scipy_config"] = fastest
     row["scipy_s"], row["scipy_cpu_s"], row["scipy_MiB"] = m["wall"], m["cpu"], m["rss"]
-    row["scipy_tree_MiB"], row["scipy_solve_s"] = pss["scipy"], solve
+    row["scipy_tree_MiB"], row["scipy_solve_s"] = pss[f"scipy:{fastest}"], solve
     for k in ("imports", "read", "model", "setup", "covariance", "write"):
         row[f"scipy_{k}_s"] = t[k]
     row["ratio_whole"] = row["volcal_s"] / row["scipy_s"]
     row["ratio_whole_no_plots"] = row["volcal_no_plots_s"] / row["scipy_s"]
     row["ratio_solve"] = row["volcal_solve_s"] / row["scipy_solve_s"]
+    row["ratio_MiB_no_plots"] = row["volcal_no_plots_MiB"] / row["scipy_MiB"]
     return row
 
 
@@ -273,28 +302,60 @@ def exponents(df: pd.DataFrame, cols: list[str]) -> dict[str, float]:
     x = np.log(df["readings"].to_numpy(float))
     for c in cols:
         y = np.log(np.maximum(df[c].to_numpy(float), 1e-9))
-        out[c] = float(np.polyfit(x, y, 1)[0])
+        ok = np.isfinite(y)  # a column measured at some sizes only (tree memory)
+        if ok.sum() >= 2:
+            out[c] = float(np.polyfit(x[ok], y[ok], 1)[0])
     return out
 
 
 def main(argv: list[str] | None = None) -> int:
+    sys.path.insert(0, str(HERE))
+    from scipy_reference import CONFIGS
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[100, 1000, 10000, 30000])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000, 200000])
+    ap.add_argument("--million", action="store_true", help="also 10^6 readings")
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--smoke", action="store_true", help="100 readings, 1 thread, 1 run")
+    ap.add_argument("--repeat-large", type=int, default=1,
+                    help="runs per command from 50,000 readings (default 1)")
+    ap.add_argument("--configs", nargs="+", choices=list(CONFIGS), default=list(CONFIGS),
+                    help="scipy configurations (default: all)")
+    ap.add_argument("--max-seconds", type=float, default=150.0,
+                    help="skip a scipy configuration at the sizes where its time, "
+                    "extrapolated linearly from the previous size, exceeds this")
+    ap.add_argument("--tree-max", type=int, default=100000,
+                    help="sample the process tree's memory up to this many readings")
+    ap.add_argument("--smoke", action="store_true",
+                    help="100 readings, 1 thread, 1 run, two configurations")
     ap.add_argument("--out", type=Path, default=HERE / "results",
                     help="folder for compare_scipy.csv / .png")
     a = ap.parse_args(argv)
+    if a.million:
+        a.sizes = sorted({*a.sizes, 1_000_000})
     if a.smoke:
-        a.sizes, a.threads, a.repeat = [100], [1], 1
+        a.sizes, a.threads, a.repeat, a.configs = [100], [1], 1, ["trf_exact", "trf_lsmr"]
     compile_volcal()
-    rows = []
+    rows: list[dict] = []
+    runs: list[dict] = []
+    skipped: list[str] = []
     with tempfile.TemporaryDirectory(prefix="volcal-bench-") as tmp:
         for th in a.threads:
+            last: dict[str, tuple[int, float]] = {}
             for n in a.sizes:
+                configs = []
+                for c in a.configs:
+                    if c in last and last[c][1] * n / last[c][0] > a.max_seconds:
+                        skipped.append(f"{c} at {n} readings, {th} thread(s) (about "
+                                       f"{last[c][1] * n / last[c][0]:.0f} s expected)")
+                    else:
+                        configs.append(c)
                 print(f"  {n} readings, {th} BLAS thread(s) ...", file=sys.stderr, flush=True)
-                rows.append(measure(n, th, a.repeat, Path(tmp)))
+                rows.append(measure(n, th, a.repeat if n < 50000 else a.repeat_large,
+                                    Path(tmp), configs, n <= a.tree_max, runs))
+                for r in runs:
+                    if r["threads"] == th and r["readings"] == rows[-1]["readings"]:
+                        last[r["config"]] = (n, r["wall_s"])
     df = pd.DataFrame(rows)
     lines: list[str] = []
 
@@ -303,14 +364,23 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(text)
 
     cols = ["volcal_s", "volcal_no_plots_s", "scipy_s", "volcal_solve_s", "scipy_solve_s",
-            "volcal_MiB", "scipy_MiB", "volcal_tree_MiB"]
-    show = ["readings", "threads", "volcal_s", "volcal_no_plots_s", "scipy_s", "ratio_whole",
-            "ratio_whole_no_plots", "volcal_solve_s", "scipy_solve_s", "ratio_solve"]
+            "volcal_MiB", "volcal_no_plots_MiB", "scipy_MiB", "volcal_tree_MiB"]
+    show = ["readings", "threads", "scipy_config", "volcal_s", "volcal_no_plots_s", "scipy_s",
+            "ratio_whole", "ratio_whole_no_plots", "volcal_solve_s", "scipy_solve_s",
+            "ratio_solve"]
     mem = ["readings", "threads", "volcal_MiB", "volcal_tree_MiB", "volcal_no_plots_MiB",
-           "scipy_MiB", "scipy_tree_MiB", "volcal_cpu_s", "volcal_no_plots_cpu_s",
-           "scipy_cpu_s"]
+           "scipy_MiB", "scipy_tree_MiB", "ratio_MiB_no_plots", "volcal_cpu_s",
+           "volcal_no_plots_cpu_s", "scipy_cpu_s"]
+    rf = pd.DataFrame(runs)
     with pd.option_context("display.width", 200, "display.float_format", "{:.3g}".format):
-        say("whole process, wall seconds (best of the repeats):")
+        say("every scipy configuration, whole process (wall and CPU seconds, peak MiB of the "
+            "process), its solve, evaluations, cost above the lowest (relative) and whether "
+            "it reached the minimum:")
+        say(rf.to_string(index=False))
+        if skipped:
+            say("not run (--max-seconds): " + "; ".join(skipped))
+        say("\nwhole process, wall seconds (best of the repeats); scipy_s is the fastest "
+            "configuration that reached the minimum (scipy_config):")
         say(df[show].to_string(index=False))
         say("\npeak memory, MiB: *_MiB the largest process (wait4 maxrss), *_tree_MiB the "
               "sum over the process and its children\n(PSS, sampled every 20 ms; volcal's "
@@ -335,6 +405,7 @@ def main(argv: list[str] | None = None) -> int:
                   + ", ".join(f"{k[:-2]} {v:.2f}" for k, v in ex.items()))
     a.out.mkdir(parents=True, exist_ok=True)
     df.to_csv(a.out / "compare_scipy.csv", index=False)
+    rf.to_csv(a.out / "compare_scipy_configs.csv", index=False)
     (a.out / "compare_scipy.txt").write_text(
         f"python benchmarks/compare_scipy.py {' '.join(argv or sys.argv[1:])}".rstrip()
         + f"\n{platform.platform()}, {os.cpu_count()} CPUs, Python {platform.python_version()}"
@@ -346,14 +417,19 @@ def main(argv: list[str] | None = None) -> int:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, ax = plt.subplots(figsize=(6, 4))
+        fig, ax = plt.subplots(figsize=(7, 4.5))
         for th, part in df.groupby("threads"):
-            for c, style in (("volcal_s", "-o"), ("volcal_no_plots_s", "--o"), ("scipy_s", "-s")):
-                ax.loglog(part["readings"], part[c], style, label=f"{c[:-2]} ({th} thr)")
+            for c, style in (("volcal_s", "-o"), ("volcal_no_plots_s", "--o"),
+                             ("scipy_s", "-s")):
+                name = "fastest scipy" if c == "scipy_s" else c[:-2]
+                ax.loglog(part["readings"], part[c], style, label=f"{name} ({th} thr)")
+        for (th, c), part in rf.groupby(["threads", "config"]):
+            ax.loglog(part["readings"], part["wall_s"], ":", lw=0.8, alpha=0.6,
+                      label=f"scipy {c} ({th} thr)")
         ax.set_xlabel("readings")
         ax.set_ylabel("whole process (s)")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=5, ncol=2)
         fig.tight_layout()
         fig.savefig(a.out / "compare_scipy.png", dpi=120)
     except ImportError:

@@ -1,7 +1,7 @@
 """The plain scipy script a competent user would write for the same identification.
 
     python benchmarks/scipy_reference.py DATA.csv STATIONS.csv --model mcv754_wxyzt \
-        --out params.csv [--timings timings.json]
+        --out params.csv [--config trf_exact] [--timings timings.json]
 
 Same model and data as ``volcal identify``: volcal's first-order model of the machine is
 used *only* to get, per distinct pose, the nominal tool point p0 and its derivative G with
@@ -9,12 +9,17 @@ respect to the error parameters (cubic Legendre basis), so the model is the same
 sides; everything else is what a user writes with numpy and scipy:
 
 * residuals r = (||p0 + G theta - S_k|| - d_k - L) / sigma, sigma from the table;
-* the analytic Jacobian as a scipy.sparse CSR matrix (the error columns are dense, the
-  station columns one nonzero per reading);
+* the analytic Jacobian: a dense array (``trf_exact``, ``lm``: 78 error columns and the
+  free station columns) or a scipy.sparse CSR matrix (``trf_lsmr``: the error columns
+  dense, the station columns one nonzero per reading);
 * no datum: six station coordinates are held (3-2-1) to fix the rigid motion no
   multilateration sees, every error parameter is free (the minimiser is not unique where
   the data cannot see a combination; least_squares then returns one of them);
-* ``scipy.optimize.least_squares(method="trf", tr_solver="lsmr", x_scale="jac")``;
+* ``scipy.optimize.least_squares(x_scale="jac", max_nfev=100)`` in one of the
+  configurations :data:`CONFIGS` (``--config``): ``trf_exact`` (method="trf", dense, exact trust-region
+  solver: scipy's default), ``lm`` (MINPACK's Levenberg-Marquardt), ``trf_lsmr``
+  (method="trf", tr_solver="lsmr", sparse), each with scipy's default tolerances or
+  with tight ones (``*_tight``: xtol = ftol = 1e-12, gtol = 1e-10);
 * the covariance of the free parameters from the Jacobian at the solution (dense
   pseudo-inverse of J^T J, what a user would write);
 * a CSV of the parameters and their standard uncertainties.
@@ -35,6 +40,17 @@ import pandas as pd  # noqa: E402
 import scipy.optimize as so  # noqa: E402
 import scipy.sparse as sps  # noqa: E402
 
+TIGHT = {"xtol": 1e-12, "ftol": 1e-12, "gtol": 1e-10}
+#: configuration name -> (least_squares options, dense Jacobian)
+CONFIGS = {
+    "trf_exact": ({"method": "trf", "tr_solver": "exact"}, True),
+    "trf_exact_tight": ({"method": "trf", "tr_solver": "exact", **TIGHT}, True),
+    "lm": ({"method": "lm"}, True),
+    "lm_tight": ({"method": "lm", **TIGHT}, True),
+    "trf_lsmr": ({"method": "trf", "tr_solver": "lsmr"}, False),
+    "trf_lsmr_tight": ({"method": "trf", "tr_solver": "lsmr", **TIGHT}, False),
+}
+
 
 def main() -> None:
     ap = argparse.ArgumentParser()
@@ -43,7 +59,9 @@ def main() -> None:
     ap.add_argument("--model", default="mcv754_wxyzt")
     ap.add_argument("--out", required=True)
     ap.add_argument("--timings")
+    ap.add_argument("--config", choices=list(CONFIGS), default="trf_exact")
     a = ap.parse_args()
+    options, dense = CONFIGS[a.config]
     t = {"imports": time.perf_counter() - T0}
 
     t0 = time.perf_counter()
@@ -107,7 +125,7 @@ def main() -> None:
     keep_col = np.full(n_x, -1)
     keep_col[free] = np.arange(len(free))
 
-    def jac(z):
+    def jac_sparse(z):
         th, S, d = full(z)
         v = p0 + G @ th - S[si]
         u = v / np.linalg.norm(v, axis=1)[:, None]
@@ -118,10 +136,26 @@ def main() -> None:
         m = c >= 0
         return sps.csr_matrix((vals[m], (r_idx[m], c[m])), shape=(N, len(free)))
 
+    # the station columns of each reading in the dense Jacobian (-1: held)
+    st_cols = keep_col[np.column_stack([P + 3 * si, P + 3 * si + 1, P + 3 * si + 2,
+                                        P + 3 * K + si])]
+
+    def jac_dense(z):
+        th, S, d = full(z)
+        v = p0 + G @ th - S[si]
+        u = v / np.linalg.norm(v, axis=1)[:, None]
+        J = np.zeros((N, len(free)))
+        J[:, :P] = np.einsum("ni,nip->np", u, G) * w[:, None]  # error columns: all free
+        vs = np.column_stack([-u * w[:, None], -w])
+        for k in range(4):
+            m = st_cols[:, k] >= 0
+            J[rows[m], st_cols[m, k]] = vs[m, k]
+        return J
+
     t["setup"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    sol = so.least_squares(fun, x_full[free], jac=jac, method="trf", tr_solver="lsmr",
-                           x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-10, max_nfev=100)
+    sol = so.least_squares(fun, x_full[free], jac=jac_dense if dense else jac_sparse,
+                           x_scale="jac", max_nfev=100, **options)
     t["solve"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -139,6 +173,7 @@ def main() -> None:
     t["nfev"] = int(sol.nfev)
     t["cost"] = float(sol.cost)
     t["status"] = int(sol.status)
+    t["config"] = a.config
     if a.timings:
         with open(a.timings, "w") as fh:
             json.dump(t, fh)

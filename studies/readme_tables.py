@@ -10,7 +10,9 @@ A study's run.py collects its printed tables as ``{name: markdown}``, writes the
 
 so every figure of a README table is the script's output, not a hand copy.  The tests
 compare the keys (header and first column) of each marked README table with the keys of the
-same table in the smoke output (:func:`table_keys`).
+same table in the smoke output (:func:`table_keys`) and, given a ``tolerance``, every figure
+of every cell (:func:`check_readme_against`): the full run's figures must agree with the
+smoke run's within what its smaller trial counts allow.
 
 Output folders: :func:`output_folder` gives a fresh temporary folder for ``--smoke`` runs
 without ``--out``, so a smoke run never writes into the repository.
@@ -103,7 +105,11 @@ def update_readme(readme: Path, tables: dict[str, str]) -> list[str]:
 
 
 def _cells(line: str) -> list[str]:
-    return [c.strip() for c in line.strip().strip("|").split("|")]
+    # a pipe with a backslash before it (markdown's escape, as in U(|d|)) is part of a cell
+    inner = line.strip()
+    inner = inner[1:] if inner.startswith("|") else inner
+    inner = inner[:-1] if inner.endswith("|") and not inner.endswith("\\|") else inner
+    return [c.strip() for c in re.split(r"(?<!\\)\|", inner)]
 
 
 def table_keys(md: str, key_cols: int = 1) -> tuple[tuple[str, ...], list[tuple[str, ...]]]:
@@ -129,10 +135,61 @@ def folder_state(folder: Path, ignore: tuple[str, ...] = ()) -> dict[str, tuple[
     return out
 
 
-def check_readme_against(readme: Path, tables: dict[str, str], key_cols: int = 1) -> list[str]:
+_NUM = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+
+#: a tolerance: relative, or (relative, absolute) in the cell's own unit; None: not compared
+Tol = float | tuple[float, float] | None
+
+
+def _figures(cell: str) -> tuple[str, list[str]]:
+    """(the cell with every number replaced by '#', the numbers as printed)."""
+    return _NUM.sub("#", cell), _NUM.findall(cell)
+
+
+def _decimals(text: str) -> int:
+    mant = text.lower().split("e")[0]
+    return len(mant.split(".")[1]) if "." in mant else 0
+
+
+def compare_cells(a: str, b: str, tol: Tol = 0.0) -> bool:
+    """Do two printed cells agree?  Their text apart from the numbers must be equal; each
+    number within ``tol`` (relative, or (relative, absolute)) plus half a unit of the last
+    printed digit (so 1.2 and 1.25 agree at tol 0: the same value, printed differently)."""
+    if tol is None:
+        return True
+    rtol, atol = (float(tol), 0.0) if not isinstance(tol, tuple) else map(float, tol)
+    ta, na = _figures(a)
+    tb, nb = _figures(b)
+    if ta != tb or len(na) != len(nb):
+        return False
+    for x, y in zip(na, nb):
+        fx, fy = float(x), float(y)
+        half = 0.5 * 10.0 ** -min(_decimals(x), _decimals(y))
+        if abs(fx - fy) > atol + rtol * max(abs(fx), abs(fy)) + half * (1 + 1e-9):
+            return False
+    return True
+
+
+def _rows(md: str) -> tuple[list[str], list[list[str]]]:
+    lines = [ln for ln in md.strip().splitlines() if ln.strip().startswith("|")]
+    return _cells(lines[0]), [_cells(ln) for ln in lines[2:]]
+
+
+def check_readme_against(
+    readme: Path,
+    tables: dict[str, str],
+    key_cols: int = 1,
+    *,
+    tolerance: Tol | dict[str, Tol | dict[str, Tol]] = None,
+) -> list[str]:
     """Differences between the marked tables of ``readme`` and ``tables`` (a run's
-    tables.json): missing tables, headers or first-column keys that differ.  Empty when
-    they agree."""
+    tables.json): missing tables, headers or first-column keys that differ, and, with a
+    ``tolerance``, figures that differ (:func:`compare_cells`).  Empty when they agree.
+
+    tolerance: None compares keys only (as before); a number or (rtol, atol) every figure
+    of every table; a dict {table: tol} per table, where tol may itself be a dict
+    {column header: tol} (columns not named compared at 0, i.e. as printed) and None leaves
+    a table or a column out; tables not in the dict are compared at 0."""
     marked = readme_tables(Path(readme).read_text(encoding="utf-8"))
     problems = []
     if not marked:
@@ -147,12 +204,19 @@ def check_readme_against(readme: Path, tables: dict[str, str], key_cols: int = 1
             problems.append(f"{name}: README header {h1} != run.py header {h2}")
         if k1 != k2:
             problems.append(f"{name}: README keys {k1} != run.py keys {k2}")
+        if tolerance is None or h1 != h2 or k1 != k2:
+            continue
+        tol = tolerance.get(name, 0.0) if isinstance(tolerance, dict) else tolerance
+        if tol is None:
+            continue
+        head, rows1 = _rows(md)
+        _, rows2 = _rows(tables[name])
+        for r1, r2 in zip(rows1, rows2):
+            for j, (a, b) in enumerate(zip(r1, r2)):
+                t = tol.get(head[j], 0.0) if isinstance(tol, dict) else tol
+                if not compare_cells(a, b, t):
+                    problems.append(
+                        f"{name}: row {r1[:key_cols]}, column {head[j]!r}: README {a!r} != "
+                        f"run.py {b!r} (tolerance {t})"
+                    )
     return problems
-
-
-if __name__ == "__main__":   # python studies/readme_tables.py README.md results/tables.json
-    import sys
-
-    readme, tables_json = sys.argv[1:3]
-    names = update_readme(Path(readme), json.loads(Path(tables_json).read_text("utf-8")))
-    print(f"{readme}: updated {', '.join(names) or 'nothing'}")

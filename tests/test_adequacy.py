@@ -60,7 +60,7 @@ def _identify(case, measurements):
 def test_a_fit_with_the_right_budget_passes(xfyz):
     ad = assess(xfyz["res"])
     lo, hi = ad.interval
-    assert ad.adequate and ad.verdict == "adequate" and ad.causes == ()
+    assert ad.adequate and ad.verdict == "fits" and ad.causes == ()
     assert lo < 1.0 < hi and lo <= ad.chi2_per_dof <= hi
     assert ad.chi2_per_dof == pytest.approx(xfyz["res"].conditions["chi2_per_dof"])
     # dof = readings - free parameters + constraints
@@ -68,7 +68,9 @@ def test_a_fit_with_the_right_budget_passes(xfyz):
     assert n - xfyz["em"].n_params - 4 * 4 <= ad.dof < n
     assert (lo, hi) == pytest.approx(chi2_interval(ad.dof))
     assert ad.n_stations == 4 and ad.warnings == ()
-    assert {s.axis for s in ad.structure} == {"X", "Y", "Z"}
+    assert {s.axis for s in ad.structure if s.kind == "axis"} == {"X", "Y", "Z"}
+    # tool offsets, stations and time are tested too
+    assert {s.kind for s in ad.structure} == {"axis", "tool_offset", "station", "time"}
     assert all(s.p_value > 1e-3 for s in ad.structure)
     assert ad.outliers["n_beyond_5_robust"] == 0
     assert 0.9 < ad.budget_factor < 1.1
@@ -87,11 +89,15 @@ def test_structure_against_one_axis_is_flagged_naming_that_axis(xfyz):
     sim = simulate(machine, em6, theta, xfyz["stations"], xfyz["plan"], TOOLS, "paper002", 6)
     ad = assess(_identify(xfyz, sim.measurements))
     assert not ad.adequate and ad.chi2_per_dof > ad.interval[1]
-    assert ad.cause == "structure"
+    assert ad.verdict == "does_not_fit"
+    assert ad.cause == "basis"  # the basis, not the budget, and no scaling offered
     assert ad.causes[0].numbers["axis"] == "X" and ad.strongest_axis == "X"
+    assert "budget" not in ad.cause_kinds
+    assert "--scale-covariance" not in ad.message and "unstructured" not in ad.message
+    assert "--degree auto" in ad.causes[0].text
     assert ad.structure[0].p_value < 1e-6
     assert ad.structure[0].explained_share > 0.3
-    assert "structure against axis X" in ad.message
+    assert "the basis of axis X" in ad.message and "p < 1e-06" in ad.message
 
 
 def test_outliers_are_flagged_as_outliers(xfyz):
@@ -117,11 +123,16 @@ def test_a_budget_off_by_three_is_flagged_as_budget(xfyz, scale):
     meas = xfyz["sim"].measurements.copy()
     meas["sigma"] *= scale
     ad = assess(_identify(xfyz, meas))
-    assert not ad.adequate
     assert [c.kind for c in ad.causes] == ["budget"]
     assert ad.budget_factor == pytest.approx(1 / scale, rel=0.15)
     assert ad.causes[0].numbers["factor"] == pytest.approx(ad.budget_factor)
-    assert ("too small" if scale < 1 else "too large") in ad.message
+    if scale < 1:
+        assert ad.verdict == "does_not_fit" and not ad.adequate
+        assert "too small" in ad.message and "--scale-covariance" in ad.message
+    else:  # a pessimistic budget: the model fits, the uncertainties are conservative
+        assert ad.verdict == "budget_pessimistic" and ad.adequate
+        assert "NOT" not in ad.message and "pessimistic" in ad.message
+        assert "conservative by a factor of about 3" in ad.message
 
 
 # --------------------------------------------------------------------------------------
@@ -141,9 +152,10 @@ def test_structure_in_synthetic_residuals_names_the_rotary_axis():
     sign = np.array([1.0, -1.0, 0.6, -0.8, 0.9, -0.3])[st]  # beam directions differ
     z = z + 1.2 * sign * np.sin(4 * np.deg2rad(pos["C"].to_numpy()))
     ad = assess_residuals(z, len(z) - 100, stations=st, positions=pos, units=["mm", "deg"])
-    assert ad.cause == "structure" and ad.strongest_axis == "C"
+    assert ad.cause == "basis" and ad.strongest_axis == "C"
     assert ad.structure[0].unit == "deg" and ad.structure[0].n_bins == 12
-    assert ad.structure[1].axis == "X" and ad.structure[1].p_value > 1e-6
+    x = next(s for s in ad.structure if s.axis == "X")
+    assert x.p_value > 1e-6 and not x.significant
 
 
 def test_a_single_station_draws_a_warning():
@@ -177,16 +189,17 @@ def test_the_report_and_result_json_hold_the_verdict(xfyz, tmp_path):
     assert "(residuals_vs_axes.png)" in report
     assert (out / "residuals_vs_axes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     doc = json.loads((out / "result.json").read_text())
-    assert doc["adequacy"]["verdict"] == "adequate" and doc["adequacy"]["adequate"]
+    assert doc["adequacy"]["verdict"] == "fits" and doc["adequacy"]["adequate"]
+    assert doc["adequacy"]["cause_kinds"] == []
     assert len(doc["adequacy"]["interval"]) == 2
-    assert load_result(out).adequacy["verdict"] == "adequate"
+    assert load_result(out).adequacy["verdict"] == "fits"
 
     meas = xfyz["sim"].measurements.copy()
     meas["sigma"] /= 3
     out = save_result(_identify(xfyz, meas), tmp_path / "bad", plots=False)
     report = (out / "report.md").read_text()
     assert "WARNING: the model does not fit the data" in report
-    assert "**budget**" in report and "INADEQUATE" in report
+    assert "**budget**" in report and "**does NOT fit" in report
     assert "residuals_vs_axes.png" not in report
     assert json.loads((out / "result.json").read_text())["adequacy"]["causes"][0]["kind"] \
         == "budget"
@@ -207,8 +220,9 @@ def test_identify_warns_on_the_terminal_when_the_model_does_not_fit(xfyz, tmp_pa
              and "does NOT fit" in r.getMessage()]
     assert len(warns) == 1 and "budget" in warns[0].getMessage()
     printed = capsys.readouterr().out
-    assert "model adequacy           INADEQUATE" in printed
-    assert "grid over X, Y, Z, tool offset 0" in printed
+    assert "model adequacy           does NOT fit" in printed
+    assert "likely cause: budget too small" in printed
+    assert "grid over X, Y, Z, tool offset (0, 0, 0) mm" in printed
 
 
 # --------------------------------------------------------------------------------------

@@ -128,6 +128,12 @@ def test_example_with_truth_and_trials(example_run):
     z = pts["truth_error_joint_um"] / pts["u_reference_um"]
     assert 0.4 < np.sqrt(np.mean(z**2)) < 2.5
     assert t.loc["classic", "truth_error_rms_um"] > 5 * t.loc["joint", "truth_error_rms_um"]
+    # the adequacy verdict per strategy, machine-readable with its causes: the biased
+    # classic pipeline is named as such, never the budget
+    assert t.loc["joint", "verdict"] == "fits"
+    assert t.loc["classic", "verdict"] == "does_not_fit"
+    assert t.loc["classic", "causes"].split()[0] == "strategy"
+    assert "budget" not in t.loc["classic", "causes"].split()
     assert (t["trials_failed"] == 0).all()
     assert t.loc["joint", "trials_error_rms_mean_um"] < t.loc["classic", "trials_error_rms_mean_um"]
     trials = pd.read_csv(out / "trials.csv")

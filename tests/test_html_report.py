@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import io
+import json
 import os
 import re
 import subprocess
@@ -129,7 +130,7 @@ def test_report_is_self_contained_with_every_section(demo, monkeypatch, capsys):
         assert base64.b64decode(src[len(prefix):], validate=True).startswith(b"\x89PNG")
     assert set(SECTIONS) | {"plots", "compensation"} <= doc.ids
     # the verdict and its message; the key figures
-    assert 'data-verdict="adequate"' in html and "the model fits the data" in html
+    assert 'data-verdict="fits"' in html and "the model fits the data" in html
     assert "Solved_To_Acceptable_Level" in html and "joint" in html
     assert "mcv754_wxyzt" in html and "simulation/measurements.csv" in html
     assert "3576" in html and "Reading uncertainties from" in html
@@ -152,8 +153,12 @@ def test_an_inadequate_fit_says_so_in_a_red_banner(poor):
     html = hr.html_report(poor, plots=False)
     banner = html.split('id="adequacy-verdict"')[1].split("</div>")[0]
     assert 'class="banner bad"' in html.split('id="adequacy-verdict"')[0][-80:]
-    assert 'data-verdict="inadequate"' in banner
+    assert 'data-verdict="does_not_fit"' in banner
     assert "does NOT fit the data" in banner and "Likely cause" in banner
+    # the banner says each cause once (not the paragraph and then its causes again)
+    ad = json.loads((poor / "result.json").read_text())["adequacy"]
+    for c in ad["causes"]:
+        assert banner.count(c["text"][:60].replace("'", "&#39;")) == 1, c["kind"]
     assert "not identifiable from these data" in html and "EAZ_0" in html
     assert "not identifiable</td>" in html  # their std cell in the parameters table
     assert 'id="plots"' not in html and "<img" not in html  # plots=False

@@ -160,7 +160,10 @@ def test_interrupted_run_resumes_from_saved_chunks(example_mc, tmp_path):
     again = run_trials(k, 500, 3, workers=1, chunk_size=100, out_dir=tmp_path)
     assert again.resumed_chunks == 2
     assert np.array_equal(again.x, full.x)
-    assert np.array_equal(again.vol, full.vol)  # recomputed from the saved parameters
+    # recomputed from the saved parameters by a new BLAS product on a loaded copy: equal
+    # to its rounding (a differently aligned operand may take another kernel path and
+    # change the last bit, seen as 1e-17 mm on 5e-2 mm values when run alone)
+    np.testing.assert_allclose(again.vol, full.vol, rtol=0, atol=1e-14)
     # a damaged chunk file is recomputed, never trusted
     files = sorted((tmp_path / "samples").glob("*/chunk*.npz"))
     files[0].write_bytes(b"garbage")
@@ -237,11 +240,13 @@ def test_mc_command_writes_results_and_resumes(tmp_path, capsys):
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "IPOPT cross-check" in text and "reference comparison" in text
+    assert "  identification           fits (chi2/dof" in text
     for f in ("parameters.csv", "error_motions.csv", "volumetric.csv", "summary.json",
               "report.md", "comparison.csv"):
         assert (out / f).is_file(), f
     summ = json.loads((out / "summary.json").read_text())
     assert summ["trials"] == 300 and summ["not_converged"] == 0
+    assert summ["identification"]["adequacy"] == "fits"
     assert summ["verify_against_ipopt"]["theta_rel"] < 1e-9
     first = pd.read_csv(out / "parameters.csv")
     assert main(argv) == 2          # an earlier run is replaced only with --force

@@ -249,7 +249,13 @@ def check_program(
             stops_at.append(row)
             station, tool = plan["station"].iloc[row], int(plan["tool"].iloc[row])
             c = e.comment.lower()
-            assert f"station {str(station).lower()}" in c and f"offset {tool}" in c, e.comment
+            # the tool offset by its value when the plan has it, else by its number
+            if "tool_x_mm" in plan:
+                v = plan[["tool_x_mm", "tool_y_mm", "tool_z_mm"]].iloc[row]
+                what = "tool offset " + ", ".join(f"{x:g}" for x in v) + " mm"
+            else:
+                what = f"tool number {tool}"
+            assert f"station {str(station).lower()}" in c and what in c, e.comment
         elif e.kind == "move" and e.comment.lower() == "safe pose":
             safe_moves.append((j, e))
         elif e.kind == "move":
@@ -311,6 +317,27 @@ def test_round_trip(plan, dialect):
     check_program(prog, plan, AXES5, dialect=dialect, dwell_s=1.5, feed=3000.0)
     assert "-0.000" not in text
     assert sum(e.kind == "stop" for e in prog.events) == 4
+
+
+@pytest.mark.parametrize("dialect", NC_DIALECTS)
+def test_tool_offsets_by_value_and_set_up_notes(plan, dialect):
+    p = plan.copy()
+    values = {0: (0.0, 0.0, -100.0), 1: (80.0, 0.0, -100.5)}
+    for j, c in enumerate(("tool_x_mm", "tool_y_mm", "tool_z_mm")):
+        p[c] = [values[t][j] for t in p["tool"]]
+    notes = {"S1": ["station S1 of 2: tracker at x 1 y 2 z 3 mm"], "S2": ["aim S2 (here)"]}
+    text = nc_program(p, AXES5, dialect=dialect, setup_notes=notes)
+    prog = PARSERS[dialect](text)
+    check_program(prog, p, AXES5, dialect=dialect, dwell_s=2.0, feed=2000.0)
+    ev = prog.events
+    stops = [j for j, e in enumerate(ev) if e.kind == "stop"]
+    # each station's notes once, as comments right before its first stop only
+    assert "tool number" not in text.lower()
+    assert "station s1 of 2" in ev[stops[0] - 1].comment.lower()
+    # ISO and FANUC drop the parentheses a comment cannot hold
+    assert "aim s2 here" in ev[stops[2] - 1].comment.lower().replace("(", "").replace(")", "")
+    assert ev[stops[1] - 1].kind == "dwell" and ev[stops[3] - 1].kind == "dwell"
+    assert sum("station s1 of 2" in e.comment.lower() for e in ev) == 1
 
 
 @pytest.mark.parametrize("dialect", NC_DIALECTS)

@@ -345,6 +345,10 @@ def test_cli_plan_writes_a_plan_identify_can_read(tmp_path):
             "1",
             "--nc",
             "iso,heidenhain",
+            "--margin-deg",
+            "4",
+            "--margin-mm",
+            "15",
             "--no-plots",
             "--out",
             str(out),
@@ -353,6 +357,9 @@ def test_cli_plan_writes_a_plan_identify_can_read(tmp_path):
         text=True,
     )
     assert r.returncode == 0, r.stderr
+    # progress went to a pipe: plain lines, never a carriage return
+    assert "\r" not in r.stderr and "planning" in r.stderr
+    assert "margins 4 deg, 15 mm" in r.stdout
     for f in (
         "stations.csv",
         "poses.csv",
@@ -373,22 +380,14 @@ def test_cli_plan_writes_a_plan_identify_can_read(tmp_path):
         warnings.simplefilter("ignore")
         meas = load_measurements(mp, spec, stations=st)
     assert len(meas.length) == len(mp) == 240
+    _simulate_and_identify_the_plan(out, tmp_path)
     # bad input: an unknown key in the setting names the file and the key, exit 2
     bad = tmp_path / "bad.toml"
     bad.write_text('model = "mcv754_wxyzt"\nstation = 4\n')
     r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "volcal.cli.main",
-            "plan",
-            "--setting",
-            str(bad),
-            "--out",
-            str(tmp_path / "x"),
-        ],
-        capture_output=True,
-        text=True,
+        [sys.executable, "-m", "volcal.cli.main", "plan", "--setting", str(bad),
+         "--out", str(tmp_path / "x")],
+        capture_output=True, text=True,
     )
     assert r.returncode == 2 and "station" in r.stderr and "bad.toml" in r.stderr
     assert not (tmp_path / "x").exists()
@@ -429,3 +428,74 @@ def test_bad_constraints_name_the_setting_file(tmp_path):
     assert r.returncode == 2, r.stderr
     assert "bad_box.toml" in r.stderr and "region[0]" in r.stderr and "box" in r.stderr
     assert "Traceback" not in r.stderr and not (tmp_path / "x").exists()
+
+
+def _nominal_points(model, mp):
+    """Nominal reflector points of a plan's rows from the independent simulator."""
+    geom = ind.load_geometry(model)
+    q = geom.to_internal(mp[geom.axis_names].to_numpy(float))
+    return ind.tool_points(geom, q, mp[["tool_x_mm", "tool_y_mm", "tool_z_mm"]].to_numpy(float))
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "volcal.cli.main", *args], capture_output=True, text=True
+    )
+
+
+def _simulate_and_identify_the_plan(out, tmp_path):
+    """The hand-over: ``volcal simulate --plan measurement_plan.csv`` (tools and stations
+    from the plan) read back row by row against the plan and against distances from the
+    independent simulator's nominal points, then ``volcal identify`` on the plan file
+    filled with those lengths (the operator's route), compared with the simulation's true
+    volumetric errors modulo the gauge."""
+    import json
+    import re
+
+    from volcal.outputs.results import load_result
+
+    sim, fit = tmp_path / "sim", tmp_path / "fit"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["margins"] == {"deg": 4.0, "mm": 15.0}
+    # the plan as it is: its tools, poses and stations (stations.csv beside it)
+    r = _cli("simulate", "--model", "mcv754_wxyzt", "--plan", str(out / "measurement_plan.csv"),
+             "--seed", "1", "--out", str(sim))  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    mp = pd.read_csv(out / "measurement_plan.csv")
+    meas = pd.read_csv(sim / "measurements.csv")
+    assert len(meas) == len(mp) == 240
+    assert (meas["station"] == mp["station"]).all()
+    for a in ("X", "Y", "Z"):
+        assert np.allclose(meas[a], mp[a])
+    for c in ("x", "y", "z"):
+        assert np.allclose(meas[f"tool_{c}"], mp[f"tool_{c}_mm"])
+    # lengths: distances from the plan's stations to the independent simulator's nominal
+    # points, up to the drawn errors (<= 60 um volumetric) and noise
+    st = pd.read_csv(out / "stations.csv").set_index("station")
+    S = st.loc[mp["station"], ["x_mm", "y_mm", "z_mm"]].to_numpy(float)
+    P = _nominal_points("mcv754_wxyzt", mp)
+    assert np.abs(meas["length"] - np.linalg.norm(S - P, axis=1)).max() < 0.1
+    # the operator's route: the plan file with its length_mm filled in
+    mp["length_mm"] = meas["length"].to_numpy()
+    mp.to_csv(tmp_path / "measured.csv", index=False)
+    r = _cli("identify", "--model", "mcv754_wxyzt", "--data", str(tmp_path / "measured.csv"),
+             "--stations", str(out / "stations.csv"), "--no-plots", "--out", str(fit))  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert re.search(r"solver status +Solve(d_To_Acceptable_Level|_Succeeded)", r.stdout)
+    assert re.search(r"model adequacy +fits", r.stdout), r.stdout
+    assert "tool offset (0, 0, 0) mm" in r.stdout
+    truth = pd.read_csv(sim / "true_volumetric.csv")
+    pts = truth.rename(columns={f"tool_{c}": f"tool_{c}_mm" for c in "xyz"})
+    pred = load_result(fit).predict(pts[["X", "Y", "Z", "tool_x_mm", "tool_y_mm", "tool_z_mm"]])
+    nominal = _nominal_points("mcv754_wxyzt", pts)
+    err = ind.field_error_modulo_gauge(
+        pred[["dx_um", "dy_um", "dz_um"]].to_numpy(),
+        truth[["dx_um", "dy_um", "dz_um"]].to_numpy(),
+        nominal,
+    )
+    # RMS per component; the plan predicts its total (3 components) over the workspace
+    assert err * np.sqrt(3) < 4 * summary["volumetric_u_rms_um"], err
+    # tools that differ from the plan's are refused, naming the option
+    r = _cli("simulate", "--model", "mcv754_wxyzt", "--plan", str(out / "measurement_plan.csv"),
+             "--tools", "0,0,0", "--seed", "1", "--out", str(tmp_path / "xt"))  # fmt: skip
+    assert r.returncode == 2 and "--tools" in r.stderr and not (tmp_path / "xt").exists()

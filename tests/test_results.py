@@ -83,7 +83,7 @@ def test_every_file_is_written_with_its_columns_and_units(case):
     for png in PLOT_FILES:
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     par = pd.read_csv(out / "parameters.csv")
-    assert list(par.columns) == ["name", "value", "unit", "u", "identifiable"]
+    assert list(par.columns) == ["name", "value", "unit", "u", "identifiable", "imposed"]
     assert set(par["unit"]) == {"um", "urad"}
     st = pd.read_csv(out / "stations.csv")
     assert list(st.columns[:5]) == ["station", "x_mm", "y_mm", "z_mm", "dead_length_mm"]

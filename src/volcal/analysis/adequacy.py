@@ -4,41 +4,70 @@ After a weighted least-squares fit the whitened (normalised) residuals ``z = r /
 of a model that is right, with a right uncertainty budget, are independent standard normal
 numbers, so ``chi2 = sum z^2`` follows a chi-square distribution with the fit's degrees of
 freedom ``dof``.  :func:`assess_residuals` tests ``chi2 / dof`` against its two-sided
-99.9 % interval ``[chi2.ppf(0.0005, dof), chi2.ppf(0.9995, dof)] / dof`` and, when it lies
-outside, names the likely cause with its numbers:
+99.9 % interval ``[chi2.ppf(0.0005, dof), chi2.ppf(0.9995, dof)] / dof`` and looks for
+**residual structure** with nested F-tests, each significant below
+:data:`STRUCTURE_P` (``p < 1e-6``):
 
-* **structure** against one axis' position (the error model cannot follow an error motion
-  of that axis: too low a degree, the wrong basis, a missing error): for every axis the
-  residuals are grouped into cells (station x position bin: a misfit of the tool point
-  enters each station's readings through its own beam direction, so its sign differs
-  between stations) and a nested F-test compares the cell means with the station means
-  alone.  The axis whose position explains the most is reported with its F statistic,
-  p-value and the share of the residual sum of squares its binned means explain beyond
-  chance;
-* **outliers** (blunders, heavy tails): the largest ``|z|``, the number of readings beyond
-  5 robust standard deviations of the bulk (``1.4826 MAD``) and beyond 5 budget sigmas,
-  the excess kurtosis and the share of ``chi2`` the outliers carry;
-* **the budget** (``chi2 / dof`` off, residuals unstructured and Gaussian-looking): the
-  readings' standard uncertainties are too small (or too large) by a factor, reported as
-  the factor the budget's sigmas should be multiplied by (``sqrt`` of the variance factor
-  that remains once outliers and structure are accounted for).
+* against one **axis' position**: the residuals are grouped into cells (station x position
+  bin: a misfit of the tool point enters each station's readings through its own beam
+  direction, so its sign differs between stations) and the cell means are compared with
+  the station means alone;
+* against the **tool offset** (cells station x tool offset, data with several offsets);
+* against the **station** (station means against the overall mean);
+* against the **time** of the reading (cells station x time bin; data with a ``time``
+  column).
 
-The share of the excess ``chi2 - dof`` each candidate explains orders the causes; every
-candidate that explains at least :data:`CAUSE_MIN_SHARE` of it is named.  Data from a
-single station always draw a warning: lengths from one station cannot separate the
-station's position from the machine's errors, so even a passing ``chi2`` says little.
+The verdict has three outcomes (:data:`VERDICTS`, machine-readable in ``Adequacy.verdict``):
+
+``fits``
+    chi2/dof inside its interval and no significant structure;
+``budget_pessimistic``
+    the model fits, but chi2/dof lies *below* its interval with no significant
+    structure: the readings scatter less than their budget says, so the reported
+    uncertainties are conservative by the factor ``1 / budget_factor``;
+``does_not_fit``
+    chi2/dof above its interval, or significant structure (whatever chi2/dof is).
+
+The likely causes (``Adequacy.causes``, most likely first; kinds in :data:`CAUSE_KINDS`)
+are named in a metrologist's words.  Significant structure always outranks the budget:
+then the budget is not named and the scale of the uncertainties is not offered as a
+remedy.
+
+* ``strategy``: a strategy with a biased step (``classic``: stations calibrated on nominal
+  points and points multilaterated before the fit; ``two-phase``: the stations of the
+  first phase held; ``points-only``: stations held where given or at the analytical
+  solution from nominal points) leaves structure behind; the joint fit estimates
+  everything together;
+* ``basis``: structure against an axis: its basis is too poor for its error motions
+  (raise the degree, ``--degree auto``, or give the axis another basis; a Fourier series
+  on a full-turn axis cannot follow an error that does not return after a turn);
+* ``tool_offset``: structure against the tool offset (wrong tool offsets in the data, or
+  an angular error the model lacks);
+* ``station``: a station's readings are offset (its dead path, a station moved);
+* ``drift``: structure against time (thermal drift, a station moved during the run);
+* ``outliers`` (blunders, heavy tails): the largest ``|z|``, the number of readings
+  beyond 5 robust standard deviations of the bulk (``1.4826 MAD``) and beyond 5 budget
+  sigmas, the excess kurtosis and the share of ``chi2`` the outliers carry;
+* ``budget`` (only without significant structure): the readings' standard uncertainties
+  are too small (or too large) by a factor, reported as the factor the budget's sigmas
+  should be multiplied by (``sqrt`` of the variance factor that remains once outliers are
+  accounted for).
+
+Data from a single station always draw a warning: lengths from one station cannot
+separate the station's position from the machine's errors, so even a passing ``chi2``
+says little.
 
 :func:`assess` applies this to an identification result (``IdentificationResult`` or a
-result with the same ``residuals`` / ``conditions`` / ``machine``);
-:func:`volcal.plots.residuals_vs_axes` draws the normalised residuals against each axis
-position with the binned means of :func:`position_bins`.
+result with the same ``residuals`` / ``conditions`` / ``machine`` / ``strategy`` /
+``error_model``); :func:`volcal.plots.residuals_vs_axes` draws the normalised residuals
+against each axis position with the binned means of :func:`position_bins`.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -52,11 +81,14 @@ __all__ = [
     "assess_residuals",
     "position_bins",
     "format_p",
+    "BIASED_STRATEGIES",
+    "CAUSE_KINDS",
     "CONFIDENCE",
     "MAX_BINS",
     "OUTLIER_K",
     "STRUCTURE_P",
     "CAUSE_MIN_SHARE",
+    "VERDICTS",
 ]
 
 #: two-sided probability content of the chi2/dof acceptance interval
@@ -66,23 +98,51 @@ CONFIDENCE = 0.999
 MAX_BINS = 12
 #: a reading is an outlier beyond this many robust standard deviations of the bulk
 OUTLIER_K = 5.0
-#: structure against an axis counts only below this p-value of its F-test
+#: residual structure (against an axis, a tool offset, a station or time) is significant
+#: below this p-value of its F-test
 STRUCTURE_P = 1e-6
-#: a cause is named when it explains at least this share of the excess chi2
+#: outliers (and a budget beside them) are named when they explain at least this share
+#: of the excess chi2
 CAUSE_MIN_SHARE = 0.2
 #: excess kurtosis above this marks heavy tails (a normal sample of 1000 readings has a
 #: standard error of about 0.15)
 HEAVY_TAIL_KURTOSIS = 1.0
+#: the three outcomes of the test, in ``Adequacy.verdict``
+VERDICTS = ("fits", "budget_pessimistic", "does_not_fit")
+#: the kinds of a :class:`Cause`
+CAUSE_KINDS = ("strategy", "basis", "tool_offset", "station", "drift", "outliers", "budget")
+#: strategies with a step that can bias the errors, and why (a metrologist's sentence)
+BIASED_STRATEGIES = {
+    "classic": (
+        "classic calibrates the stations on nominal points and multilaterates every point "
+        "before the error model is fitted, so the machine's errors at the calibration "
+        "points end up in the station positions and come back as residual structure"
+    ),
+    "two-phase": (
+        "two-phase holds the stations its first phase found on nominal points (the "
+        "machine's errors set to zero), so the errors they absorbed are not recovered"
+    ),
+    "points-only": (
+        "points-only holds the stations where the stations table puts them or, without "
+        "one, at the analytical solution from nominal points (which absorbs part of the "
+        "machine's errors); held stations that are off leave structure behind"
+    ),
+}
+#: the structure kinds of :class:`AxisStructure` and the cause each points to
+_CAUSE_OF = {"axis": "basis", "tool_offset": "tool_offset", "station": "station", "time": "drift"}
 
 
 @dataclass(frozen=True)
 class AxisStructure:
-    """Residual structure against one axis' position (nested F-test, see the module).
+    """Residual structure against one grouping of the readings (nested F-test, see the
+    module): an axis' position, the tool offset, the station or the time of the reading.
 
-    axis, unit (mm / deg); n_bins: position bins used; f: the F statistic with degrees of
-    freedom (df1, df2); p_value: its upper tail probability (0 when below the smallest
-    float; ``log10_p`` keeps the size); explained_share: share of the residual sum of
-    squares explained by the binned means beyond what chance explains (0..1).
+    axis: the axis name, or ``tool offset`` / ``station`` / ``time``; unit (mm / deg / s
+    or empty); n_bins: groups (position bins, tool offsets, stations, time bins); f: the F
+    statistic with degrees of freedom (df1, df2); p_value: its upper tail probability (0
+    when below the smallest float; ``log10_p`` keeps the size); explained_share: share of
+    the residual sum of squares explained by the group means beyond what chance explains
+    (0..1); kind: ``axis``, ``tool_offset``, ``station`` or ``time``.
     """
 
     axis: str
@@ -94,31 +154,70 @@ class AxisStructure:
     p_value: float
     log10_p: float
     explained_share: float
+    kind: str = "axis"
+
+    @property
+    def significant(self) -> bool:
+        """p below :data:`STRUCTURE_P`."""
+        return self.p_value < STRUCTURE_P
+
+    @property
+    def label(self) -> str:
+        """``axis X``, ``tool offset``, ``station`` or ``time``."""
+        return f"axis {self.axis}" if self.kind == "axis" else self.axis
 
 
 @dataclass(frozen=True)
 class Cause:
-    """One likely cause of an inadequate fit: kind (``structure``, ``outliers`` or
-    ``budget``), share of the excess chi2 it explains (0..1, negative excess for a budget
-    that is too large: then 1), a sentence and its numbers."""
+    """One likely cause of a fit that does not fit (or of a pessimistic budget): kind (one
+    of :data:`CAUSE_KINDS`), share of the excess chi2 it explains (0..1; for structure the
+    share of the residual sum of squares its group means explain; 1 for a budget that is
+    too large), a sentence and its numbers."""
 
     kind: str
     share: float
     text: str
     numbers: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def short(self) -> str:
+        """A few words for a summary line (``basis of axis X``, ``biased strategy
+        (classic)``, ...)."""
+        nb = self.numbers
+        if self.kind == "strategy":
+            return f"biased strategy ({nb.get('strategy', '?')})"
+        if self.kind == "basis":
+            return f"basis too poor for axis {nb.get('axis', '?')}"
+        if self.kind == "tool_offset":
+            return "structure against the tool offset"
+        if self.kind == "station":
+            a = str(nb.get("axis", ""))
+            return (
+                f"a station's scatter ({a[16:-1]})"
+                if a.startswith("station spread")
+                else ("offset between stations")
+            )
+        if self.kind == "drift":
+            return "drift in time"
+        if self.kind == "budget":
+            f = nb.get("factor", float("nan"))
+            return "budget too small" if f > 1 else "budget pessimistic"
+        return self.kind
+
 
 @dataclass(frozen=True)
 class Adequacy:
     """Verdict of the adequacy test (see the module docstring).
 
-    verdict: ``adequate`` or ``inadequate``; chi2_per_dof, dof and interval (the 99.9 %
-    interval of chi2/dof); n_readings (used), n_stations; causes (most likely first,
-    empty when adequate); structure: per axis, strongest first; outliers: numbers of the
-    tail (``max_abs``, ``n_beyond_5_robust``, ``n_beyond_5_sigma``, ``excess_kurtosis``,
+    verdict: one of :data:`VERDICTS` (``fits``, ``budget_pessimistic``, ``does_not_fit``);
+    chi2_per_dof, dof and interval (the 99.9 % interval of chi2/dof); n_readings (used),
+    n_stations; causes (most likely first, empty when the model fits); structure: per
+    axis, tool offset, station and time, strongest first; outliers: numbers of the tail
+    (``max_abs``, ``n_beyond_5_robust``, ``n_beyond_5_sigma``, ``excess_kurtosis``,
     ``robust_sigma``, ``chi2_share``); budget_factor: the factor by which the budget's
-    sigmas would have to be multiplied for the part of chi2 that neither outliers nor
-    structure explain; warnings; message: one human sentence.
+    sigmas would have to be multiplied for the part of chi2 that outliers do not explain
+    (below 1: the uncertainties are conservative by ``1 / budget_factor``); warnings;
+    message: the human paragraph.
     """
 
     verdict: str
@@ -136,30 +235,71 @@ class Adequacy:
 
     @property
     def adequate(self) -> bool:
-        return self.verdict == "adequate"
+        """The model fits (``fits`` or ``budget_pessimistic``)."""
+        return self.verdict != "does_not_fit"
 
     @property
     def cause(self) -> str | None:
-        """The kind of the most likely cause (None when adequate)."""
+        """The kind of the most likely cause (None when there is none)."""
         return self.causes[0].kind if self.causes else None
+
+    @property
+    def cause_kinds(self) -> list[str]:
+        """The kinds of the causes, most likely first (for tables such as compare's)."""
+        return [c.kind for c in self.causes]
 
     @property
     def strongest_axis(self) -> str | None:
         """The axis with the most significant residual structure (None without axes)."""
-        return self.structure[0].axis if self.structure else None
+        axes = [s for s in self.structure if s.kind == "axis"]
+        return axes[0].axis if axes else None
+
+    @property
+    def significant_structure(self) -> tuple[AxisStructure, ...]:
+        """The structure tests below :data:`STRUCTURE_P`, strongest first."""
+        return tuple(s for s in self.structure if s.significant)
+
+    @property
+    def summary(self) -> str:
+        """One line for a terminal summary or a banner (the message is the paragraph)."""
+        lo, hi = self.interval
+        c2 = f"chi2/dof {self.chi2_per_dof:.3g}"
+        if self.verdict == "fits":
+            return f"fits ({c2} inside [{lo:.3g}, {hi:.3g}], no significant structure)"
+        if self.verdict == "budget_pessimistic":
+            return (
+                f"fits; the budget is pessimistic ({c2} below [{lo:.3g}, {hi:.3g}], no "
+                f"significant structure): uncertainties conservative by a factor of about "
+                f"{1.0 / self.budget_factor:.3g}"
+            )
+        c = self.chi2_per_dof
+        where = "above" if c > hi else "below" if c < lo else "inside"
+        return (
+            f"does NOT fit ({c2} {where} [{lo:.3g}, {hi:.3g}]"
+            + (f"; likely cause: {', '.join(_shorts(self.causes))}" if self.causes else "")
+            + ")"
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain data for result.json (floats, lists, dicts)."""
+        """Plain data for result.json (floats, lists, dicts); ``verdict`` and
+        ``cause_kinds`` are the machine-readable verdict."""
         d = asdict(self)
         d["interval"] = list(self.interval)
         d["adequate"] = self.adequate
+        d["cause_kinds"] = self.cause_kinds
+        d["summary"] = self.summary
         return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Adequacy:
-        """The inverse of :meth:`to_dict` (a saved result's ``adequacy``)."""
+        """The inverse of :meth:`to_dict` (a saved result's ``adequacy``; results saved
+        before the three outcomes read ``adequate`` as ``fits`` and ``inadequate`` as
+        ``does_not_fit``)."""
+        verdict = {"adequate": "fits", "inadequate": "does_not_fit"}.get(
+            str(d["verdict"]), str(d["verdict"])
+        )
         return cls(
-            verdict=str(d["verdict"]),
+            verdict=verdict,
             chi2_per_dof=float(d["chi2_per_dof"]),
             dof=int(d["dof"]),
             interval=(float(d["interval"][0]), float(d["interval"][1])),
@@ -176,6 +316,33 @@ class Adequacy:
     def lines(self) -> list[str]:
         """The message and the warnings, one per line."""
         return [self.message, *self.warnings]
+
+
+def _shorts(causes: Sequence[Cause]) -> list[str]:
+    """The causes' few words, the axes of several basis causes in one.  After a biased
+    strategy the structure causes are its likely consequences: only where the structure
+    is is said (the report gives them as causes in their own right)."""
+    if causes and causes[0].kind == "strategy":
+        rest = [c for c in causes[1:] if c.kind not in ("outliers", "budget")]
+        return (
+            [causes[0].short]
+            + [c.short for c in causes[1:] if c.kind == "outliers"]
+            + (
+                [f"structure against {', '.join(str(c.numbers.get('axis')) for c in rest)}"]
+                if rest
+                else []
+            )
+        )
+    out: list[str] = []
+    axes = [str(c.numbers.get("axis", "?")) for c in causes if c.kind == "basis"]
+    for c in causes:
+        if c.kind != "basis":
+            out.append(c.short)
+        elif len(axes) == 1:
+            out.append(c.short)
+        elif str(c.numbers.get("axis")) == axes[0]:
+            out.append(f"basis too poor for axes {', '.join(axes)}")
+    return out
 
 
 # --------------------------------------------------------------------------------------
@@ -220,46 +387,91 @@ def _within_ss(z: np.ndarray, group: np.ndarray) -> tuple[float, int]:
     return max(ss, 0.0), len(n)
 
 
-def _axis_structure(
-    z: np.ndarray, station: np.ndarray, positions: pd.DataFrame, units: Sequence[str]
-) -> list[AxisStructure]:
+def _nested_f(
+    z: np.ndarray, base: np.ndarray, cell: np.ndarray, label: str, unit: str, kind: str, n_bins: int
+) -> AxisStructure | None:
+    """Nested F-test: do the means of ``cell`` explain z beyond the means of ``base``?"""
     from scipy.special import fdtrc  # F survival function (scipy.stats.f.sf)
 
     n = len(z)
-    ss_st, k_st = _within_ss(z, station)
-    out = []
-    for name, unit in zip(positions.columns, units):
-        code, centres = position_bins(positions[name].to_numpy(float))
-        if len(centres) < 2:
-            continue
-        cell = station.astype(np.int64) * (len(centres) + 1) + code
-        ss_cell, k_cell = _within_ss(z, cell)
-        df1, df2 = k_cell - k_st, n - k_cell
-        if df1 < 1 or df2 < 1 or ss_cell <= 0:
-            continue
-        between = max(ss_st - ss_cell, 0.0)
-        fstat = (between / df1) / (ss_cell / df2)
-        with np.errstate(divide="ignore"):
-            logp = float(np.log(fdtrc(df1, df2, fstat)))
-        if not math.isfinite(logp):  # beyond the float range
-            logp = -745.0
-        total = float(np.sum(z * z))
-        explained = max(between - df1 * ss_cell / df2, 0.0) / total if total > 0 else 0.0
-        out.append(
-            AxisStructure(
-                axis=str(name),
-                unit=unit,
-                n_bins=len(centres),
-                f=float(fstat),
-                df1=int(df1),
-                df2=int(df2),
-                p_value=float(math.exp(logp)),
-                log10_p=logp / math.log(10),
-                explained_share=float(explained),
-            )
-        )
-    out.sort(key=lambda s: (s.log10_p, -s.explained_share))
-    return out
+    ss_base, k_base = _within_ss(z, base)
+    ss_cell, k_cell = _within_ss(z, cell)
+    df1, df2 = k_cell - k_base, n - k_cell
+    if df1 < 1 or df2 < 1 or ss_cell <= 0:
+        return None
+    between = max(ss_base - ss_cell, 0.0)
+    fstat = (between / df1) / (ss_cell / df2)
+    with np.errstate(divide="ignore"):
+        logp = float(np.log(fdtrc(df1, df2, fstat)))
+    if not math.isfinite(logp):  # beyond the float range
+        logp = -745.0
+    total = float(np.sum(z * z))
+    explained = max(between - df1 * ss_cell / df2, 0.0) / total if total > 0 else 0.0
+    return AxisStructure(
+        axis=label,
+        unit=unit,
+        n_bins=int(n_bins),
+        f=float(fstat),
+        df1=int(df1),
+        df2=int(df2),
+        p_value=float(math.exp(logp)),
+        log10_p=logp / math.log(10),
+        explained_share=float(explained),
+        kind=kind,
+    )
+
+
+def _binned(station: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, int]:
+    """Cells station x bin of ``values`` and the number of bins."""
+    code, centres = position_bins(values)
+    return station.astype(np.int64) * (len(centres) + 1) + code, len(centres)
+
+
+def _structure(
+    z: np.ndarray,
+    station: np.ndarray,
+    positions: pd.DataFrame | None,
+    units: Sequence[str],
+    tools: np.ndarray | None,
+    time: np.ndarray | None,
+    station_names: Sequence[str] | None = None,
+) -> list[AxisStructure]:
+    """Every structure test the data allow (see the module), strongest first."""
+    out: list[AxisStructure | None] = []
+    if positions is not None:
+        for name, unit in zip(positions.columns, units):
+            cell, nb = _binned(station, positions[name].to_numpy(float))
+            if nb >= 2:
+                out.append(_nested_f(z, station, cell, str(name), unit, "axis", nb))
+    if tools is not None and len(np.unique(tools)) > 1:
+        cell, nb = _binned(station, np.asarray(tools, float))
+        out.append(_nested_f(z, station, cell, "tool offset", "", "tool_offset", nb))
+    n_st = len(np.unique(station))
+    if n_st > 1:
+        zero = np.zeros_like(station)
+        out.append(_nested_f(z, zero, station, "station", "", "station", n_st))
+        # a fitted dead length takes up a station's mean: what is left to see is one
+        # station scattering more than the others (Brown-Forsythe: the means of the
+        # absolute deviations from each station's median)
+        med = np.zeros(len(z))
+        for k in np.unique(station):
+            med[station == k] = np.median(z[station == k])
+        spread = _nested_f(np.abs(z - med), zero, station, "station spread", "", "station", n_st)
+        if spread is not None:
+            rms = {k: float(np.sqrt(np.mean(z[station == k] ** 2))) for k in np.unique(station)}
+            worst = max(rms, key=lambda k: rms[k])
+            name = station_names[worst] if station_names is not None else str(worst)
+            spread = replace(spread, axis=f"station spread (widest {name})")
+            out.append(spread)
+    if time is not None:
+        t = np.asarray(time, float)
+        fin = np.isfinite(t)
+        if fin.sum() > 2 * MAX_BINS and len(np.unique(t[fin])) > 1:
+            cell, nb = _binned(station[fin], t[fin])
+            out.append(_nested_f(z[fin], station[fin], cell, "time", "s", "time", nb))
+    res = [s for s in out if s is not None]
+    res.sort(key=lambda s: (s.log10_p, -s.explained_share))
+    return res
 
 
 def _excess_kurtosis(z: np.ndarray) -> float:
@@ -268,6 +480,86 @@ def _excess_kurtosis(z: np.ndarray) -> float:
     c = z - z.mean()
     m2 = float(np.mean(c**2))
     return float(np.mean(c**4) / m2**2 - 3.0) if m2 > 0 else float("nan")
+
+
+def _basis_advice(axis: str, forms: Sequence[Any], full_turn: bool) -> str:
+    """What to do about an axis whose basis cannot follow its error motions."""
+    described = sorted({f.describe() for f in forms}) if forms else []
+    has = f" ({'; '.join(described)})" if described else ""
+    kinds = {getattr(f, "kind", "") for f in forms}
+    degree = max((int(getattr(f, "degree", 0) or 0) for f in forms), default=0)
+    if "fourier" in kinds and full_turn:
+        return (
+            f"the basis of axis {axis}{has} is too poor for its error motions: a Fourier "
+            "series assumes an error motion that returns to its value after a full turn; "
+            f"if the error is periodic, raise the harmonics (--basis {axis}=fourier:"
+            f"{degree + 2} or --degree auto), if it is not (it drifts over the turn), give "
+            f"{axis} a basis that is not periodic (--basis {axis}=bspline:8)"
+        )
+    if "poly" in kinds:
+        return (
+            f"the basis of axis {axis}{has} is too poor for its error motions: let the data "
+            f"choose the degree (--degree auto) or give {axis} more freedom (--basis "
+            f"{axis}=poly:{degree + 2} or {axis}=bspline:8), or look for an error the model "
+            "does not have"
+        )
+    return (
+        f"the basis of axis {axis}{has} is too poor for its error motions: raise its degree "
+        f"(--degree auto) or give {axis} a basis that fits (--basis {axis}=KIND:N, e.g. "
+        "bspline:8 or, for a full-turn rotary axis with a periodic error, fourier:N), or look "
+        "for an error the model does not have"
+    )
+
+
+def _structure_cause(
+    s: AxisStructure, bases: Mapping[str, Sequence[Any]], full_turn: set[str]
+) -> Cause:
+    """The cause a significant structure points to, in a metrologist's words."""
+    numbers = {
+        "against": s.kind,
+        "axis": s.axis,
+        "f": s.f,
+        "p_value": s.p_value,
+        "log10_p": s.log10_p,
+        "explained_share": s.explained_share,
+        "n_bins": s.n_bins,
+    }
+    stat = (
+        f"the residuals' group means against {s.label} explain "
+        f"{100 * s.explained_share:.0f} % of the residual sum of squares (F = {s.f:.3g}, "
+        f"{format_p(s)} < {STRUCTURE_P:g}, {s.n_bins} groups)"
+    )
+    kind = _CAUSE_OF[s.kind]
+    if kind == "basis":
+        text = f"{_basis_advice(s.axis, bases.get(s.axis, ()), s.axis in full_turn)}: {stat}"
+    elif kind == "tool_offset":
+        text = (
+            f"the readings differ between tool offsets: {stat}; check the tool offsets "
+            "in the data (measure the reflectors' offsets, e.g. on a tool presetter) or "
+            "look for an angular error the model does not have (when the offsets were "
+            "measured one after the other, a drift in time shows here too)"
+        )
+    elif kind == "station" and s.axis.startswith("station spread"):
+        text = (
+            f"one station's readings scatter more than the others' ({s.axis[16:-1]}): "
+            f"{stat}; that station moved or its beam path was disturbed during the run "
+            "(reflector seating, air turbulence, a beam break re-initialised): check it and "
+            "measure it again"
+        )
+    elif kind == "station":
+        text = (
+            f"the stations' readings are offset from each other: {stat}; check each "
+            "station's dead path (reflector seating, the interferometer re-initialised "
+            "during the run) and whether a station moved"
+        )
+    else:
+        text = (
+            f"drift in time: {stat}; the machine or the instrument drifted during the "
+            "measurement (thermal growth, warm-up, a station moved): measure in a stable "
+            "temperature or repeat a reference pose through the run to correct the drift "
+            "(structure against an axis measured in order shows here too)"
+        )
+    return Cause(kind, s.explained_share, text, numbers)
 
 
 def assess_residuals(
@@ -279,6 +571,11 @@ def assess_residuals(
     units: Sequence[str] | None = None,
     rejected: Sequence[bool] | np.ndarray | None = None,
     chi2_per_dof: float | None = None,
+    tools: Sequence[Any] | np.ndarray | None = None,
+    time: Sequence[float] | np.ndarray | None = None,
+    strategy: str | None = None,
+    bases: Mapping[str, Sequence[Any]] | None = None,
+    full_turn: Sequence[str] = (),
 ) -> Adequacy:
     """Test whitened residuals for model adequacy (see the module docstring).
 
@@ -287,7 +584,12 @@ def assess_residuals(
     readings used); stations: station id per reading (default one station); positions:
     one column per axis (mm / deg), a row per reading; units: the unit of each column
     (default ``""``); rejected: readings left out of the fit (ignored here);
-    chi2_per_dof: the fit's own value (default ``sum z^2 / dof`` over the readings used).
+    chi2_per_dof: the fit's own value (default ``sum z^2 / dof`` over the readings used);
+    tools: a tool offset id per reading (several offsets: a structure test against them);
+    time: time stamp per reading (s; NaN allowed: a structure test against time);
+    strategy: the identification strategy (a biased one is named as a cause of
+    structure); bases: per axis, the error forms of its error motions (``ErrorForm``, for
+    the advice on a basis too poor); full_turn: the full-turn rotary axes.
     """
     z_all = np.asarray(normalised, float)
     keep = np.isfinite(z_all)
@@ -295,11 +597,11 @@ def assess_residuals(
         keep &= ~np.asarray(rejected, bool)
     z = z_all[keep]
     n = len(z)
-    st = (
-        np.zeros(len(z_all), np.int64)
-        if stations is None
-        else np.unique(np.asarray(stations).astype(str), return_inverse=True)[1]
-    )[keep]
+    if stations is None:
+        st_names, st = np.array(["1"]), np.zeros(len(z_all), np.int64)[keep]
+    else:
+        st_names, st = np.unique(np.asarray(stations).astype(str), return_inverse=True)
+        st = st[keep]
     n_st = int(len(np.unique(st))) if n else 0
     dof = n if dof is None else max(int(dof), 1)
     chi2_sum = float(np.sum(z * z))
@@ -329,13 +631,21 @@ def assess_residuals(
         "chi2_share": ss_out / chi2_sum if chi2_sum > 0 else 0.0,
     }
 
-    # structure against each axis, on the readings that are not outliers
+    # structure on the readings that are not outliers
     structure: list[AxisStructure] = []
-    if positions is not None and len(positions.columns) and n:
-        pos = positions.loc[keep].reset_index(drop=True)
-        u = list(units) if units is not None else [""] * len(pos.columns)
+    if n:
         inl = ~out_mask
-        structure = _axis_structure(z[inl], st[inl], pos.loc[inl].reset_index(drop=True), u)
+        pos = None
+        u: list[str] = []
+        if positions is not None and len(positions.columns):
+            pos = positions.loc[keep].reset_index(drop=True).loc[inl].reset_index(drop=True)
+            u = list(units) if units is not None else [""] * len(pos.columns)
+        tl = None
+        if tools is not None:
+            tl = np.unique(np.asarray(tools).astype(str), return_inverse=True)[1][keep][inl]
+        tm = np.asarray(time, float)[keep][inl] if time is not None else None
+        structure = _structure(z[inl], st[inl], pos, u, tl, tm, list(st_names))
+    significant = [s for s in structure if s.significant]
 
     warnings: list[str] = []
     if n_st == 1:
@@ -346,44 +656,38 @@ def assess_residuals(
             "from at least four stations that are not coplanar"
         )
 
-    inside = lo <= c2 <= hi
-    causes: list[Cause] = []
-    # the expected chi2 with the right model and budget is dof; split the excess between
-    # the outliers (their sum of squares beyond what the bulk's spread gives them), the
-    # strongest structure (the sum of squares its binned means explain beyond chance) and
-    # the rest (a budget factor)
+    # the expected chi2 with the right model and budget is dof; the outliers carry their
+    # sum of squares beyond what the bulk's spread gives them, the rest is a budget factor
     expected = float(dof)
     excess = c2 * dof - expected
-    n_in = n - n_out
-    ss_in = chi2_sum - ss_out
     out_excess = max(ss_out - n_out * s_ref**2, 0.0) if n_out and p_count < 1e-3 else 0.0
-    best = structure[0] if structure else None
-    struct_ok = best is not None and best.p_value < STRUCTURE_P
-    struct_excess = best.explained_share * ss_in if best is not None and struct_ok else 0.0
-    dof_in = max(dof - (n - n_in), 1)
-    rest = max(ss_in - struct_excess, 0.0) / dof_in
+    dof_in = max(dof - n_out, 1)
+    rest = max(chi2_sum - ss_out, 0.0) / dof_in
     budget_factor = float(math.sqrt(rest)) if rest > 0 else float("nan")
     rest_lo, rest_hi = chi2_interval(dof_in)
 
-    if not inside:
-        if excess > 0:
-            shares = {
-                "outliers": out_excess / excess,
-                "structure": struct_excess / excess,
-                "budget": max(excess - out_excess - struct_excess, 0.0) / excess,
-            }
-        else:
-            shares = {"outliers": 0.0, "structure": 0.0, "budget": 1.0}
+    if significant:
+        verdict = "does_not_fit"
+    elif c2 > hi:
+        verdict = "does_not_fit"
+    elif c2 < lo:
+        verdict = "budget_pessimistic"
+    else:
+        verdict = "fits"
+
+    causes: list[Cause] = []
+    if verdict != "fits":
         heavy = (
             n_out > 0
             and p_count < 1e-3
             and (kurt > HEAVY_TAIL_KURTOSIS or outliers["chi2_share"] > 0.05)
         )
-        if heavy and shares["outliers"] >= CAUSE_MIN_SHARE:
+        out_share = out_excess / excess if excess > 0 else 0.0
+        if heavy and (out_share >= CAUSE_MIN_SHARE or significant):
             causes.append(
                 Cause(
                     "outliers",
-                    shares["outliers"],
+                    out_share,
                     f"outliers: {n_out} reading(s) beyond {OUTLIER_K:g} robust standard "
                     f"deviations of the bulk (largest |normalised residual| "
                     f"{outliers['max_abs']:.3g}, excess kurtosis {kurt:.3g}) carry "
@@ -401,65 +705,100 @@ def assess_residuals(
                     },
                 )
             )
-        if best is not None and struct_ok and shares["structure"] >= CAUSE_MIN_SHARE:
-            causes.append(
+        found = [_structure_cause(s, dict(bases or {}), set(full_turn)) for s in significant]
+        if found and strategy in BIASED_STRATEGIES:
+            strongest = significant[0]
+            found.insert(
+                0,
                 Cause(
-                    "structure",
-                    shares["structure"],
-                    f"structure against axis {best.axis}: the residuals' binned means over its "
-                    f"position explain {100 * best.explained_share:.0f} % of the residual sum "
-                    f"of squares (F = {best.f:.3g}, {format_p(best)}, {best.n_bins} position "
-                    f"bins); the error model cannot follow an error motion of {best.axis} "
-                    "(raise its degree, use a basis that fits, e.g. a Fourier series for a "
-                    "rotary axis, or look for an error the model does not have)",
-                    {
-                        "axis": best.axis,
-                        "f": best.f,
-                        "p_value": best.p_value,
-                        "log10_p": best.log10_p,
-                        "explained_share": best.explained_share,
-                        "n_bins": best.n_bins,
-                    },
-                )
+                    "strategy",
+                    strongest.explained_share,
+                    f"the strategy is biased: {BIASED_STRATEGIES[str(strategy)]} (strongest "
+                    f"against {strongest.label}: F = {strongest.f:.3g}, {format_p(strongest)}); "
+                    "run --strategy joint (stations and errors estimated together) on the "
+                    "same data; if the structure stays, the causes below remain",
+                    {"strategy": str(strategy), "against": strongest.label},
+                ),
             )
+        # blunders first only when they carry most of the excess: they also pull the fit
+        # and so leave structure of their own behind
+        if causes and found and out_share < 0.5:
+            causes = found + causes
+        else:
+            causes = causes + found
         budget_off = not (rest_lo <= rest <= rest_hi)
-        # a budget factor within 10 % of one is not worth naming beside another cause
-        budget_also = (
-            budget_off and shares["budget"] >= CAUSE_MIN_SHARE and abs(budget_factor - 1.0) >= 0.1
-        )
-        if excess <= 0 or budget_also or not causes:
-            word = "too small" if budget_factor > 1 else "too large"
-            gauss = f"excess kurtosis {kurt:.2g}" if math.isfinite(kurt) else ""
-            causes.append(
-                Cause(
-                    "budget",
-                    shares["budget"],
-                    "the uncertainty budget: the residuals are "
+        # the budget is judged only on residuals without significant structure: a misfit
+        # is not noise, and scaling the uncertainties would hide it
+        if not significant and (
+            excess <= 0
+            or not causes
+            or (budget_off and abs(budget_factor - 1.0) >= 0.1 and 1 - out_share >= CAUSE_MIN_SHARE)
+        ):
+            if budget_factor > 1:
+                text = (
+                    "the uncertainty budget is too small: the residuals show no "
+                    f"significant structure (every F-test p >= {STRUCTURE_P:g})"
                     + (
-                        "unstructured and Gaussian-looking"
-                        if not causes
-                        else "larger than the budget allows beyond what the causes above explain"
+                        f" and look Gaussian (excess kurtosis {kurt:.2g})"
+                        if not causes and math.isfinite(kurt)
+                        else ""
                     )
-                    + (f" ({gauss})" if gauss and not causes else "")
-                    + f", but {word}: the readings' standard uncertainties would have to be "
-                    f"multiplied by {budget_factor:.3g} (or the budget is not the instrument's; "
-                    "--scale-covariance scales the uncertainties by chi2/dof)",
-                    {"factor": budget_factor, "variance_factor": rest},
+                    + (
+                        ""
+                        if not causes
+                        else ", and they scatter more than the budget allows beyond "
+                        "what the outliers explain"
+                    )
+                    + f": the readings' standard uncertainties would have to be multiplied "
+                    f"by {budget_factor:.3g} (or the budget is not the instrument's; "
+                    "--scale-covariance scales the uncertainties by chi2/dof)"
                 )
-            )
-        causes.sort(key=lambda c: -c.share)
+            else:
+                text = (
+                    "the uncertainty budget is pessimistic: the residuals show no "
+                    f"significant structure (every F-test p >= {STRUCTURE_P:g}) and "
+                    "scatter less than the readings' standard uncertainties say, so the "
+                    "reported uncertainties are conservative by a factor of about "
+                    f"{1.0 / budget_factor:.3g} (the budget's sigmas could be multiplied by "
+                    f"{budget_factor:.3g}, or --scale-covariance scales the uncertainties by "
+                    "chi2/dof)"
+                )
+            share = max(excess - out_excess, 0.0) / excess if excess > 0 else 1.0
+            numbers = {"factor": budget_factor, "variance_factor": rest}
+            causes.append(Cause("budget", share, text, numbers))
 
-    verdict = "adequate" if inside else "inadequate"
-    if inside:
+    interval = f"its 99.9 % interval [{lo:.4g}, {hi:.4g}] for {dof} degrees of freedom"
+    tested = ", ".join(
+        dict.fromkeys(s.label if s.kind != "axis" else "the axes" for s in structure)
+    )
+    if verdict == "fits":
+        msg = f"the model fits: chi2/dof = {c2:.4g} lies inside {interval}" + (
+            f", and no residual structure (against {tested}) reaches p < {STRUCTURE_P:g}"
+            if structure
+            else ""
+        )
+    elif verdict == "budget_pessimistic":
         msg = (
-            f"the model fits: chi2/dof = {c2:.4g} lies inside its 99.9 % interval "
-            f"[{lo:.4g}, {hi:.4g}] for {dof} degrees of freedom"
+            f"the model fits, and the budget is pessimistic: chi2/dof = {c2:.4g} lies below "
+            f"{interval} with no significant residual structure (against {tested or 'nothing'};"
+            f" threshold p < {STRUCTURE_P:g}): the readings scatter less than the budget says, "
+            "so the reported uncertainties are conservative by a factor of about "
+            f"{1.0 / budget_factor:.3g}"
         )
     else:
+        where = "above" if c2 > hi else "below" if c2 < lo else "inside"
         msg = (
-            f"the model does NOT fit the data within their uncertainty: chi2/dof = "
-            f"{c2:.4g} lies outside its 99.9 % interval [{lo:.4g}, {hi:.4g}] for {dof} "
-            "degrees of freedom; likely cause: " + "; also ".join(c.text for c in causes)
+            f"the model does NOT fit the data within their uncertainty: chi2/dof = {c2:.4g} "
+            f"lies {where} {interval}"
+            + (
+                f"; the residuals are structured (F-test p < {STRUCTURE_P:g} against "
+                + ", ".join(s.label for s in significant)
+                + ")"
+                if significant
+                else ""
+            )
+            + "; likely cause: "
+            + "; also ".join(c.text for c in causes)
         )
     return Adequacy(
         verdict=verdict,
@@ -492,6 +831,16 @@ def _axes(result: Any) -> tuple[list[str], list[str]]:
     return names, units
 
 
+def _bases(result: Any) -> dict[str, list[Any]]:
+    """Per axis, the error forms of its error motions (empty without an error model)."""
+    em = getattr(result, "error_model", None)
+    out: dict[str, list[Any]] = {}
+    for s, f in zip(getattr(em, "errors", ()), getattr(em, "forms", ())):
+        if s.kind == "component" and f not in out.setdefault(s.axis, []):
+            out[s.axis].append(f)
+    return out
+
+
 def _dof(result: Any, z: np.ndarray, keep: np.ndarray) -> tuple[int, float | None]:
     """The fit's degrees of freedom: from chi2/dof and the weighted residuals the fit
     reports (``dof = sum z^2 / (chi2/dof)``), else the number of readings used."""
@@ -506,8 +855,10 @@ def _dof(result: Any, z: np.ndarray, keep: np.ndarray) -> tuple[int, float | Non
 def assess(result: Any) -> Adequacy:
     """The adequacy of an identification result (see the module docstring).
 
-    Uses ``result.residuals`` (``normalised_residual``, ``rejected``, ``station`` and the
-    axis columns), ``result.conditions['chi2_per_dof']`` and ``result.machine.spec``.
+    Uses ``result.residuals`` (``normalised_residual``, ``rejected``, ``station``, the
+    axis columns, the tool offsets and ``time`` when present),
+    ``result.conditions['chi2_per_dof']``, ``result.machine.spec``, ``result.strategy`` and
+    ``result.error_model``.
     The result is computed once per result object and kept on it
     (``result.__dict__['_adequacy']``)."""
     cached = getattr(result, "__dict__", {}).get("_adequacy")
@@ -520,6 +871,11 @@ def assess(result: Any) -> Adequacy:
     dof, c2 = _dof(result, z, keep)
     names, units = _axes(result)
     cols = [n for n in names if n in res.columns]
+    tcols = [c for c in ("tool_x", "tool_y", "tool_z") if c in res.columns]
+    tools = res[tcols].round(6).astype(str).agg(",".join, axis=1).to_numpy() if tcols else None
+    time = res["time"].to_numpy(float) if "time" in res.columns else None
+    if time is not None and not np.isfinite(time).any():
+        time = None
     ad = assess_residuals(
         z,
         dof,
@@ -528,6 +884,11 @@ def assess(result: Any) -> Adequacy:
         units=[u for n, u in zip(names, units) if n in cols],
         rejected=rejected,
         chi2_per_dof=c2,
+        tools=tools,
+        time=time,
+        strategy=getattr(result, "strategy", None),
+        bases=_bases(result),
+        full_turn=[a.name for a in result.machine.spec.axes if a.full_turn],
     )
     try:
         result.__dict__["_adequacy"] = (result.residuals, ad)

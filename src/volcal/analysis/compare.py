@@ -6,7 +6,9 @@ knows) through :func:`volcal.analysis.identify.identify` on the same readings, w
 same error model, budget and start values, and compares each with a reference strategy
 (default joint):
 
-* status, chi2/dof, the adequacy verdict (:func:`adequacy_verdict`), residual RMS, time;
+* status, chi2/dof, the adequacy verdict (:func:`adequacy_verdict`) and its likely causes
+  (``causes``: the kinds of :attr:`volcal.analysis.adequacy.Adequacy.cause_kinds`), residual
+  RMS, time;
 * the **field difference** to the reference: both volumetric errors at the workspace
   points (a Halton sample of the declared travel plus the corners of the travel box,
   :func:`volcal.analysis.identify.declared_poses`, at every measured tool offset),
@@ -40,6 +42,7 @@ from __future__ import annotations
 
 import logging
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,7 +61,7 @@ from volcal.analysis.identify import (
 )
 from volcal.base.exceptions import InputError, SolverError
 from volcal.base.progress import stage as report_stage
-from volcal.measurement.budget import Budget, load_budget
+from volcal.measurement.budget import Budget, BudgetWarning, load_budget
 from volcal.measurement.tables import Measurements, load_measurements, load_stations
 from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.model.machine import Machine
@@ -381,6 +384,9 @@ def compare(
     )
     em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
     bud = budget if isinstance(budget, Budget) else load_budget(budget)
+    # said here, once per run: the trials draw every axis' scatter from the budget (their
+    # processes keep quiet about it)
+    bud.warn_uncovered(spec)
     truth_value, truth_source = _load_truth(truth, em)
     truth_source = truth_name or truth_source
     opts = {"error_model": em, "budget": bud, "solver": solver}
@@ -432,6 +438,7 @@ def compare(
             "success": r.success,
             "chi2_per_dof": np.nan,
             "verdict": "not solved",
+            "causes": "",
             "residual_rms_um": np.nan,
             "field_diff_rms_um": np.nan,
             "field_diff_max_um": np.nan,
@@ -451,6 +458,8 @@ def compare(
             row.update(
                 chi2_per_dof=float(res.conditions.get("chi2_per_dof", np.nan)),
                 verdict=adequacy_verdict(res),
+                # the likely causes' kinds, most likely first (Adequacy.cause_kinds)
+                causes=" ".join(res.adequacy.cause_kinds),
                 residual_rms_um=res.residual_rms_um,
                 n_unidentifiable=len(un),
                 unidentifiable=" ".join(un),
@@ -685,37 +694,40 @@ class TrialKernel:
         m = self.mask
         p0 = self.machine.nominal_points(self.Q[m], self.T[m])
         out = np.full((chunk[1] - chunk[0], len(self.strategies), 3), np.nan)
-        for i, trial in enumerate(range(*chunk)):
-            sim = simulate(
-                self.machine,
-                self.error_model,
-                self.theta,
-                self.stations,
-                self.plan,
-                self.tools,
-                self.budget,
-                trial_seed(self.seed, trial),
-            )
-            data = sim.measurements
-            if self.keep is not None:
-                data = data.loc[self.keep].reset_index(drop=True)
-            for j, s in enumerate(self.strategies):
-                try:
-                    res = identify(
-                        self.machine,
-                        data,
-                        self.start_stations,
-                        strategy=s,
-                        error_model=self.error_model,
-                        budget=self.budget,
-                        solver=self.solver,
-                    )
-                except SolverError:
-                    out[i, j, 2] = 0.0
-                    continue
-                f, _ = _field(res, self.Q[m], self.T[m])
-                out[i, j, :2] = _norm_stats(modulo_gauge(p0, f - true_um[m]))
-                out[i, j, 2] = 1.0 if res.success else 0.0
+        with warnings.catch_warnings():
+            # the run said it once (compare); a trial, maybe in its own process, not
+            warnings.simplefilter("ignore", BudgetWarning)
+            for i, trial in enumerate(range(*chunk)):
+                sim = simulate(
+                    self.machine,
+                    self.error_model,
+                    self.theta,
+                    self.stations,
+                    self.plan,
+                    self.tools,
+                    self.budget,
+                    trial_seed(self.seed, trial),
+                )
+                data = sim.measurements
+                if self.keep is not None:
+                    data = data.loc[self.keep].reset_index(drop=True)
+                for j, s in enumerate(self.strategies):
+                    try:
+                        res = identify(
+                            self.machine,
+                            data,
+                            self.start_stations,
+                            strategy=s,
+                            error_model=self.error_model,
+                            budget=self.budget,
+                            solver=self.solver,
+                        )
+                    except SolverError:
+                        out[i, j, 2] = 0.0
+                        continue
+                    f, _ = _field(res, self.Q[m], self.T[m])
+                    out[i, j, :2] = _norm_stats(modulo_gauge(p0, f - true_um[m]))
+                    out[i, j, 2] = 1.0 if res.success else 0.0
         return out
 
 
@@ -731,16 +743,14 @@ def run_trials(
     or on Dask, see :func:`volcal.analysis.uncertainty.parallel.run_chunks`) and return
     one row per trial and strategy: ``trial, seed, strategy, field_error_rms_um,
     field_error_max_um, success``.  The same seed gives the same table wherever it runs.
-    progress: a tqdm bar on stderr (None: when :mod:`volcal.base.progress` is on)."""
-    from tqdm.std import tqdm
-
+    progress: a bar on a terminal, plain lines with the time left otherwise
+    (:func:`volcal.base.progress.counter`; None: when :mod:`volcal.base.progress` is on)."""
     from volcal.analysis.uncertainty.parallel import run_chunks
-    from volcal.base import progress as _progress
+    from volcal.base.progress import counter
 
     chunks = [(i, i + 1) for i in range(int(trials))]
     got: dict[int, np.ndarray] = {}
-    show = _progress.enabled() if progress is None else progress
-    with tqdm(total=len(chunks), desc="trials", unit="trial", disable=not show) as bar:
+    with counter(len(chunks), "trials", "trial", on=progress) as bar:
         for chunk, res in run_chunks(kernel, chunks, workers=workers, scheduler=scheduler):
             got[chunk[0]] = res
             bar.update(1)

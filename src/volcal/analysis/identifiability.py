@@ -162,22 +162,30 @@ def analyse_jacobian(
     fixed: np.ndarray | None = None,
     prefer: np.ndarray | None = None,
     weak_ratio: float = 1e-4,
+    decide_on: np.ndarray | None = None,
 ) -> Identifiability:
     """Rank, conditioning and named null space of J under C x = 0.
 
     J: (m, n) Jacobian of whitened residuals; C: (c, n) equality constraints; fixed: mask of
     variables held fixed (left out of the analysis); prefer: priority per variable for being
-    chosen as the one to fix in a null direction (higher is chosen first; ties by pivoting).
+    chosen as the one to fix in a null direction (higher is chosen first; ties by pivoting);
+    decide_on: the Jacobian (same variables) on which rank, null space and pivots are
+    decided, when not J itself: the one at zero errors, where the first-order model's gauge
+    is exact (:meth:`volcal.analysis.identify.Identifier.structural`).  Singular values,
+    condition numbers and weak directions are J's; its smallest ``n_free - rank`` singular
+    values belong to the directions decided null.
     """
     J = np.asarray(J, float)
     m, n = J.shape
     sv = scaled_constrained_svd(J, C, fixed)
-    free, d, Z, R, s_full, Vt, tol, rank = (sv.free, sv.d, sv.Z, sv.R, sv.s, sv.Vt, sv.tol, sv.rank)
+    sv0 = sv if decide_on is None or decide_on is J else scaled_constrained_svd(decide_on, C, fixed)
+    free, Z, R, s_full, Vt = (sv.free, sv.Z, sv.R, sv.s, sv.Vt)
+    tol, rank, d = sv0.tol, sv0.rank, sv0.d
     norms, zero_col = sv.norms, sv.norms == 0
     s0 = s_full[0] if len(s_full) else 0.0
-    N_y = Z @ Vt[rank:].T  # null directions in scaled free variables, orthonormal
+    N_y = sv0.Z @ sv0.Vt[rank:].T  # null directions in scaled free variables, orthonormal
     # condition numbers of the identifiable part
-    cond = s_full[0] / s_full[rank - 1] if rank else np.inf
+    cond = s_full[0] / s_full[rank - 1] if rank and s_full[rank - 1] > 0 else np.inf
     su = (
         np.linalg.svd((R * np.where(zero_col, 0.0, norms)) @ Z, compute_uv=False)
         if rank

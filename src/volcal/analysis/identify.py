@@ -28,6 +28,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -42,6 +43,8 @@ from volcal.analysis import (
 )
 from volcal.analysis.identifiability import FieldSets, rigid_columns
 from volcal.base.exceptions import InputError, SolverError
+from volcal.base.linalg import unique_rows
+from volcal.base.memory import check_memory
 from volcal.base.progress import stage as report_stage
 from volcal.base.units import report_factors, report_unit
 from volcal.measurement.budget import Budget, load_budget
@@ -52,10 +55,15 @@ from volcal.measurement.tables import (
     load_measurements,
     load_stations,
 )
-from volcal.model.datum import condition_table, null_space, select_conditions
+from volcal.model.datum import (
+    condition_table,
+    imposed_parameters,
+    null_space,
+    select_conditions,
+)
 from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.model.machine import Machine
-from volcal.model.spec import MachineSpec
+from volcal.model.spec import MachineSpec, resolve_model
 from volcal.problem.residuals import DenseJacobian, IdentificationProblem, Layout
 from volcal.problem.strategies import (
     ClassicPipeline,
@@ -125,6 +133,9 @@ class IdentificationResult:
     #: the :class:`Identifier` that solved it (problem and solvers), for analyses of the
     #: same data that would otherwise build it again (Monte Carlo); not pickled
     identifier: Identifier | None = field(default=None, repr=False, compare=False)
+    #: parameters the imposed datum conditions alone set to zero (a convention, not a
+    #: measurement: u = 0); None: none known
+    imposed: np.ndarray | None = field(default=None, repr=False)
 
     def __getstate__(self):
         d = dict(self.__dict__)
@@ -180,14 +191,50 @@ class IdentificationResult:
 
         return assess(self)
 
+    def unidentifiable_explanation(self) -> dict[str, Any] | None:
+        """Why parameters are left out and what to measure, when the data explain it:
+        ``{"cause", "parameters", "text"}`` (None when every parameter is identifiable or
+        no cause is known).
+
+        Known cause: a single tool offset.  Lengths to one reflector position see an
+        angular error of the tool-side axes only through that offset's lever arm, so
+        rotations and translations that move the one point alike cannot be told apart;
+        more offsets (not on one line) or more spindle orientations separate them."""
+        names = [n for n, ok in zip(self.error_model.param_names, self.identifiable) if not ok]
+        if not names:
+            return None
+        res = self.residuals
+        cols = [c for c in ("tool_x", "tool_y", "tool_z") if c in res.columns]
+        used = ~np.asarray(res["rejected"], bool) if "rejected" in res else slice(None)
+        tools = np.unique(res.loc[used, cols].to_numpy(float), axis=0) if cols else np.zeros((1, 3))
+        if len(tools) != 1:
+            return None
+        t = ", ".join(f"{v:g}" for v in tools[0])
+        errors = sorted({n.split("_")[0].split("@")[0] for n in names})
+        return {
+            "cause": "single_tool_offset",
+            "parameters": names,
+            "text": (
+                f"every reading has the same tool offset ({t}) mm: lengths to one reflector "
+                "position see an angular error of the tool-side axes only through that "
+                "offset's lever arm, so rotations and translations that move the one point "
+                f"alike cannot be told apart. Left out: {len(names)} parameter(s) of "
+                f"{', '.join(errors)} ({', '.join(names)}). To determine them, measure at "
+                "three or more tool offsets not on one line (e.g. 0,0,0; 0,0,100; 80,0,60 "
+                "mm: `volcal simulate --tools`, `volcal plan --tools`) or, on a machine with a "
+                "swivelling head, in more spindle orientations"
+            ),
+        }
+
     @property
     def residual_rms_um(self) -> float:
         r = self.residuals.loc[~self.residuals["rejected"], "residual_um"]
         return float(np.sqrt(np.mean(r**2))) if len(r) else float("nan")
 
     def parameters(self) -> pd.DataFrame:
-        """name, value, unit, u (standard uncertainty), identifiable (values and u in um /
-        urad)."""
+        """name, value, unit, u (standard uncertainty), identifiable, imposed (values and u
+        in um / urad; imposed: set to zero by the datum, a convention with u = 0, not a
+        measurement)."""
         units = self.error_model.param_units
         f = report_factors(units)
         std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
@@ -199,6 +246,11 @@ class IdentificationResult:
                 "unit": [report_unit(u) for u in units],
                 "u": std,
                 "identifiable": self.identifiable,
+                "imposed": (
+                    np.zeros(len(self.theta), bool)
+                    if self.imposed is None
+                    else np.asarray(self.imposed, bool)
+                ),
             }
         )
 
@@ -404,29 +456,52 @@ class Identifier:
     # ---- pieces ---------------------------------------------------------------------
     def jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Whitened residuals and Jacobian wrt the scaled variables at physical x.  The
-        last evaluation is kept: the datum selection, the analysis and the covariance ask
-        for the same point in turn, and the dense Jacobian is the expensive part."""
+        last two evaluations are kept: the datum selection and the analysis ask for the
+        structural point (:meth:`structural`), the covariance for x, in turn, and the dense
+        Jacobian is the expensive part."""
         key = (np.asarray(x, float).tobytes(), np.asarray(p, float).tobytes())
-        if getattr(self, "_jac_key", None) != key:
+        cache: dict = self.__dict__.setdefault("_jac_cache", {})
+        if key not in cache:
             if getattr(self, "_jac_call", None) is None:
                 self._jac_call = DenseJacobian(self.problem)
             r, J = self._jac_call(self.problem.to_scaled(x), p)
             r = r.ravel()
             r.flags.writeable = J.flags.writeable = False  # shared: read-only
-            self._jac_key, self._jac = key, (r, J)
-        return self._jac
+            if len(cache) >= 2:
+                cache.pop(next(iter(cache)))
+            cache[key] = (r, J)
+        return cache[key]
+
+    def structural(self, x: np.ndarray) -> np.ndarray:
+        """x (physical) with the error parameters at zero: where gauge, datum and
+        identifiability are decided.  There the first-order model's gauge (a rigid motion
+        of the point cloud expressed through the error parameters) is exact; at non-zero
+        errors it is broken by second-order terms, which turn null directions into
+        directions with singular values near 1e-6 that a rank tolerance near 1e-13 counts as
+        determined (and the datum then leaves free).  Deciding here makes the decision the
+        same whatever the linearisation point (analyze, identify, mc, plan)."""
+        x0 = np.array(x, float)
+        x0[: self.problem.n_theta] = 0.0
+        return x0
 
     def analyse(
         self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray, constrained: bool = True
     ) -> Identifiability:
+        """Identifiability at x (physical): rank, null space and pivots decided at the
+        structural point (:meth:`structural`), singular values, condition numbers and weak
+        directions of the identifiable part at x."""
         _, J = self.jacobian(x, p)
+        _, J0 = self.jacobian(self.structural(x), p)
         C = self._scaled_constraints() if constrained else None
-        return analyse_jacobian(J, self.problem.names, C, fixed=fixed, prefer=self.prefer)
+        return analyse_jacobian(
+            J, self.problem.names, C, fixed=fixed, prefer=self.prefer, decide_on=J0
+        )
 
     def select_datum(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray) -> np.ndarray:
         """Put in force the candidate datum conditions that remove a null direction of the
-        Jacobian at x (physical) with ``fixed`` held (:func:`volcal.model.datum.select_conditions`);
-        returns the mask over the candidates."""
+        Jacobian at the structural point of x (physical; :meth:`structural`) with ``fixed``
+        held (:func:`volcal.model.datum.select_conditions`); returns the mask over the
+        candidates."""
         pr = self.problem
         Call = np.zeros((pr.C_all.shape[0], pr.n_x))
         Call[:, : pr.n_theta] = pr.C_all * pr.scale[None, : pr.n_theta]
@@ -446,7 +521,7 @@ class Identifier:
             act[rows[_independent_rows(pr.C_all[rows])]] = True
             pr.set_datum(act)
             return pr.datum_active
-        _, J = self.jacobian(x, p)
+        _, J = self.jacobian(self.structural(x), p)
         pr.set_datum(select_conditions(J, Call, fixed))
         return pr.datum_active
 
@@ -461,18 +536,14 @@ class Identifier:
         """How the null directions of the full Jacobian (no datum; ``fixed`` held) act on
         the volumetric error.
 
-        The null space is taken at x with the error parameters at zero: there the
-        first-order and the exact model have the same Jacobian and the gauge of the model
-        is exact (at theta != 0 the first-order model represents a rigid motion of the
-        cloud only to first order, which turns exact null directions into weak ones).  The
-        measured set is the data's distinct (pose, tool offset) pairs q_meas (N, n_axes;
-        mm, rad), tools_meas (N, 3) mm; the declared set a Halton sample of the travel of
-        every axis at each measured tool offset."""
+        The null space is taken at the structural point of x (:meth:`structural`), as
+        every other decision of gauge and datum.  The measured set is the data's distinct
+        (pose, tool offset) pairs q_meas (N, n_axes; mm, rad), tools_meas (N, 3) mm; the
+        declared set a Halton sample of the travel of every axis at each measured tool
+        offset."""
         pr = self.problem
         nt = pr.n_theta
-        x0 = np.array(x, float)
-        x0[:nt] = 0.0
-        _, J = self.jacobian(x0, p)
+        _, J = self.jacobian(self.structural(x), p)
         free, d, N = null_space(J, fixed)
         dirs = np.zeros((pr.n_x, N.shape[1]))
         dirs[free] = N * d[:, None]
@@ -585,14 +656,20 @@ def axis_sensitivity(
     """(nominal points (N, 3) mm, d(point)/d(axis) (n_axes, N, 3) in mm per mm or per rad)
     at poses q (N, n_axes; mm, rad) and tool offsets t (N, 3) mm, by forward differences
     of the nominal chain (step 1e-6 mm or rad)."""
-    p0 = machine.nominal_points(q, t)
+    q = np.atleast_2d(np.asarray(q, float))
+    t = np.broadcast_to(np.asarray(t, float), (q.shape[0], 3))
+    # once per distinct pose (a measurement repeats each pose once per station): one
+    # search for the distinct rows, not one per axis inside nominal_points
+    uniq, inv = unique_rows(np.hstack([q, t]))
+    qu, tu = uniq[:, : machine.n_axes], uniq[:, machine.n_axes :]
+    p0 = machine.nominal_points(qu, tu)
     out = np.zeros((machine.n_axes,) + p0.shape)
     h = 1e-6
     for k in range(machine.n_axes):
-        dq = np.zeros_like(q)
+        dq = np.zeros_like(qu)
         dq[:, k] = h
-        out[k] = (machine.nominal_points(q + dq, t) - p0) / h
-    return p0, out
+        out[k] = (machine.nominal_points(qu + dq, tu) - p0) / h
+    return p0[inv], out[:, inv]
 
 
 def combined_variance(
@@ -767,6 +844,7 @@ def _identify(
     instrument: str | Instrument | None = None,
     solver: str = "ipopt",
     columns: Mapping[str, str] | str | None = None,
+    max_memory_gb: float | None = None,
 ) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
@@ -790,6 +868,11 @@ def _identify(
 
     columns: a column mapping for an instrument's export (``"length=L[m],station=Tracker"``,
     see :func:`volcal.measurement.tables.parse_column_map`).
+
+    max_memory_gb: the memory (GB, 1e9 bytes) the identification may take; a table whose
+    estimated peak (:func:`volcal.base.memory.estimate_peak_bytes`, readings x unknowns)
+    exceeds it is refused with :class:`InputError` before the solve.  None (default): the
+    memory available now; ``float("inf")``: no check.
     """
     if degree == "auto":  # every other argument goes to each candidate fit
         opts = {
@@ -821,12 +904,9 @@ def _identify(
     from volcal.base.progress import reset_timings
 
     reset_timings()  # the stage timings recorded with the result are this run's
-    if isinstance(model, Machine):
-        machine = model
-    else:
-        with report_stage("building the model"):
-            machine = Machine.from_model(model)
-    spec = machine.spec
+    # the tables are read and checked before the model is built: a bad input is reported
+    # at once, not after the build
+    spec = model.spec if isinstance(model, Machine) else resolve_model(model)
     ins = get_instrument(instrument)
     st_table = None
     if stations is not None:
@@ -851,10 +931,25 @@ def _identify(
                 columns=columns,
             )
         )
+    if isinstance(model, Machine):
+        machine = model
+    else:
+        with report_stage("building the model"):
+            machine = Machine.from_model(spec)
     em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
     bud = budget if isinstance(budget, Budget) else load_budget(budget)
     strat = get_strategy(strategy, station_method=station_method, point_method=point_method)
     strategy = strat.name
+    # before anything of the table's size is built: a table too large for the memory is
+    # refused with the estimate and the limit, not ended by the kernel's OOM killer
+    check_memory(
+        len(meas),
+        em.n_params
+        + len(meas.station_ids) * len(ins.station_param_names)
+        + len(ins.global_param_names),
+        limit_gb=max_memory_gb,
+        what=meas.source,
+    )
 
     with report_stage("start values and reading uncertainties"):
         st0, glob0, st_fixed, notes = initial_instrument(machine, meas, st_table, ins)
@@ -862,6 +957,9 @@ def _identify(
         no_sigma = ~np.isfinite(sigma)
         if no_sigma.any():  # the budget only where the table gives no sigma
             sigma[no_sigma] = reading_sigma(machine, bud, meas, st0, ins)[no_sigma]
+            uncovered = bud.warn_uncovered(spec)
+            if uncovered:
+                notes.append(uncovered)
     sigma_source = (
         "table"
         if not no_sigma.any()
@@ -979,6 +1077,7 @@ def _identify(
     # value depends on which variable was held (reported), so it gets no uncertainty
     identifiable = ~ident.unidentifiable[:nt]
     datum_table = condition_table(pr.conditions, pr.datum_active, theta)
+    imposed = imposed_parameters(pr.conditions, pr.datum_active, nt) & identifiable
     n_not = int((~datum_table["imposed"]).sum())
     if n_not:
         notes.append(
@@ -1041,4 +1140,5 @@ def _identify(
         null_field,
         state,
         identifier=ider,
+        imposed=imposed,
     )

@@ -217,9 +217,12 @@ def select_orders(
 
     cache: dict[tuple, dict[str, Any]] = {}
     results: dict[tuple, Any] = {}
-    from tqdm import tqdm
+    from volcal.base.progress import counter
 
-    bar = tqdm(desc="order selection", unit="fit", disable=not progress, leave=False)
+    # fits counted as they run (their number depends on the sweeps): a bar on a terminal,
+    # plain lines in logs; closed below once the sweeps end
+    counting = counter(None, "order selection", "fit", on=progress)
+    bar = counting.__enter__()
 
     def fit(em: ErrorModel, m):
         return identify(machine, m, st_table, error_model=em, **identify_options)
@@ -285,8 +288,7 @@ def select_orders(
                 status=f"failed: {exc.status or exc}",
             )
         log.info("order selection: %s -> %s %.6g", row["orders"], criterion, row["value"])
-        bar.update(1)
-        bar.set_postfix_str(row["orders"], refresh=False)
+        bar.update(1, note=f"last {row['orders']}")
         cache[key] = row
         return row
 
@@ -340,7 +342,7 @@ def select_orders(
     )
     table["chosen"] = table["orders"] == chosen_label
     res.order_selection = table
-    bar.close()
+    counting.__exit__(None, None, None)
     n_fits = len(cache) * (k_folds if criterion == "cv" else 1) + (criterion == "cv")
     what = "BIC (chi2 + k ln N)" if criterion == "bic" else f"{k_folds}-fold cross-validation"
     res.notes.append(

@@ -15,6 +15,10 @@ through :func:`write_folder`:
   Python API replaces it as before;
 * a lock file beside the target (``.NAME.lock``, removed afterwards) makes a second process
   writing the same folder fail with a clear error instead of mixing two runs;
+* a writer killed outright (SIGKILL, a power cut) cannot clean up: its temporary folder
+  (``.NAME.tmp-PID-*``, named with the writer's process id, which the lock file records
+  too) stays.  The next writer of the same folder, holding the lock, removes the
+  temporaries whose process no longer runs, and only those (:func:`remove_stale`);
 * files get the modes the user's umask gives (0644 / 0755 under the usual 022).
 
 :func:`check_out_dir` runs the same checks up front: commands call it before any solving,
@@ -44,6 +48,8 @@ __all__ = [
     "output_policy",
     "MANIFEST",
     "folder_lock",
+    "remove_stale",
+    "stale_temporaries",
 ]
 
 MANIFEST = "manifest.json"
@@ -318,12 +324,96 @@ def folder_lock(out: str | Path) -> Iterator[None]:
         if same:
             break
         os.close(fd)
+    # record the holder (process id and host): what a later writer checks before it
+    # removes temporaries that a killed holder left behind
+    previous = _read_lock_owner(fd)
+    with contextlib.suppress(OSError):
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()} {_host()}\n".encode(), 0)
     try:
+        if previous is None or previous[1] == _host():
+            remove_stale(out)
         yield
     finally:
         with contextlib.suppress(OSError):
             os.unlink(lock)
         os.close(fd)
+
+
+def _host() -> str:
+    import socket
+
+    return socket.gethostname()
+
+
+def _read_lock_owner(fd: int) -> tuple[int, str] | None:
+    """(pid, host) a lock file records, None when empty or unreadable (written by a
+    version of volcal that recorded nothing)."""
+    try:
+        text = os.pread(fd, 256, 0).decode("utf-8", "replace").split()
+        return int(text[0]), text[1]
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process with this id runs on this host (a process of another user
+    counts as running)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def stale_temporaries(folder: str | Path, prefix: str) -> list[Path]:
+    """Entries ``folder/PREFIX<pid>-*`` whose process ``pid`` no longer runs: left by a
+    writer killed outright.  Entries of a running process, and entries without a process
+    id in their name (not written this way), are not listed."""
+    out = []
+    folder = Path(folder)
+    try:
+        entries = list(folder.iterdir())
+    except OSError:
+        return []
+    for p in entries:
+        if not p.name.startswith(prefix):
+            continue
+        pid = p.name[len(prefix) :].split("-", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            out.append(p)
+    return out
+
+
+def remove_stale(out: str | Path) -> list[Path]:
+    """Remove the temporary (``.NAME.tmp-PID-*``) and replaced (``.NAME.old-PID-*``)
+    folders that writers of ``out`` killed outright left beside it, when their process
+    no longer runs; returns what was removed.  Called by :func:`folder_lock` once the
+    lock is held (no other writer of ``out`` is running then)."""
+    out = Path(out).absolute()
+    gone = []
+    for kind in ("tmp", "old"):
+        for p in stale_temporaries(out.parent, f".{out.name}.{kind}-"):
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                with contextlib.suppress(OSError):
+                    p.unlink()
+            if not p.exists():
+                gone.append(p)
+    if gone:
+        import logging
+
+        logging.getLogger(__name__).info(
+            "removed %d temporary folder(s) of an earlier run that was killed: %s",
+            len(gone),
+            ", ".join(p.name for p in gone),
+        )
+    return gone
 
 
 def write_folder(
@@ -352,7 +442,7 @@ def write_folder(
             f"cannot create the output folder: {exc.strerror or exc}", source=str(out_dir)
         ) from None
     with folder_lock(out):
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-{os.getpid()}-", dir=out.parent))
         try:
             writer(tmp)
             _write_manifest(tmp, what)
@@ -368,7 +458,7 @@ def write_folder(
                     allowed_dirs=allowed_dirs,
                     force=force,
                 )
-                old = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
+                old = out.parent / f".{out.name}.old-{os.getpid()}-{uuid.uuid4().hex[:8]}"
                 os.rename(out, old)
                 try:
                     os.rename(tmp, out)
@@ -415,3 +505,54 @@ def interrupt_deferred(signum: int) -> bool:
         _PENDING.append(signum)
         return True
     return False
+
+
+# --------------------------------------------------------------------------------------
+# where a write failed
+
+
+def _mount_of(path: Path) -> tuple[str, str, str] | None:
+    """(mount point, file-system type, device) of the file system holding ``path`` (an
+    existing path), from /proc/self/mountinfo (Linux); None elsewhere."""
+    try:
+        st = os.stat(path)
+        lines = Path("/proc/self/mountinfo").read_text(encoding="utf-8").splitlines()
+    except OSError:
+        return None
+    real = os.path.realpath(path)
+    want = f"{os.major(st.st_dev)}:{os.minor(st.st_dev)}"
+    best = None
+    for line in lines:
+        left, _, right = line.partition(" - ")
+        f, r = left.split(), right.split()
+        if len(f) < 5 or len(r) < 2 or f[2] != want:
+            continue
+        mnt = f[4].replace("\\040", " ")
+        if (real == mnt or real.startswith(mnt.rstrip("/") + "/")) and (
+            best is None or len(mnt) > len(best[0])
+        ):
+            best = (mnt, r[0], r[1])
+    return best
+
+
+def describe_device(path: str | Path) -> str:
+    """A sentence naming the file system that holds ``path`` (or would hold it): its
+    device, type and mount point and the space left on it, e.g. ``"/dev/sda1 (ext4)
+    mounted at /home, 0 B free"``."""
+    p = Path(path).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    where = _mount_of(p)
+    try:
+        free = shutil.disk_usage(p).free
+    except OSError:
+        free = None
+    text = f"{where[2]} ({where[1]}) mounted at {where[0]}" if where else f"the disk of {p}"
+    if free is not None:
+        size = float(free)
+        for unit in ("B", "kB", "MB", "GB", "TB"):
+            if size < 1000 or unit == "TB":
+                break
+            size /= 1000
+        text += f", {size:.3g} {unit} free" if unit != "B" else f", {free} B free"
+    return text

@@ -21,3 +21,24 @@ def scale_columns(
     d = 1.0 / np.where(norms == 0, 1.0, norms)
     Jf *= d
     return free, norms, d, Jf
+
+
+def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of a 2-D float array in ascending lexicographic order and the
+    index of each row among them: ``np.unique(a, axis=0, return_inverse=True)`` with a
+    flat inverse, for finite values.  A lexsort of the columns and a comparison of
+    neighbours, about ten times faster than np.unique on rows (which sorts records) at
+    10^5 rows: the poses of a measurement are grouped this way several times per run."""
+    a = np.asarray(a, float)
+    n = a.shape[0]
+    if n == 0 or a.ndim != 2 or a.shape[1] == 0:
+        uniq, inv = np.unique(a, axis=0, return_inverse=True)
+        return uniq, inv.ravel()
+    order = np.lexsort(a.T[::-1])  # the first column is the primary key
+    s = a[order]
+    new = np.empty(n, bool)
+    new[0] = True
+    np.any(s[1:] != s[:-1], axis=1, out=new[1:])
+    inv = np.empty(n, np.intp)
+    inv[order] = np.cumsum(new) - 1
+    return s[new], inv

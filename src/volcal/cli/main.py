@@ -136,6 +136,68 @@ def _exit_now(code: int) -> None:  # pragma: no cover - ends the process
 PROJECT_FILE = "volcal.toml"
 
 
+def _project_value(path, command: str, key: str, value, action: argparse.Action):
+    """A project-file value checked and converted as the command line would convert the
+    option's text: a flag takes true / false, a number option a TOML number (or a string
+    that reads as one), a repeatable option an array; a value the option refuses is an
+    InputError naming the file, the table and the key (not the flag, which the user did
+    not type)."""
+    where = f"[{command}] {key}"
+
+    def what(v) -> str:
+        kinds = {bool: "boolean", int: "integer", float: "number", str: "string"}
+        kind = kinds.get(type(v), "array" if isinstance(v, list) else "table")
+        return f"{kind} {v!r}"
+
+    def bad(expected: str, v=value):
+        return InputError(f"{where}: expected {expected}, got {what(v)}", source=str(path))
+
+    if action.nargs == 0:  # --flag (store_true / store_false)
+        if not isinstance(value, bool):
+            raise bad("true or false")
+        return value
+    if isinstance(action, argparse._AppendAction):  # noqa: SLF001
+        items = value if isinstance(value, list) else [value]
+        return [_project_item(where, path, action, v, bad) for v in items]
+    return _project_item(where, path, action, value, bad)
+
+
+def _project_item(where: str, path, action: argparse.Action, v, bad):
+    """One value of an option (see :func:`_project_value`)."""
+    from pathlib import Path
+
+    t = action.type
+    if t is int:
+        if isinstance(v, bool) or not isinstance(v, (int, str)):
+            raise bad("an integer", v)
+    elif t is float:
+        if isinstance(v, bool) or not isinstance(v, (int, float, str)):
+            raise bad("a number", v)
+    elif isinstance(v, (bool, list, dict)) or not isinstance(v, (str, int, float)):
+        raise bad("a path" if t is Path else "a single value (a string or a number)", v)
+    if t is None and action.choices is None and not isinstance(v, str):
+        v = str(v)  # a name given as a number (`--model 3` would be the text "3")
+    if callable(t):
+        try:
+            v = t(v)
+        except (TypeError, ValueError, argparse.ArgumentTypeError, InputError) as exc:
+            if t is int:
+                raise bad("an integer", v) from None
+            if t is float:
+                raise bad("a number", v) from None
+            if t is Path:
+                raise bad("a path", v) from None
+            raise InputError(f"{where}: {exc}", source=str(path)) from None
+        if t is float and not isinstance(v, float):
+            v = float(v)
+    if action.choices is not None and v not in action.choices:
+        raise InputError(
+            f"{where}: expected one of {', '.join(map(str, action.choices))}, got {v!r}",
+            source=str(path),
+        )
+    return v
+
+
 def _project_defaults(parser: argparse.ArgumentParser, argv: list[str]) -> str | None:
     """Apply a project file's settings as defaults of the command about to run, so that a
     run needs no long flag list and flags still override it.
@@ -177,6 +239,13 @@ def _project_defaults(parser: argparse.ArgumentParser, argv: list[str]) -> str |
             f"{', '.join(sub.choices)}",
             source=str(path),
         )
+    not_tables = sorted(k for k, v in doc.items() if not isinstance(v, dict))
+    if not_tables:
+        raise InputError(
+            f"'{not_tables[0]}' must be a table of settings ([{not_tables[0]}] with one "
+            "key per option), got a single value",
+            source=str(path),
+        )
     command = next((a for a in argv if a in sub.choices), None)
     if command is None or command not in doc:
         return str(path)
@@ -196,10 +265,10 @@ def _project_defaults(parser: argparse.ArgumentParser, argv: list[str]) -> str |
                 source=str(path),
             )
         action = dests[dest]
-        # a string is parsed as the command line would (types, paths); a relative path is
-        # relative to the project file; other TOML values are taken as they are
-        if isinstance(value, str) and action.type is Path and not Path(value).is_absolute():
-            value = str(path.parent / value)
+        value = _project_value(path, command, key, value, action)
+        # a relative path is relative to the project file
+        if isinstance(value, Path) and not value.is_absolute():
+            value = path.parent / value
         values[dest] = value
         action.required = False  # given by the file; a flag still overrides it
     for group in cmd._mutually_exclusive_groups:  # noqa: SLF001
@@ -207,6 +276,61 @@ def _project_defaults(parser: argparse.ArgumentParser, argv: list[str]) -> str |
             group.required = False
     cmd.set_defaults(**values)
     return str(path)
+
+
+def _what_stays(args: argparse.Namespace) -> str:
+    """What an interrupted or failed command leaves behind, as one true clause: nothing,
+    the earlier output (untouched: outputs are renamed into place whole), or the resumable
+    pieces (``volcal mc``'s finished chunks, ``volcal plan``'s checkpoints) and how to
+    resume them."""
+    from pathlib import Path
+
+    said = []
+    ckpt = getattr(args, "checkpoint", None)
+    if ckpt is not None and Path(ckpt).is_dir() and any(Path(ckpt).iterdir()):
+        said.append(
+            f"the search checkpoints in {ckpt} stay: rerun with --checkpoint {ckpt} to resume"
+        )
+    out = getattr(args, "out", None)
+    if out is None or str(out) == "-":
+        return "; ".join(said) or "nothing was written"
+    out = Path(out)
+    samples = out / "samples"
+    if args.command == "mc" and samples.is_dir() and not (out / "manifest.json").is_file():
+        chunks = list(samples.rglob("chunk*.npz"))
+        size = sum(f.stat().st_size for f in chunks)
+        said.append(
+            f"{samples} keeps the {len(chunks)} finished chunk(s) of trials "
+            f"({size / 1e6:.1f} MB): rerun the same command to resume from them "
+            "(or delete the folder to start afresh); no result file was written"
+        )
+    elif getattr(args, "out_existed", False) and out.exists():
+        said.append(f"{out} keeps what it held before, untouched")
+    elif out.exists():
+        said.append(f"{out} holds no result")
+    else:
+        said.append(f"nothing was written to {out}")
+    return "; ".join(said)
+
+
+def _os_error(exc: OSError, args: argparse.Namespace) -> str:
+    """The message for an operating-system error: the system's words, the path, and for
+    a full disk or quota the output and the device it is on, then what stays."""
+    import errno
+
+    out = getattr(args, "out", None)
+    target = out if out is not None and str(out) != "-" else getattr(exc, "filename", None)
+    what = exc.strerror or str(exc)
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) and target is not None:
+        from volcal.base.folders import describe_device
+
+        return (
+            f"{what} while writing {target} (on {describe_device(target)}); "
+            f"{_what_stays(args)}; free some space there"
+            + (" or choose another --out" if target is out else "")
+        )
+    where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+    return f"{what}{where}; {_what_stays(args)}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -239,6 +363,7 @@ def main(argv: list[str] | None = None) -> int:
     from volcal.base.threads import set_blas_threads
 
     set_blas_threads(1)
+    import os
     import signal
     import threading
 
@@ -251,6 +376,8 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGINT, _terminate)
     else:  # pragma: no cover
         previous = prev_int = None
+    out = getattr(args, "out", None)
+    args.out_existed = out is not None and os.path.lexists(str(out))
     try:
         with output_policy(bool(getattr(args, "force", False))):
             code = int(args.func(args) or 0)
@@ -275,17 +402,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     except OSError as exc:
         # read-only folder, a file where a folder is expected, a full disk, ...
-        where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
-        print(
-            f"volcal {args.command}: error: {exc.strerror or exc}{where}; nothing was written",
-            file=sys.stderr,
-        )
+        print(f"volcal {args.command}: error: {_os_error(exc, args)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(
-            f"volcal {args.command}: interrupted; no partial output was left behind",
-            file=sys.stderr,
-        )
+        print(f"volcal {args.command}: interrupted; {_what_stays(args)}", file=sys.stderr)
         if _SIGNALLED:
             _exit_soon(130)
         return 130

@@ -15,7 +15,9 @@ target:
 * ``applies_to = "axis:<NAME>"``: positioning repeatability of one machine axis, one draw
   per positioning of the machine (one visit of a commanded pose).  Units: ``mm, um, nm``
   for a linear axis, ``rad, mrad, urad, deg, arcsec`` for a rotary axis.  At most one
-  source per axis; axes without a source have no positioning scatter.
+  source per axis; axes without a source have no positioning scatter, and ``volcal
+  simulate``, ``identify`` and ``mc`` warn once naming them
+  (:meth:`Budget.warn_uncovered`: the bundled ``paper002`` covers X, Y and Z only).
 * ``applies_to = "drift"``: a linear drift of the length readings over time, the magnitude
   being a drift *rate* (units ``mm/s, um/s, nm/s, um/min, um/h``); each realisation draws
   one rate and applies ``rate * (t - t_first)``.
@@ -61,6 +63,7 @@ from __future__ import annotations
 import math
 import re
 import tomllib
+import warnings
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
@@ -72,6 +75,7 @@ import numpy as np
 from volcal.base.exceptions import InputError
 
 __all__ = [
+    "BudgetWarning",
     "Source",
     "DriftModel",
     "Budget",
@@ -107,6 +111,12 @@ RATE_UNITS = {
 }
 
 _DISTRIBUTIONS = ("normal", "rectangular")
+
+
+class BudgetWarning(UserWarning):
+    """The budget does not cover the model: axes without a positioning repeatability."""
+
+
 _AXIS_RE = re.compile(r"^axis:([A-Z][A-Z0-9]{0,3})$")
 _SQRT3 = math.sqrt(3.0)
 
@@ -494,6 +504,55 @@ class Budget:
                     source=where,
                     column="unit",
                 )
+
+    def axes_without_term(self, spec: Any) -> list[str]:
+        """The axes of a :class:`volcal.model.spec.MachineSpec` the budget gives no
+        positioning repeatability (their positioning scatter is then taken as zero)."""
+        srcs = self.axis_sources
+        return [a for a in spec.axis_names if a not in srcs]
+
+    def coverage_message(self, spec: Any) -> str | None:
+        """A sentence naming the model's axes without a repeatability term, or None when
+        the budget covers every axis."""
+        missing = self.axes_without_term(spec)
+        if not missing:
+            return None
+        rotary = [a for a in missing if spec.axis(a).is_rotary]
+        kinds = (
+            "rotary"
+            if len(rotary) == len(missing)
+            else "linear"
+            if not rotary
+            else f"rotary: {', '.join(rotary)}"
+        )
+        unit = (
+            "an angle unit such as arcsec"
+            if len(rotary) == len(missing)
+            else "a length unit such as um"
+            if not rotary
+            else "um for a linear axis, arcsec for a rotary one"
+        )
+        return (
+            f"the uncertainty budget '{self.name}' has no positioning repeatability for "
+            f"{'axes' if len(missing) > 1 else 'axis'} {', '.join(missing)} ({kinds}) of "
+            f"model '{spec.name}': their positioning "
+            "scatter is taken as zero, so the readings' uncertainties leave it out; give a "
+            f'source per axis in a budget file (applies_to = "axis:{missing[0]}", {unit}, '
+            "and where the value comes from in its note; docs/budget.md) and pass it "
+            "with --budget"
+        )
+
+    def warn_uncovered(self, spec: Any) -> str | None:
+        """Warn (:class:`BudgetWarning`) when the budget leaves axes of the model without a
+        repeatability term; returns the message (None when every axis is covered).
+
+        The warning is issued from this one place, so Python's default filter shows it
+        once per run however many steps (simulate, identify, each Monte Carlo trial) use
+        the same budget on the same model."""
+        msg = self.coverage_message(spec)
+        if msg is not None:
+            warnings.warn(msg, BudgetWarning, stacklevel=1)
+        return msg
 
     # -- drift
 

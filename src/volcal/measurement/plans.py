@@ -14,6 +14,9 @@ of a plan: the simulator measures every pose with every tool offset it is given.
 * :func:`line_plan`: lines along each axis through the reference pose;
 * :func:`diagonal_plan`: the four body diagonals of the linear-axis box (ISO 230-6);
 * :func:`plan_from_csv`: poses from a CSV file (validated);
+* :func:`measurement_plan_from_csv`: the poses, tool offsets and stations of a
+  measurement plan (one row per reading: ``station, point, <axes>, tool_x_mm, tool_y_mm,
+  tool_z_mm[, length_mm]``, as ``volcal plan`` writes it), for the simulator;
 * :func:`check_plan`: validation of a plan DataFrame (used by all of the above's callers).
 
 :func:`default_stations` places tracker stations around the workspace for models that have
@@ -43,6 +46,8 @@ __all__ = [
     "line_plan",
     "diagonal_plan",
     "plan_from_csv",
+    "measurement_plan_from_csv",
+    "is_measurement_plan",
     "check_plan",
     "default_stations",
     "ROTARY_GRID_FULL_TURN",
@@ -419,6 +424,110 @@ def plan_from_csv(path: str | Path, spec: Any) -> pd.DataFrame:
     spec = _as_spec(spec)
     raw = _data.read_raw(Path(path), None, "plan")
     return _validate_raw(raw, spec)
+
+
+_TOOL_COLUMNS = (("tool_x_mm", "tool_x"), ("tool_y_mm", "tool_y"), ("tool_z_mm", "tool_z"))
+
+
+def is_measurement_plan(path: str | Path) -> bool:
+    """Whether the CSV file's header names a ``station`` column (a measurement plan, one
+    row per reading) rather than poses only."""
+    try:
+        header = pd.read_csv(Path(path), nrows=0).columns
+    except (OSError, ValueError, pd.errors.ParserError):
+        return False
+    return "station" in [str(c).strip() for c in header]
+
+
+def measurement_plan_from_csv(
+    path: str | Path, spec: Any
+) -> tuple[pd.DataFrame, np.ndarray, list[str]]:
+    """The poses (axis columns, mm / deg, in measuring order), tool offsets (T, 3) mm and
+    station ids (in measuring order) of a measurement plan file: one row per reading with
+    ``station``, optionally ``point``, one column per axis (``X`` or ``X_mm``), the tool
+    offset (``tool_x_mm, tool_y_mm, tool_z_mm``, or without ``_mm``; absent: (0, 0, 0))
+    and optionally ``length_mm`` / ``length`` (ignored here).  The simulator measures every
+    pose with every tool offset from every station, station after station, at each
+    station tool after tool: the file must have that layout (``volcal plan`` writes it);
+    :class:`InputError` names the file, row (header = row 1) and what differs."""
+    spec = _as_spec(spec)
+    src = str(path)
+    try:
+        df = pd.read_csv(Path(path), dtype=str, keep_default_na=False)
+    except (OSError, ValueError, pd.errors.ParserError) as exc:
+        raise InputError(f"cannot read the measurement plan: {exc}", source=src) from None
+    df.columns = [str(c).strip() for c in df.columns]
+    if "station" not in df.columns or not len(df):
+        raise InputError("a measurement plan needs a 'station' column and rows", source=src)
+    tool_cols = []
+    for names in _TOOL_COLUMNS:
+        have = [n for n in names if n in df.columns]
+        if len(have) > 1:
+            raise InputError(f"both {names[0]!r} and {names[1]!r} given", source=src)
+        tool_cols.append(have[0] if have else None)
+    if any(tool_cols) and not all(tool_cols):
+        raise InputError(
+            "give all three tool offset columns tool_x_mm, tool_y_mm, tool_z_mm or none",
+            source=src,
+        )
+    axis_cols = [
+        c
+        for c in df.columns
+        if c not in ("station", "point", "length_mm", "length", "sigma", "time", *tool_cols)
+    ]
+    poses = check_plan(df[axis_cols], spec, source=src)
+    tools = np.zeros((len(df), 3))
+    for j, c in enumerate(tool_cols):
+        if c is None:
+            continue
+        v = pd.to_numeric(df[c], errors="coerce").to_numpy(float)
+        bad = np.flatnonzero(~np.isfinite(v))
+        if bad.size:
+            raise InputError(
+                f"row {bad[0] + 2}: expected a finite tool offset in mm, got "
+                f"{df[c].iloc[bad[0]]!r}",
+                source=src,
+                column=c,
+            )
+        tools[:, j] = v
+    stations = [str(s).strip() for s in df["station"]]
+    if any(not s for s in stations):
+        i = stations.index("")
+        raise InputError(f"row {i + 2}: no station", source=src, column="station")
+    order = list(dict.fromkeys(stations))
+    tool_list = np.unique(tools, axis=0, return_index=True)[1]
+    T = tools[np.sort(tool_list)]
+    first = np.array([s == order[0] for s in stations])
+    q0 = poses.to_numpy(float)[first]
+    n_t = len(T)
+    n_p = len(q0) // n_t if n_t else 0
+    Q = q0[:n_p]
+    want_q = np.tile(Q, (n_t * len(order), 1))
+    want_t = np.tile(np.repeat(T, n_p, axis=0), (len(order), 1))
+    want_s = np.repeat(order, n_t * n_p)
+    got_q, got_s = poses.to_numpy(float), np.array(stations)
+    if n_p * n_t != len(q0) or len(want_s) != len(df):
+        raise InputError(
+            f"{len(df)} readings for {len(order)} stations x {n_t} tool offset(s): the "
+            "simulator measures every pose with every tool offset from every station; "
+            "every station needs the same readings",
+            source=src,
+        )
+    diff = (
+        (got_s != want_s)
+        | ~np.all(np.isclose(tools, want_t, atol=1e-9), axis=1)
+        | ~np.all(np.isclose(got_q, want_q, atol=1e-9), axis=1)
+    )
+    if diff.any():
+        i = int(np.flatnonzero(diff)[0])
+        raise InputError(
+            f"row {i + 2}: expected station {want_s[i]}, tool offset "
+            f"{', '.join(f'{v:g}' for v in want_t[i])} mm and the pose of row "
+            f"{i % n_p + 2}: the simulator measures station after station, at each station "
+            "tool offset after tool offset, the same poses in the same order",
+            source=src,
+        )
+    return poses.iloc[:n_p].reset_index(drop=True), T, order
 
 
 # --------------------------------------------------------------------------------------

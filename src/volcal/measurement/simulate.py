@@ -552,6 +552,7 @@ def simulate(
     tools = _check_tools(tools)
     budget = load_budget(budget)
     budget.check_axes(spec)
+    budget.warn_uncovered(spec)
     sources = _noise_sources(noise)
 
     S, N, K = len(st), len(plan), len(tools)

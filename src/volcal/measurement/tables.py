@@ -328,11 +328,18 @@ def _read_raw(source: str | Path | pd.DataFrame, name: str | None, what: str) ->
     body = raw.iloc[1:].reset_index(drop=True)
     body.columns = range(body.shape[1])
     rows = np.arange(body.shape[0], dtype=int) + 2
-    # fully blank lines (often trailing) are skipped; the row numbers stay those of the file
-    blank = np.ones((body.shape[0], 1), bool)
-    if body.shape[1]:
-        blank = np.column_stack([_blank_cells(body[c]) for c in body.columns])
-    keep = ~blank.all(axis=1)
+    # fully blank lines (often trailing) are skipped; the row numbers stay those of the file.
+    # A row is blank when every cell is: each further column is checked only on the rows
+    # still blank (one pass over one column for a table without blank lines)
+    all_blank = np.ones(body.shape[0], bool)
+    for c in body.columns:
+        idx = np.flatnonzero(all_blank)
+        if idx.size == 0:
+            break
+        all_blank[idx] = (
+            _blank_cells(body[c].iloc[idx]) if idx.size < len(body) else (_blank_cells(body[c]))
+        )
+    keep = ~all_blank
     body = body.loc[keep].reset_index(drop=True)
     rows = rows[keep]
     # unnamed columns that are empty throughout (trailing separators) are dropped
@@ -398,6 +405,12 @@ def parse_column_map(spec: Mapping[str, str] | str) -> dict[str, tuple[str, str 
                 f"{', '.join(_MAP_UNITS)}",
                 source="--columns",
             )
+        if key in out:
+            raise InputError(
+                f"column mapping: {key} is given twice ({key}={out[key][0]} and {key}={val}); "
+                "give each volcal column once",
+                source="--columns",
+            )
         out[key] = (col, unit)
     return out
 
@@ -409,6 +422,8 @@ def _map_columns(raw: _Raw, mapping: dict[str, tuple[str, str | None]], spec) ->
     canon = {n: c for c in _measurement_schema(spec) for n in c.names}
     header = list(raw.header)
     body = raw.body.copy()
+    taken: dict[int, str] = {}  # file column index -> the volcal column it became
+    target: dict[str, str] = {}  # volcal column -> the mapping key that named it
     for key, (col, unit) in mapping.items():
         if key not in canon:
             close = _closest(key, canon)
@@ -418,18 +433,33 @@ def _map_columns(raw: _Raw, mapping: dict[str, tuple[str, str | None]], spec) ->
                 + f"; columns: {', '.join(c.canonical for c in _measurement_schema(spec))}",
                 source=raw.name,
             )
-        if col not in header and unit is not None:
+        if col not in raw.header and unit is not None:
             # a file column named with its unit ("Distance [m]"): the bracket is both part
             # of the name and the unit of the values
-            col = next((c for c in (f"{col} [{unit}]", f"{col}[{unit}]") if c in header), col)
-        if col not in header:
+            col = next((c for c in (f"{col} [{unit}]", f"{col}[{unit}]") if c in raw.header), col)
+        if col not in raw.header:
             raise InputError(
                 f"column mapping {key}={col}: the file has no column {col!r}; its columns: "
-                f"{', '.join(header)}",
+                f"{', '.join(raw.header)}",
                 source=raw.name,
                 row=1,
             )
-        k = header.index(col)
+        k = list(raw.header).index(col)
+        if k in taken:
+            # one file column is one quantity: its values cannot be, say, both the length
+            # and its uncertainty
+            raise InputError(
+                f"column mapping: the file column {col!r} is mapped to both {taken[k]} and "
+                f"{key}; map each file column to one volcal column",
+                source=raw.name,
+            )
+        if canon[key].canonical in target:
+            raise InputError(
+                f"column mapping: {target[canon[key].canonical]} and {key} both name volcal's "
+                f"column {canon[key].canonical}; give it once",
+                source=raw.name,
+            )
+        taken[k], target[canon[key].canonical] = key, key
         header[k] = canon[key].canonical
         if unit is not None:
             want = canon[key].unit
@@ -593,11 +623,17 @@ def _parse_float(
         blank = np.isnan(num)
         bools = np.zeros(len(num), bool)
     elif kind == "string":
-        # text cells (a CSV file): the same rules, vectorised
-        text = values.str.strip()
-        blank = (text.eq("") | text.str.lower().isin(_NA_STRINGS)).to_numpy(bool)
-        bools = np.zeros(len(text), bool)
-        num = pd.to_numeric(text, errors="coerce").to_numpy(dtype=float, copy=True)
+        # text cells (a CSV file): the same rules, vectorised.  The numbers are parsed as
+        # read (the parser allows surrounding blanks); only the cells that are not a
+        # number are looked at again (blank, a missing-value word or a bad value)
+        num = pd.to_numeric(values, errors="coerce").to_numpy(dtype=float, copy=True)
+        blank = np.zeros(len(num), bool)
+        bools = np.zeros(len(num), bool)
+        odd = np.flatnonzero(np.isnan(num))
+        if odd.size:
+            text = values.iloc[odd].str.strip()
+            blank[odd] = (text.eq("") | text.str.lower().isin(_NA_STRINGS)).to_numpy(bool)
+            num[odd] = pd.to_numeric(text, errors="coerce").to_numpy(dtype=float)
     else:
         blank = np.array(
             [
@@ -661,8 +697,14 @@ def _id_text(v: Any) -> str | None:
 
 
 def _parse_ids(values: pd.Series, rows: np.ndarray, column: str, problems: _Problems) -> np.ndarray:
-    out = np.array([_id_text(v) for v in values.to_numpy(dtype=object)], dtype=object)
-    missing = np.array([v is None for v in out], dtype=bool)
+    if pd.api.types.infer_dtype(values, skipna=False) == "string":
+        # text cells (a CSV file): _id_text vectorised (stripped; blank is missing)
+        out = values.str.strip().fillna("").to_numpy(dtype=object)
+        missing = out == ""
+        out[missing] = None
+    else:
+        out = np.array([_id_text(v) for v in values.to_numpy(dtype=object)], dtype=object)
+        missing = np.array([v is None for v in out], dtype=bool)
     _report(problems, rows, missing, column, "missing id (empty cell or NaN); expected a text id")
     return out
 
@@ -1261,8 +1303,9 @@ def _warn_geometry(
             f"{name}: the tool offset is the same in every row "
             f"({', '.join(f'{v:g}' for v in tool[0])}) mm; with a single tool offset "
             f"the angular error motions of the last axis of the chain ({last}: "
-            f"EA{last}, EB{last}, EC{last}) cannot be separated from its translational "
-            "error motions with these data",
+            f"EA{last}, EB{last}, EC{last}, and what they mix with) cannot be separated "
+            "from translational error motions with these data; the identification names "
+            "every parameter it leaves out",
             DataWarning,
             stacklevel=3,
         )

@@ -182,6 +182,26 @@ def select_conditions(
     return keep
 
 
+def imposed_parameters(
+    conditions: list[Condition], active: np.ndarray, n_params: int, *, tol: float = 1e-9
+) -> np.ndarray:
+    """Which parameters the imposed conditions alone set (to zero): mask (n_params,).
+
+    A parameter is imposed when its unit vector lies in the row space of the imposed
+    condition rows (e.g. a squareness or a location error held at zero): its value is a
+    convention, not a measurement, whatever the data.  Parameters that a condition only
+    ties to others (the coefficients of a motion held at zero at its reference position)
+    are not imposed: the data determine them together with the others."""
+    rows = [c.row for c, on in zip(conditions, np.asarray(active, bool)) if on]
+    if not rows:
+        return np.zeros(n_params, bool)
+    C = np.asarray(rows, float)[:, :n_params]
+    # row space basis; membership of a unit vector does not depend on column scaling
+    _, s, vt = np.linalg.svd(C, full_matrices=False)
+    V = vt[s > s[0] * 1e-12] if len(s) and s[0] > 0 else vt[:0]
+    return np.asarray(np.sum(V * V, axis=0) > 1.0 - tol, bool)
+
+
 def condition_table(
     conditions: list[Condition], imposed: np.ndarray, theta: np.ndarray
 ) -> pd.DataFrame:

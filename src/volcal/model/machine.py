@@ -26,6 +26,7 @@ import casadi as ca
 import numpy as np
 
 from volcal import __version__
+from volcal.base.linalg import unique_rows
 from volcal.model.numpy_call import NumpyCall
 from volcal.model.spec import ErrorSymbol, MachineSpec, error_symbols, resolve_model
 
@@ -187,9 +188,9 @@ class Machine:
         q = np.atleast_2d(np.asarray(q, float))
         n = q.shape[0]
         t = np.broadcast_to(np.asarray(t, float), (n, 3))
-        uniq, inv = np.unique(np.hstack([q, t]), axis=0, return_inverse=True)
+        uniq, inv = unique_rows(np.hstack([q, t]))
         (p,) = self._call("nominal", len(uniq))(uniq[:, : self.n_axes].T, uniq[:, self.n_axes :].T)
-        return np.reshape(p, (3, len(uniq))).T[inv.ravel()]
+        return np.reshape(p, (3, len(uniq))).T[inv]
 
     def evaluate(self, q: np.ndarray, t: np.ndarray, e: np.ndarray, *, exact: bool = False):
         """Batch evaluation. q: (N, n_axes) internal units; t: (N, 3) or (3,); e: (N, n_err)

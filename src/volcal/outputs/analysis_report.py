@@ -21,7 +21,11 @@ their singular values; the linearised covariance under the datum constraints (KK
 Fisher information, :func:`volcal.analysis.constrained_covariance`); correlations and the
 strongest pairs; and the standard uncertainty of the volumetric error over a grid of the
 workspace.  :meth:`AnalysisReport.save` writes text, CSV and plots (singular value
-spectrum, correlation heat map, uncertainty map).
+spectrum, correlation heat map, uncertainty map).  The gauge and the unidentifiable are
+kept apart everywhere: ``parameters.csv`` has a ``status`` per variable (determined,
+imposed by the datum, gauge, unidentifiable: :meth:`AnalysisReport.status`) and the
+singular values below the rank tolerance are labelled gauge or unidentifiable in
+``singular_values.csv`` and ``singular_values.png`` (:func:`singular_value_kinds`).
 
 Units: parameter values and uncertainties in um / urad, stations in mm with
 uncertainties in um, volumetric errors and uncertainties in um.
@@ -41,6 +45,7 @@ import scipy.linalg as sla
 
 from volcal.analysis.identifiability import Identifiability, _describe, scaled_constrained_svd
 from volcal.base.units import report_factors
+from volcal.model.datum import imposed_parameters
 from volcal.model.errors import Datum
 from volcal.outputs.figures import figure
 
@@ -118,6 +123,7 @@ class AnalysisReport:
     volumetric: pd.DataFrame
     notes: list[str] = field(default_factory=list)
     datum_tied: np.ndarray | None = None  # (n_theta, n_theta) pairs tied by the datum
+    imposed: np.ndarray | None = None  # (n_theta,) parameters the datum alone sets to zero
 
     # ---- figures -----------------------------------------------------------------------
     @property
@@ -152,8 +158,29 @@ class AnalysisReport:
     def _factors(self) -> np.ndarray:
         return report_factors(self.units)
 
+    def status(self) -> list[str]:
+        """Per variable: ``determined`` (by the data), ``imposed`` (an error parameter the
+        datum alone sets to zero: u = 0 by convention), ``gauge`` (a station or frame
+        variable the rigid motion of the station set moves: held, not a property of the
+        machine) or ``unidentifiable`` (the data do not determine it)."""
+        gauge = {n for d in self.null if d.kind == "gauge" for n in d.names}
+        other = {n for d in self.null if d.kind != "gauge" for n in d.names}
+        imposed = np.zeros(len(self.names), bool)
+        if self.imposed is not None:
+            imposed[: len(self.imposed)] = self.imposed
+        out = []
+        for name, kind, ok, imp in zip(self.names, self.kinds, self.identifiable, imposed):
+            if ok:
+                out.append("imposed" if imp else "determined")
+            elif kind != "error" and (name in gauge or name not in other):
+                out.append("gauge")
+            else:
+                out.append("unidentifiable")
+        return out
+
     def parameters(self) -> pd.DataFrame:
-        """name, kind, unit (um / urad; stations mm with u in um), value, u, identifiable."""
+        """name, kind, unit (um / urad; stations mm with u in um), value, u, identifiable,
+        status (:meth:`status`: determined, imposed, gauge or unidentifiable)."""
         f = self._factors()
         u = np.sqrt(np.clip(np.diag(self.cov), 0, None)) * f
         u[~self.identifiable] = np.nan
@@ -174,6 +201,7 @@ class AnalysisReport:
                 "value": val,
                 "u": u,
                 "identifiable": self.identifiable,
+                "status": self.status(),
             }
         )
 
@@ -343,6 +371,8 @@ class AnalysisReport:
                 "singular_value": s,
                 "relative": s / s[0] if len(s) and s[0] > 0 else s,
                 "above_tolerance": s > idn.tol,
+                # gauge and unidentifiable apart (see singular_value_kinds)
+                "kind": singular_value_kinds(self),
             }
         ).to_csv(d / "singular_values.csv", index=False)
         pd.DataFrame(
@@ -422,20 +452,52 @@ class AnalysisReport:
 # plots (matplotlib object API, Agg canvas)
 
 
-def plot_singular_values(rep: AnalysisReport, path: Path) -> None:
+def singular_value_kinds(rep: AnalysisReport) -> np.ndarray:
+    """Per singular value: ``determined`` (above the rank tolerance), ``gauge`` or
+    ``unidentifiable``.  The null directions below the tolerance are split by count: as
+    many as the gauge has dimensions are the gauge (the smallest ones: a rigid motion
+    changes no reading at all), the others are unidentifiable (which value belongs to which
+    direction is arbitrary inside the null space; the counts are what is known)."""
+    s = np.asarray(rep.singular_values, float)
+    kind = np.where(s > rep.tol, "determined", "unidentifiable").astype(object)
+    below = np.flatnonzero(s <= rep.tol)
+    n_gauge = min(sum(d.dimension for d in rep.null if d.kind == "gauge"), len(below))
+    if n_gauge:
+        smallest = below[np.argsort(s[below], kind="stable")[:n_gauge]]
+        kind[smallest] = "gauge"
+    return kind
+
+
+def plot_singular_values(rep: AnalysisReport, path: Path) -> Any:
+    """singular_values.png: the determined, gauge and unidentifiable singular values apart
+    (:func:`singular_value_kinds`); returns the figure."""
     s = rep.singular_values
     fig = figure(7, 4, layout="constrained")
     ax = fig.subplots()
     idx = np.arange(1, len(s) + 1)
-    ok = s > rep.tol
-    ax.semilogy(idx[ok], s[ok], "o", markersize=3, label="identifiable")
-    if (~ok).any():
+    kind = singular_value_kinds(rep)
+    ok = kind == "determined"
+    ax.semilogy(idx[ok], s[ok], "o", markersize=3, label="determined by the data")
+    floor = np.maximum(s, rep.tol * 1e-3)
+    gauge = kind == "gauge"
+    if gauge.any():
         ax.semilogy(
-            idx[~ok],
-            np.maximum(s[~ok], rep.tol * 1e-3),
+            idx[gauge],
+            floor[gauge],
+            "s",
+            markersize=4,
+            color="tab:gray",
+            label=f"gauge ({int(gauge.sum())}: rigid motion no multilateration sees, "
+            "held by the datum)",
+        )
+    unid = kind == "unidentifiable"
+    if unid.any():
+        ax.semilogy(
+            idx[unid],
+            floor[unid],
             "x",
             color="tab:red",
-            label="below tolerance (unidentifiable)",
+            label=f"unidentifiable ({int(unid.sum())}: error parameters the data do not determine)",
         )
     ax.axhline(rep.tol, color="tab:red", linewidth=0.8, linestyle="--", label="rank tolerance")
     ax.set_xlabel("index")
@@ -444,6 +506,7 @@ def plot_singular_values(rep: AnalysisReport, path: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.savefig(path, dpi=110)
+    return fig
 
 
 def plot_correlation(R: pd.DataFrame, path: Path) -> None:
@@ -774,10 +837,14 @@ def analyze_jacobian_report(
     n = pr.n_x
     user_fixed = np.zeros(n, bool) if user_fixed is None else np.asarray(user_fixed, bool)
     with progress.stage("identifiability and covariance"):
+        # datum, rank, null space and pivots are decided at zero errors (the structural
+        # point), as identify, mc and plan decide them; the covariance is x's
         if datum_active is None:
             ider.select_datum(x, p, user_fixed)
         else:
             pr.set_datum(datum_active)
+        x0 = ider.structural(x)
+        _, J0 = ider.jacobian(x0, p)
         _, J = ider.jacobian(x, p)
         ident = ider.analyse(x, p, user_fixed)
         fixed = user_fixed.copy()
@@ -786,7 +853,7 @@ def analyze_jacobian_report(
     identifiable = ~(ident.unidentifiable | fixed)
     q, t, _, w = unpack_data(machine.n_axes, p)
     null = _null_directions(
-        ider, J, x, ident, user_fixed, q, t, np.asarray(pr.layout.station_index), w
+        ider, J0, x0, ident, user_fixed, q, t, np.asarray(pr.layout.station_index), w
     )
     Cs = ider._scaled_constraints()
     weak = _weak_directions(J, Cs, fixed, pr.names, ident.tol, n_weak)
@@ -828,6 +895,7 @@ def analyze_jacobian_report(
         vol,
         notes,
         tied,
+        imposed_parameters(pr.conditions, pr.datum_active, nt) & identifiable[:nt],
     )
 
 

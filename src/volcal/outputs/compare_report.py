@@ -119,7 +119,9 @@ def _rows(table: pd.DataFrame, reference: str) -> tuple[list[str], list[list[str
             str(r["strategy"]),
             "solved" if ok else f"FAILED ({r['status']})",
             _g(r["chi2_per_dof"]),
-            str(r["verdict"]),
+            # the most likely cause beside the verdict (comparison.csv has them all)
+            str(r["verdict"])
+            + (f" ({str(r.get('causes')).split()[0]})" if r.get("causes") else ""),
             _g(r["residual_rms_um"]),
             "reference"
             if is_ref and ok
@@ -166,8 +168,12 @@ def _explanation(doc: dict[str, Any]) -> list[str]:
         "fits does not determine are left out.",
         f"Largest parameter differences: strategy minus {ref}, over {ref}'s standard "
         "uncertainty, for parameters both fits identify.",
-        "Verdict: the model adequacy test of each fit (chi2/dof against its 99.9 % "
-        "interval, with the likely cause when outside).",
+        "Verdict: the model adequacy test of each fit (volcal.analysis.adequacy): fits, "
+        "budget_pessimistic (fits; chi2/dof below its 99.9 % interval without residual "
+        "structure) or does_not_fit (chi2/dof above the interval or residual structure at "
+        "p < 1e-6), with the most likely cause in brackets (strategy: a biased strategy; "
+        "basis, tool_offset, station, drift: where the structure is; outliers; budget; "
+        "all of them in the causes column of comparison.csv).",
     ]
     if doc.get("truth_source"):
         out.append(
@@ -436,7 +442,7 @@ def load_comparison(folder: str | Path) -> tuple[dict[str, Any], pd.DataFrame, b
             f'not a volcal comparison (expected "format": "{COMPARE_FORMAT}")',
             source=str(folder / "compare.json"),
         )
-    for col in ("unidentifiable", "largest_parameter_differences", "status", "verdict"):
+    for col in ("unidentifiable", "largest_parameter_differences", "status", "verdict", "causes"):
         if col in table:
             table[col] = [("" if pd.isna(v) else str(v)) for v in table[col]]
     png = (folder / PLOT).read_bytes() if (folder / PLOT).is_file() else None

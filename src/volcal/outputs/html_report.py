@@ -42,6 +42,7 @@ import numpy as np
 import pandas as pd
 
 from volcal import __version__
+from volcal.analysis.adequacy import STRUCTURE_P, Adequacy
 from volcal.base.exceptions import InputError
 from volcal.outputs.results import (
     OPTIONAL_FILES,
@@ -391,9 +392,20 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
     verdict = None
     if ad:
         lo, hi = (ad.get("interval") or [None, None])[:2]
+        # the three outcomes (results saved before them read adequate / inadequate)
+        adq = Adequacy.from_dict(ad)
         verdict = {
-            "adequate": ad.get("verdict") == "adequate",
-            "verdict": str(ad.get("verdict", "")),
+            "adequate": adq.adequate,
+            "verdict": adq.verdict,
+            "summary": adq.summary,
+            "threshold": f"{STRUCTURE_P:g}",
+            "where": (
+                "above"
+                if adq.chi2_per_dof > adq.interval[1]
+                else "below"
+                if adq.chi2_per_dof < adq.interval[0]
+                else "inside"
+            ),
             "message": str(ad.get("message", "")),
             "chi2_per_dof": _g(ad.get("chi2_per_dof")),
             "interval": f"[{_g(lo)}, {_g(hi)}]",
@@ -411,7 +423,12 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
             "max_abs": _g((ad.get("outliers") or {}).get("max_abs")),
             "structure": [
                 {
-                    "axis": str(s.get("axis", "")),
+                    "axis": (
+                        f"axis {s.get('axis', '')}"
+                        if s.get("kind", "axis") == "axis"
+                        else str(s.get("axis", ""))
+                    ),
+                    "significant": float(s.get("p_value", 1.0)) < STRUCTURE_P,
                     "bins": s.get("n_bins"),
                     "f": _g(s.get("f"), 3),
                     "p": (
@@ -463,6 +480,7 @@ def _unidentifiable(res: LoadedResult) -> dict[str, Any]:
         "parameters": [str(n) for n in names],
         "combinations": [str(c) for c in meta.get("null_space") or []],
         "gauge": [str(c) for c in meta.get("gauge") or []],
+        "why": str((meta.get("unidentifiable_explanation") or {}).get("text") or ""),
     }
 
 
@@ -474,7 +492,13 @@ def _parameters(res: LoadedResult) -> list[dict[str, Any]]:
             "name": str(r.name),
             "value": _g(r.value, 6),
             "unit": _unit(r.unit),
-            "std": _g(r.u, 6) if r.identifiable else "not identifiable",
+            "std": (
+                "imposed by the datum"
+                if getattr(r, "imposed", False)
+                else _g(r.u, 6)
+                if r.identifiable
+                else "not identifiable"
+            ),
             "identifiable": bool(r.identifiable),
         }
         for r in table.itertuples(index=False)
@@ -485,7 +509,12 @@ def _uncertainty(res: LoadedResult, grid: pd.DataFrame | None) -> dict[str, Any]
     table = res.parameters()
     largest = []
     for unit in dict.fromkeys(table["unit"]):
-        sub = table[(table["unit"] == unit) & table["identifiable"] & np.isfinite(table["u"])]
+        sub = table[
+            (table["unit"] == unit)
+            & table["identifiable"]
+            & ~table["imposed"]
+            & np.isfinite(table["u"])
+        ]
         for r in sub.sort_values("u", ascending=False).head(LARGEST_UNCERTAINTIES).itertuples():
             largest.append(
                 {

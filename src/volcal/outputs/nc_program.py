@@ -12,11 +12,14 @@ machine's control, in one of :data:`NC_DIALECTS`:
   ``CYCL DEF 9`` dwell, ``STOP``).
 
 The program holds, in order: a header (name, units, absolute coordinates, comments), and
-for every block of consecutive plan rows with the same (station, tool) a program stop with
-the operator's instruction (set up the tracker at the station, mount the reflector at the
-tool offset), then for every row a linear move to the pose at the feed ``feed_mm_min``
-(mm/min), a dwell of ``dwell_s`` seconds during which the tracker reads, and a comment
-naming the point, station and tool on the move's line; last the program end.
+for every block of consecutive plan rows with the same (station, tool) the station's
+set-up notes (``setup_notes``, comment lines before its first block: where the tracker
+stands, where the reflector points) and a program stop with the operator's instruction
+(set up the tracker at the station, mount the reflector at the tool offset, given by its
+value in mm when the plan has ``tool_x_mm, tool_y_mm, tool_z_mm``), then for every row a
+linear move to the pose at the feed ``feed_mm_min`` (mm/min), a dwell of ``dwell_s``
+seconds during which the tracker reads, and a comment naming the point, station and tool
+offset on the move's line; last the program end.
 
 Units: linear axes in mm (3 decimals), rotary axes in deg (4 decimals).  The values are
 the plan's axis positions as given, in the control's active work coordinate system: the
@@ -88,6 +91,7 @@ class _Block:
     tool: int
     stop_comment: str
     rows: list[_Row]
+    notes: list[str]
 
 
 def nc_program(
@@ -100,6 +104,7 @@ def nc_program(
     program_name: str = "VOLCAL",
     safe_pose: Mapping[str, float] | None = None,
     header_lines: Sequence[str] = (),
+    setup_notes: Mapping[str, Sequence[str]] | None = None,
 ) -> str:
     """The NC program that visits the poses of ``plan`` in order, as text.
 
@@ -108,7 +113,9 @@ def nc_program(
     plan
         One row per reading in measuring order: one column per axis named as the axis
         (linear axes in mm, rotary axes in deg), ``station`` (str, the tracker set-up the
-        row belongs to), ``tool`` (int, the index of the reflector / tool offset) and
+        row belongs to), ``tool`` (int, the number of the reflector / tool offset: it
+        groups the rows), optionally ``tool_x_mm, tool_y_mm, tool_z_mm`` (the tool
+        offset's value, mm, printed in the comments instead of the number) and
         optionally ``point`` (int, the id printed in the comment; without it the rows are
         numbered 1, 2, ...).  Consecutive rows with the same (station, tool) form one block,
         which starts with a program stop for the operator.  The index is not used.
@@ -136,6 +143,9 @@ def nc_program(
         their position.
     header_lines
         Extra comment lines written after the program's own header comments.
+    setup_notes
+        {station: comment lines}, written before the first program stop of that station
+        (the set-up sheet: where the tracker stands, where the reflector points).
 
     Returns
     -------
@@ -158,7 +168,7 @@ def nc_program(
         raise InputError(f"dwell_s must be a finite number of seconds >= 0, got {dwell_s!r}")
     if not (math.isfinite(feed_mm_min) and feed_mm_min > 0):
         raise InputError(f"feed_mm_min must be a finite feed > 0 (mm/min), got {feed_mm_min!r}")
-    blocks, n_rows = _blocks(plan, axis_list, dialect)
+    blocks, n_rows = _blocks(plan, axis_list, dialect, setup_notes or {})
     safe = _safe_words(safe_pose, axis_list)
     name = _program_name(program_name, dialect)
 
@@ -242,8 +252,20 @@ def _check_axes(axes: Sequence[tuple[str, str]]) -> list[tuple[str, str]]:
     return out
 
 
+def _tool_text(values: np.ndarray | None, tool: int) -> str:
+    """The tool offset as the operator mounts it: its value (``tool offset 0, 0, -100 mm``)
+    when known, else its number in the plan."""
+    if values is None:
+        return f"tool number {tool}"
+    # rounded first and + 0.0 so that -0.0 prints as 0
+    return "tool offset " + ", ".join(_short(round(float(v), 3) + 0.0) for v in values) + " mm"
+
+
 def _blocks(
-    plan: pd.DataFrame, axes: list[tuple[str, str]], dialect: str
+    plan: pd.DataFrame,
+    axes: list[tuple[str, str]],
+    dialect: str,
+    setup_notes: Mapping[str, Sequence[str]],
 ) -> tuple[list[_Block], int]:
     """The plan's rows grouped into blocks of consecutive rows with the same (station, tool),
     formatted for ``dialect``; and the number of rows."""
@@ -266,20 +288,31 @@ def _blocks(
         else np.arange(1, len(plan) + 1, dtype=np.int64)
     )
     stations = [_station(s, i, plan) for i, s in enumerate(plan["station"].to_list())]
+    tcols = ["tool_x_mm", "tool_y_mm", "tool_z_mm"]
+    tvals = (
+        np.column_stack([_finite_column(plan, c) for c in tcols])
+        if all(c in plan.columns for c in tcols)
+        else None
+    )
 
     blocks: list[_Block] = []
     key: tuple[str, int] | None = None
+    noted: set[str] = set()
     for i in range(len(plan)):
         station, tool = stations[i], int(tools[i])
+        what = _tool_text(None if tvals is None else tvals[i], tool)
         if (station, tool) != key:
             key = (station, tool)
             stop = (
-                f"set up the tracker at station {station}, mount the reflector at tool "
-                f"offset {tool}, then cycle start"
+                f"set up the tracker at station {station}, mount the reflector at {what}, "
+                "then cycle start"
             )
-            blocks.append(_Block(station, tool, _comment(stop, dialect), []))
+            notes = [] if station in noted else list(setup_notes.get(station, ()))
+            noted.add(station)
+            lines = [_comment(n, dialect) for n in notes]
+            blocks.append(_Block(station, tool, _comment(stop, dialect), [], lines))
         words = [_word(n, k, float(values[n][i])) for n, k in axes]
-        comment = _comment(f"point {int(points[i])} station {station} tool {tool}", dialect)
+        comment = _comment(f"point {int(points[i])} station {station} {what}", dialect)
         blocks[-1].rows.append(_Row(words, comment))
     return blocks, len(plan)
 

@@ -14,7 +14,12 @@ Written into a temporary folder and renamed into place (:func:`volcal.base.folde
   nominal point, u_dx_um, u_dy_um, u_dz_um, u_total_um, modulo the rigid motion no
   multilateration sees): the predicted standard uncertainties;
 * ``search_history.csv`` (search, step, best, seconds), ``summary.json`` (the figures,
-  the effective settings, what stays unidentifiable) and ``report.md``;
+  the effective settings, the margins and the slack left on every declared limit, the
+  set-up sheet, what stays unidentifiable) and ``report.md`` (the same, with the set-up
+  sheet per station: where the tracker stands, where the reflector points and how it is
+  mounted, the tool offsets by value in mm, the order of the readings, the expected
+  time; the NC programs carry the same sheet as comments before each station's first
+  program stop);
 * ``plan.png`` (stations and workspace from above and from the side, the points coloured
   by the predicted volumetric uncertainty) unless plots are off.
 """
@@ -32,7 +37,7 @@ import pandas as pd
 from volcal.base.folders import write_folder
 from volcal.outputs.nc_program import NC_DIALECTS, nc_program
 
-__all__ = ["write_plan", "PLAN_FILES"]
+__all__ = ["write_plan", "PLAN_FILES", "setup_lines"]
 
 PLAN_FILES = (
     "stations.csv",
@@ -53,6 +58,117 @@ def _fmt(v: float) -> str:
     return f"{v:.3g}"
 
 
+def _num(v: float, d: int = 1) -> str:
+    """``v`` with ``d`` decimals, no ``-0``."""
+    return f"{round(float(v), d) + 0.0:.{d}f}"
+
+
+def _xyz(v: Sequence[float], d: int = 1, sep: str = ", ") -> str:
+    return sep.join(_num(x, d) for x in v)
+
+
+def _tool(v: Sequence[float]) -> str:
+    return f"tool offset {_xyz(v, 3).replace('.000', '')} mm"
+
+
+def setup_lines(entry: dict[str, Any], n_stations: int, half_angle_deg: float) -> list[str]:
+    """The set-up sheet of one station (an entry of
+    :meth:`volcal.analysis.planning.PlanResult.setup_sheet`) as short plain lines, for the
+    NC program's comments and the report: where the tracker stands, where the reflector
+    points, the readings and their expected time."""
+    p, a = entry["position_mm"], entry["aim"]
+    where = f", in region {entry['region']}" if entry["region"] else ""
+    lines = [
+        f"station {entry['station']} of {n_stations}: tracker at x {_num(p[0])} "
+        f"y {_num(p[1])} z {_num(p[2])} mm{where}"
+    ]
+    if a["mode"] == "re-aimed":
+        f = (a["from_x_mm"], a["from_y_mm"], a["from_z_mm"])
+        lines += [
+            f"reflector axis aimed from the workspace centre x {_num(f[0])} y {_num(f[1])} "
+            f"z {_num(f[2])} mm at the tracker",
+            f"aim direction {_xyz((a['dir_x'], a['dir_y'], a['dir_z']), 3)}: azimuth "
+            f"{_num(a['azimuth_deg'])} deg from +x, elevation {_num(a['elevation_deg'])} deg",
+            f"keep this aim for the whole station; largest beam angle "
+            f"{_num(a['max_beam_angle_deg'])} deg of {half_angle_deg:g} deg accepted",
+        ]
+    elif a["mode"] == "tool frame":
+        lines += [
+            f"reflector axis along {_xyz((a['dir_x'], a['dir_y'], a['dir_z']), 3)} in the "
+            "tool frame, turning with the rotary axes",
+            f"largest beam angle {_num(a['max_beam_angle_deg'])} deg of "
+            f"{half_angle_deg:g} deg accepted",
+        ]
+    else:
+        lines.append("reflector: any orientation, no acceptance limit declared")
+    lines.append(
+        f"{entry['readings']} readings with {len(entry['blocks'])} tool offset(s), about "
+        f"{_num(entry['minutes'])} min of readings"
+    )
+    return lines
+
+
+def _setup_section(summary: dict[str, Any]) -> list[str]:
+    sheet, n = summary["setup_sheet"], len(summary["setup_sheet"])
+    half = summary["settings"].get("half_angle_deg", 180.0)
+    spr = summary["settings"].get("seconds_per_reading", 4.0)
+    total = sum(e["minutes"] for e in sheet)
+    out = [
+        "",
+        "## Set-up sheet",
+        "",
+        f"Stations in measuring order; at each, the tool offsets in the order given, the "
+        f"poses in the order of `measurement_plan.csv` (rows below). Times count "
+        f"{spr:g} s per reading (`seconds_per_reading`), {_num(total)} min in all; setting "
+        "up the tracker and changing the reflector come on top. Tool offsets are in the "
+        "tool frame, mm. Coordinates are in the machine frame, mm; the NC programs carry "
+        "the same sheet as comments.",
+    ]
+    for e in sheet:
+        out += ["", f"### Station {e['station']}", ""]
+        out += [f"- {line}" for line in setup_lines(e, n, half)]
+        out += ["", "| order | mount the reflector at | rows | points | readings | minutes |"]
+        out.append("|---|---|---|---|---|---|")
+        for k, b in enumerate(e["blocks"]):
+            pts = b["points"]
+            out.append(
+                f"| {k + 1} | {_tool(b['tool_offset_mm'])} | {b['first_row']}-{b['last_row']} "
+                f"| {pts[0]}-{pts[-1]} | {b['readings']} | {_num(b['readings'] * spr / 60.0)} |"
+            )
+    return out
+
+
+def _slack_section(summary: dict[str, Any]) -> list[str]:
+    mg = summary["margins"]
+    out = [
+        "",
+        "## Margins and slack",
+        "",
+        f"The search kept {mg['deg']:g} deg off the reflector's acceptance half-angle and "
+        f"{mg['mm']:g} mm inside the regions, on the minimum distance, the range and around "
+        "the obstacles (`--margin-deg`, `--margin-mm`, or `margin_deg`, `margin_mm` in the "
+        "setting). Room left on each declared limit, worst case over the planned readings:",
+        "",
+        "| limit | worst value | declared limit | slack | at |",
+        "|---|---|---|---|---|",
+    ]
+    names = {
+        "angle": "beam angle to the reflector axis",
+        "distance": "minimum station-to-point distance",
+        "range": "tracker range",
+        "region": "station inside its region (distance to the nearest face)",
+        "sight": "beam clearance to cylinder obstacles",
+    }
+    for r in summary["slack"]:
+        at = r["station"] + (f", row {r['reading'] + 1}" if r["reading"] >= 0 else "")
+        u = r["unit"]
+        out.append(
+            f"| {names.get(r['constraint'], r['constraint'])} | {_num(r['worst'], 2)} {u} | "
+            f"{r['limit']:g} {u} | {_num(r['slack'], 2)} {u} | {at} |"
+        )
+    return out
+
+
 def _report(summary: dict[str, Any], vol: pd.DataFrame, motions: pd.DataFrame) -> str:
     lines = [
         f"# Measurement plan: {summary['model']}",
@@ -69,6 +185,10 @@ def _report(summary: dict[str, Any], vol: pd.DataFrame, motions: pd.DataFrame) -
         "- unidentifiable error parameters: "
         + (", ".join(summary["unidentifiable_error_parameters"]) or "none"),
         f"- every reading checked against the constraints: {summary['violations']} violations",
+        "- tool offsets (tool frame, mm), each measured from every station: "
+        + "; ".join(_xyz(t, 3).replace(".000", "") for t in summary["settings"]["tools_mm"]),
+        *_slack_section(summary),
+        *_setup_section(summary),
         "",
         "## Searches",
         "",
@@ -102,6 +222,10 @@ def _plot(result: Any, vol: pd.DataFrame, path: Path) -> None:
     for ax, (i, j, lab) in zip(axes, [(0, 1, "from above (x, y)"), (0, 2, "from the side (x, z)")]):
         sc = ax.scatter(P[:, i], P[:, j], c=u, s=10, cmap="viridis", rasterized=True)
         ax.plot(S[:, i], S[:, j], "r^", markersize=9, label="stations")
+        if result.constraints.reflector.limited and result.constraints.reflector.axis is None:
+            # the point the re-aimed reflector's axis is aimed from (the set-up sheet's)
+            c = np.asarray(result.centre_mm, float)
+            ax.plot(c[i], c[j], "kx", markersize=9, label="reflector aimed from")
         for k, s in enumerate(S):
             ax.annotate(f"S{k + 1}", (s[i], s[j]), textcoords="offset points", xytext=(4, 4))
         ax.set_xlabel("xyz"[i] + " / mm")
@@ -130,6 +254,9 @@ def write_plan(
     mp = result.measurement_plan()
     mp_nc = result.measurement_plan(with_tool_index=True)
     axes = [(a.name, "rotary" if a.is_rotary else "linear") for a in m.spec.axes]
+    sheet = result.setup_sheet()
+    half = float(result.constraints.reflector.half_angle_deg)
+    notes = {e["station"]: setup_lines(e, len(sheet), half) for e in sheet}
     programs = {
         d: nc_program(
             mp_nc,
@@ -140,8 +267,11 @@ def write_plan(
             header_lines=[
                 f"volcal measurement plan for {m.spec.name}: {len(result.stations_mm)} "
                 f"stations, {int(result.selected.sum())} poses, {len(result.tools)} tool "
-                "offset(s)"
+                "offset(s)",
+                f"margins kept from the declared limits {result.margins[0]:g} deg, "
+                f"{result.margins[1]:g} mm",
             ],
+            setup_notes=notes,
         )
         for d in dialects
     }
@@ -151,7 +281,8 @@ def write_plan(
     summary = result.summary()
     summary["field_not_determined"] = int((~result.field_determined()).sum())
     summary["violations"] = int(len(result.violations()))
-    summary["settings"] = result.settings
+    summary["settings"] = dict(result.settings, half_angle_deg=half)
+    summary["setup_sheet"] = sheet
     summary["stations_mm"] = np.round(result.stations_mm, 4).tolist()
     hist = pd.DataFrame(
         [

@@ -155,7 +155,8 @@ def volumetric_slices_data(
             {"title": title, "norm": np.linalg.norm(d, axis=2), "d1": d[..., c1], "d2": d[..., c2]}
         )
     vmax = max(float(np.max(s["norm"])) for s in out) or 1.0
-    what = "tool offset 0" if tool is None else f"tool offset {tuple(np.round(tool, 1))} mm"
+    t = np.zeros(3) if tool is None else np.asarray(tool, float)
+    what = "tool offset (" + ", ".join(f"{v:g}" for v in np.round(t, 1) + 0.0) + ") mm"
     return {
         "g1": g1,
         "g2": g2,
@@ -262,7 +263,7 @@ def residuals_vs_axes_data(
         if "station" in residuals
         else np.full(len(z), "all")
     )
-    by_axis = {s.axis: s for s in (adequacy.structure if adequacy else ())}
+    by_axis = {s.axis: s for s in (adequacy.structure if adequacy else ()) if s.kind == "axis"}
     idx = np.flatnonzero(keep)
     sub = idx[:: max(1, int(np.ceil(len(idx) / max_points)))]
     zk, sk = z[keep], st[keep]
@@ -285,7 +286,12 @@ def residuals_vs_axes_data(
         panels.append(
             {
                 "xlabel": f"{name} position ({u})" if u else name,
-                "title": f"axis {name}" + (f": F = {s.f:.3g}, {format_p(s)}" if s else ""),
+                "title": f"axis {name}"
+                + (
+                    f": F = {s.f:.3g}, {format_p(s)}" + (" (significant)" if s.significant else "")
+                    if s
+                    else ""
+                ),
                 "x": x[sub],
                 "z": z[sub],
                 "means": means,
@@ -299,7 +305,11 @@ def residuals_vs_axes_data(
     if adequacy is not None:
         head += (
             f"\nchi2/dof {adequacy.chi2_per_dof:.4g}, 99.9 % interval "
-            f"[{adequacy.interval[0]:.4g}, {adequacy.interval[1]:.4g}]: {adequacy.verdict}"
+            f"[{adequacy.interval[0]:.4g}, {adequacy.interval[1]:.4g}]: "
+            + {
+                "fits": "the model fits",
+                "budget_pessimistic": "the model fits, the budget is pessimistic",
+            }.get(adequacy.verdict, "the model does NOT fit")
         )
     return {"panels": panels, "title": head}
 

@@ -5,10 +5,12 @@
 =========================  ==================================================================
 file                       content
 =========================  ==================================================================
-``parameters.csv``         ``name, value, unit, u, identifiable``: every error parameter in
-                           um / urad (``unit`` says which); ``u`` its standard uncertainty
-                           (empty for unidentifiable parameters: their values are one
-                           representative of what the data allow, not determined)
+``parameters.csv``         ``name, value, unit, u, identifiable, imposed``: every error
+                           parameter in um / urad (``unit`` says which); ``u`` its standard
+                           uncertainty (empty for unidentifiable parameters: their values
+                           are one representative of what the data allow, not determined);
+                           ``imposed``: set to zero by the datum (a convention, u = 0, not
+                           a measurement; the conditions are in ``datum.csv``)
 ``stations.csv``           the identified stations: ``station, x_mm, y_mm, z_mm,
                            dead_length_mm`` (+ their standard uncertainties ``u_x_um`` ...
                            ``u_dead_length_um``, ``fixed``)
@@ -20,7 +22,7 @@ file                       content
                            (``EXX_um``, ``EAX_urad``) and its standard uncertainty
                            (``u_EXX_um``); cells of other axes' errors are empty
 ``volumetric_grid.csv``    a grid over the box of the linear axes and, on a coarse grid,
-                           the rotary axes' whole travel (tool offset 0): axis columns
+                           the rotary axes' whole travel (tool offset (0, 0, 0) mm): axis columns
                            (mm / deg), ``dx_um, dy_um, dz_um``, ``u_dx_um, u_dy_um,
                            u_dz_um`` and ``norm_um``
 ``report.md``              the human-readable report (links the plots)
@@ -74,7 +76,7 @@ import numpy as np
 import pandas as pd
 
 from volcal import __version__
-from volcal.analysis.adequacy import assess
+from volcal.analysis.adequacy import STRUCTURE_P, assess
 from volcal.analysis.identifiability import FieldNullSpace
 from volcal.analysis.identify import IdentificationResult, SolverState, predict_volumetric
 from volcal.base import progress
@@ -221,7 +223,7 @@ def volumetric_grid_table(
     *,
     rotary: bool = True,
 ) -> pd.DataFrame:
-    """Volumetric error on a grid over the workspace, tool offset 0: ``n`` positions per
+    """Volumetric error on a grid over the workspace, tool offset (0, 0, 0) mm: ``n`` positions per
     linear axis over its travel (at most :data:`GRID_POINTS_WITH_ROTARY` for a model with
     rotary axes) and, with ``rotary`` (default), the rotary axes over their whole travel
     on the coarse grid of :func:`volcal.measurement.plans.summary_grid` (8 angles 45 deg apart for a
@@ -376,7 +378,7 @@ def _grid_coverage(spec: MachineSpec, grid: pd.DataFrame) -> str:
     text = f"grid over {', '.join(moving) or 'no axis'}"
     if fixed:
         text += f"; {', '.join(fixed)} at reference"
-    return text + ", tool offset 0"
+    return text + ", tool offset (0, 0, 0) mm"
 
 
 def _result_document(
@@ -409,6 +411,11 @@ def _result_document(
         "theta": result.theta,
         "cov_theta": result.cov_theta,
         "identifiable": result.identifiable,
+        "imposed": (
+            np.zeros(len(result.theta), bool)
+            if getattr(result, "imposed", None) is None
+            else np.asarray(result.imposed, bool)
+        ),
         "strategy": result.strategy,
         "status": result.status,
         "success": result.success,
@@ -435,12 +442,19 @@ def _result_document(
         "max_volumetric_pose": (
             {a: float(grid[a].iloc[imax]) for a in spec.axis_names} if imax is not None else None
         ),
-        # the axes the volumetric grid (and so max_volumetric_um) spans, tool offset 0
+        # the axes the volumetric grid (and so max_volumetric_um) spans, tool offset (0, 0, 0) mm
         "max_volumetric_axes": _grid_axes(spec, grid),
         "adequacy": assess(result).to_dict(),
         "unidentifiable": list(np.asarray(em.param_names)[~np.asarray(result.identifiable)]),
         "null_space": (list(ident.unidentifiable_combinations) if ident is not None else []),
         "gauge": (list(ident.gauge_combinations) if ident is not None else []),
+        # why parameters are left out and what to measure (None: all identifiable, or no
+        # known cause)
+        "unidentifiable_explanation": (
+            result.unidentifiable_explanation()
+            if hasattr(result, "unidentifiable_explanation")
+            else None
+        ),
         "datum": (result.datum.to_dict(orient="records") if result.datum is not None else None),
         "null_space_field": (
             result.null_space.to_dict() if result.null_space is not None else None
@@ -488,8 +502,15 @@ class LoadedResult:
         written before the test existed."""
         return self.meta.get("adequacy")
 
+    @property
+    def imposed(self) -> np.ndarray:
+        """Parameters the datum set to zero (all False for results saved without it)."""
+        rec = self.meta.get("imposed")
+        n = len(self.theta)
+        return np.asarray(rec, bool) if rec is not None and len(rec) == n else np.zeros(n, bool)
+
     def parameters(self) -> pd.DataFrame:
-        """``name, value, unit, u, identifiable`` in um / urad (as parameters.csv)."""
+        """``name, value, unit, u, identifiable, imposed`` in um / urad (as parameters.csv)."""
         units = self.error_model.param_units
         f = np.array([_unit_factor(u)[0] for u in units])
         std = np.sqrt(np.clip(np.diag(self.cov_theta), 0, None)) * f
@@ -501,6 +522,7 @@ class LoadedResult:
                 "unit": [_unit_factor(u)[1] for u in units],
                 "u": std,
                 "identifiable": self.identifiable,
+                "imposed": self.imposed,
             }
         )
 
@@ -719,10 +741,7 @@ def _report(
     rows.append(
         (
             "model adequacy",
-            "the model fits (chi2/dof inside its 99.9 % interval)"
-            if adequacy.adequate
-            else "**INADEQUATE**: chi2/dof outside its 99.9 % interval; likely cause: "
-            + ", ".join(c.kind for c in adequacy.causes)
+            (adequacy.summary if adequacy.adequate else f"**{adequacy.summary}**")
             + " (see Model adequacy)",
         )
     )
@@ -875,6 +894,10 @@ def _report(
             "so their values are one representative among equally good ones and they have "
             "no uncertainty (empty `std`, `u_` cells; dashed in the plot)."
         )
+        why = result.unidentifiable_explanation()
+        if why is not None:
+            add("")
+            add(f"**Why, and what to measure:** {_sentence(why['text'])}")
     else:
         add("Every error parameter is identifiable from these data.")
     add("")
@@ -956,7 +979,7 @@ def _report(
         at_ref &= np.isclose(grid[a.name].to_numpy(float), a.reference)
     add(
         f"`volumetric_grid.csv` covers {', '.join(_grid_axes(spec, grid)) or 'no axis'}: "
-        f"{'; '.join(covered)}; tool offset 0; {len(grid)} poses. Largest error "
+        f"{'; '.join(covered)}; tool offset (0, 0, 0) mm; {len(grid)} poses. Largest error "
         f"{grid['norm_um'].max():.4g} um, RMS of the norm "
         f"{float(np.sqrt(np.mean(grid['norm_um'] ** 2))):.4g} um"
         + (
@@ -1001,7 +1024,8 @@ def _report(
         "Legendre coefficient on the normalised travel, `<error>_0`, `<error>_c<k>`, "
         "`<error>_s<k>` the Fourier coefficients of 1, cos(k x), sin(k x), `<error>_b<j>` "
         "the j-th B-spline coefficient, `<error>@<pos>` a table value, `<error>` a "
-        "constant."
+        "constant. `imposed`: set to zero by the datum (a convention with u = 0, not a "
+        "measurement; the conditions are in `datum.csv`)."
     )
     add("")
     add(_md_table(result.parameters()))
@@ -1080,30 +1104,48 @@ def _order_selection_lines(result: IdentificationResult) -> list[str]:
 # writing
 
 
+def _sentence(text: str) -> str:
+    """A message as a sentence: capital first letter, full stop."""
+    return (text[:1].upper() + text[1:]).rstrip(".") + "."
+
+
 def _adequacy_section(ad, plots: bool) -> str:
     """Report text: the model adequacy test (see :mod:`volcal.analysis.adequacy`)."""
     lo, hi = ad.interval
     lines = ["## Model adequacy", ""]
-    if ad.adequate:
+    if ad.verdict == "fits":
         lines.append(
             f"**The model fits the data within their uncertainty**: chi2/dof = "
             f"{ad.chi2_per_dof:.4g} lies inside its 99.9 % interval "
             f"[{lo:.4g}, {hi:.4g}] for {ad.dof} degrees of freedom "
-            f"({ad.n_readings} readings used)."
+            f"({ad.n_readings} readings used), and no residual structure is significant "
+            f"(p < {STRUCTURE_P:g})."
         )
+    elif ad.verdict == "budget_pessimistic":
+        lines.append(
+            f"**The model fits; the uncertainty budget is pessimistic.** {_sentence(ad.message)}"
+        )
+        lines += ["", "The reported uncertainties are conservative; the result can be used as is."]
     else:
+        where = "above" if ad.chi2_per_dof > hi else "below" if ad.chi2_per_dof < lo else "inside"
+        sig = [s.label for s in ad.significant_structure]
         lines.append(
             f"**WARNING: the model does not fit the data within their uncertainty.** "
-            f"chi2/dof = {ad.chi2_per_dof:.4g} lies outside its 99.9 % interval "
+            f"chi2/dof = {ad.chi2_per_dof:.4g} lies {where} its 99.9 % interval "
             f"[{lo:.4g}, {hi:.4g}] for {ad.dof} degrees of freedom "
-            f"({ad.n_readings} readings used). The identified errors and their "
-            "uncertainties are not to be trusted until the cause is removed."
+            f"({ad.n_readings} readings used)"
+            + (
+                f"; the residuals are structured (F-test p < {STRUCTURE_P:g} against "
+                + ", ".join(sig)
+                + ")"
+                if sig
+                else ""
+            )
+            + ". The identified errors and their uncertainties are not to be trusted until "
+            "the cause is removed."
         )
         lines += ["", "Likely cause" + ("s, most likely first:" if len(ad.causes) > 1 else ":"), ""]
-        lines += [
-            f"- **{c.kind}** ({100 * c.share:.0f} % of the excess chi2): {c.text}"
-            for c in ad.causes
-        ]
+        lines += [f"- **{c.kind}**: {c.text}" for c in ad.causes]
     lines.append("")
     for w in ad.warnings:
         lines += [f"**Warning:** {w}.", ""]
@@ -1115,21 +1157,29 @@ def _adequacy_section(ad, plots: bool) -> str:
         f"| readings beyond 5 robust sigma / 5 budget sigma | "
         f"{o['n_beyond_5_robust']} / {o['n_beyond_5_sigma']} |",
         f"| excess kurtosis of the normalised residuals | {_fmt(o['excess_kurtosis'])} |",
-        f"| budget factor (sigma multiplier the residuals call for) | {_fmt(ad.budget_factor)} |",
+        f"| budget factor (sigma multiplier the residuals call for) | {_fmt(ad.budget_factor)}"
+        + (
+            " (not a property of the budget while the residuals are structured) |"
+            if ad.significant_structure
+            else " |"
+        ),
     ]
     lines += [
         "",
-        "Residual structure against each axis' position (nested F-test of the "
-        "binned means per station against the station means; share: of the residual "
-        "sum of squares the binned means explain beyond chance):",
+        "Residual structure (nested F-tests: against an axis' position, the tool offset "
+        "or the time of the reading, the group means per station against the station "
+        "means; against the station, the station means against the overall mean; "
+        f"significant below p = {STRUCTURE_P:g}; share: of the residual sum of squares "
+        "the group means explain beyond chance):",
         "",
-        "| axis | bins | F | p-value | share |",
-        "|---|---:|---:|---:|---:|",
+        "| against | groups | F | p-value | share | significant |",
+        "|---|---:|---:|---:|---:|---|",
     ]
     for st in ad.structure:
         p = f"{st.p_value:.2g}" if st.log10_p > -300 else "< 1e-300"
         lines.append(
-            f"| {st.axis} | {st.n_bins} | {st.f:.3g} | {p} | {100 * st.explained_share:.1f} % |"
+            f"| {st.label} | {st.n_bins} | {st.f:.3g} | {p} | "
+            f"{100 * st.explained_share:.1f} % | {'**yes**' if st.significant else 'no'} |"
         )
     lines.append("")
     if plots:

@@ -24,6 +24,7 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
+from volcal.base.linalg import unique_rows
 from volcal.base.units import solver_scale
 from volcal.measurement.instruments import Instrument
 from volcal.model.datum import candidate_conditions
@@ -101,10 +102,7 @@ class Layout:
     def group_poses(q: np.ndarray, tool: np.ndarray) -> np.ndarray:
         """Pose index of every reading: readings with identical axis positions and tool
         offset share a pose."""
-        _, inv = np.unique(
-            np.hstack([np.asarray(q, float), np.asarray(tool, float)]), axis=0, return_inverse=True
-        )
-        return inv.ravel()
+        return unique_rows(np.hstack([np.asarray(q, float), np.asarray(tool, float)]))[1]
 
 
 @dataclass

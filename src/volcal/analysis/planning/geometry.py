@@ -15,7 +15,11 @@ declarations, radians inside.
   re-aimed at every station set-up: then it points from the workspace centre to the
   station and every beam of that station must lie within the half-angle of it.
 * :class:`Constraints`: all of the above plus the minimum station-to-point distance and the
-  tracker's maximum range.
+  tracker's maximum range.  :meth:`Constraints.with_margins` gives the stricter set a plan
+  is searched in (``margin_deg`` off the acceptance angle, ``margin_mm`` inside every
+  region, added to the minimum distance and the obstacles, off the range), so that a
+  tracker set up a little off its planned spot, or a reflector aimed a little off, still
+  keeps the declared limits.
 
 :func:`reading_violations` lists every reading that breaks a constraint (the check every
 plan passes before it is written), :func:`station_feasible` says whether a station
@@ -44,6 +48,7 @@ __all__ = [
     "stations_ok",
     "aim_axes",
     "constraints_from_dict",
+    "constraint_slack",
 ]
 
 _AXES = {"x": 0, "y": 1, "z": 2}
@@ -134,6 +139,40 @@ class Region:
         area = 0.5 * abs(np.sum(v[:, 0] * np.roll(v[:, 1], -1) - np.roll(v[:, 0], -1) * v[:, 1]))
         return float(area * max(self.high - self.low, 1e-9))
 
+    def inset(self, margin_mm: float) -> Region:
+        """The region shrunk by ``margin_mm`` (mm) on every face (edges and height limits);
+        :class:`InputError` when nothing is left."""
+        m = float(margin_mm)
+        if m == 0:
+            return self
+        v = self.vertices
+        e = np.roll(v, -1, axis=0) - v
+        n = np.column_stack([e[:, 1], -e[:, 0]])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)  # outward unit normals (CCW polygon)
+        c = np.sum(n * v, axis=1) - m  # edge k: n_k . x = c_k
+        # vertex k of the inset polygon: where edges k - 1 and k meet
+        out = np.empty_like(v)
+        for k in range(len(v)):
+            A = np.array([n[k - 1], n[k]])
+            out[k] = np.linalg.solve(A, np.array([c[k - 1], c[k]]))
+        x, y = out[:, 0], out[:, 1]
+        area2 = float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+        inside = np.all(out @ n.T <= c + 1e-6 * max(1.0, np.abs(c).max()), axis=1)
+        if area2 <= 0 or not inside.all() or self.high - self.low < 2 * m:
+            raise InputError(
+                f"region {self.name!r}: a margin of {m:g} mm on every face leaves no room "
+                "for the tracker; enlarge the region or lower the margin (margin_mm)"
+            )
+        return Region(out, self.low + m, self.high - m, self.up, self.name)
+
+    def clearance(self, s: np.ndarray) -> np.ndarray:
+        """(M,) mm: how far each point (M, 3) lies inside the region, i.e. its distance to
+        the nearest face (negative outside)."""
+        A, b = self.halfspaces()
+        nrm = np.linalg.norm(A, axis=1)
+        s = np.atleast_2d(np.asarray(s, float))
+        return np.min((b - s @ A.T) / nrm, axis=1)
+
 
 @dataclass(frozen=True)
 class Obstacle:
@@ -183,6 +222,57 @@ class Constraints:
     reflector: Reflector = field(default_factory=Reflector)
     min_distance_mm: float = 0.0
     max_range_mm: float = np.inf
+
+    def with_margins(self, margin_deg: float = 0.0, margin_mm: float = 0.0) -> Constraints:
+        """The stricter constraints a plan is searched in: the acceptance half-angle less
+        ``margin_deg`` (deg), every region shrunk by ``margin_mm`` (mm) on every face, the
+        minimum distance plus and the range less ``margin_mm``, every obstacle grown by
+        ``margin_mm``.  :class:`InputError` when a margin is negative or leaves nothing."""
+        md, mm = float(margin_deg), float(margin_mm)
+        if not (np.isfinite(md) and md >= 0 and np.isfinite(mm) and mm >= 0):
+            raise InputError(
+                f"margins must be finite and >= 0, got {md:g} deg and {mm:g} mm "
+                "(margin_deg, margin_mm)"
+            )
+        ref = self.reflector
+        if ref.limited:
+            if not ref.half_angle_deg - md > 0:
+                raise InputError(
+                    f"a margin of {md:g} deg leaves nothing of the reflector's acceptance "
+                    f"half-angle {ref.half_angle_deg:g} deg (margin_deg)"
+                )
+            ref = Reflector(ref.half_angle_deg - md, ref.axis)
+        if self.max_range_mm - mm <= self.min_distance_mm + mm:
+            raise InputError(
+                f"a margin of {mm:g} mm leaves no distance between the minimum distance "
+                f"{self.min_distance_mm:g} mm and the range {self.max_range_mm:g} mm (margin_mm)"
+            )
+        obstacles = []
+        for ob in self.obstacles:
+            if ob.kind == "box":
+                lo = tuple(float(v) - mm for v in ob.lo)
+                hi = tuple(float(v) + mm for v in ob.hi)
+                obstacles.append(
+                    Obstacle("box", lo=lo, hi=hi, moves_with=ob.moves_with, name=ob.name)  # type: ignore[arg-type]
+                )
+            else:
+                obstacles.append(
+                    Obstacle(
+                        "cylinder",
+                        p0=ob.p0,
+                        p1=ob.p1,
+                        radius=ob.radius + mm,
+                        moves_with=ob.moves_with,
+                        name=ob.name,
+                    )
+                )
+        return Constraints(
+            tuple(r.inset(mm) for r in self.regions),
+            tuple(obstacles),
+            ref,
+            self.min_distance_mm + mm,
+            self.max_range_mm - mm,
+        )
 
 
 def _segment_box(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -301,6 +391,77 @@ def reading_violations(
     return pd.DataFrame(rows, columns=["reading", "station", "constraint", "value", "limit"])
 
 
+def constraint_slack(
+    points: np.ndarray,
+    tool_axes: np.ndarray,
+    station_of: np.ndarray,
+    stations: np.ndarray,
+    constraints: Constraints,
+    centre: np.ndarray,
+) -> pd.DataFrame:
+    """How far the readings stay from each declared limit, worst case per kind (arguments
+    as :func:`reading_violations`).  One row per limit that applies: ``constraint``
+    (angle, distance, range, region, sight), ``worst`` (the value closest to the limit:
+    largest beam angle to the reflector axis in deg, smallest or largest station-to-point
+    distance in mm, smallest distance of a station to a face of its region in mm, smallest
+    clearance of a beam to a cylinder obstacle in mm), ``limit``, ``slack`` (how much room
+    is left, deg or mm; negative: broken), ``unit``, ``station`` (0-based index) and
+    ``reading`` (the reading's row, -1 for a station-only limit)."""
+    station_of = np.asarray(station_of, int)
+    St = np.asarray(stations, float)
+    S = St[station_of]
+    P = np.asarray(points, float)
+    rows: list[dict[str, Any]] = []
+
+    def add(kind: str, worst: float, limit: float, slack: float, unit: str, st: int, r: int):
+        rows.append(
+            {
+                "constraint": kind,
+                "worst": float(worst),
+                "limit": float(limit),
+                "slack": float(slack),
+                "unit": unit,
+                "station": int(st),
+                "reading": int(r),
+            }
+        )
+
+    if len(P):
+        dist = np.linalg.norm(S - P, axis=1)
+        ref = constraints.reflector
+        if ref.limited:
+            ax = aim_axes(P, tool_axes, S, ref, centre)
+            ang = np.degrees(np.arccos(np.clip(np.sum((S - P) / dist[:, None] * ax, 1), -1, 1)))
+            i = int(np.argmax(ang))
+            h = ref.half_angle_deg
+            add("angle", ang[i], h, h - ang[i], "deg", station_of[i], i)
+        if constraints.min_distance_mm > 0:
+            i = int(np.argmin(dist))
+            lim = constraints.min_distance_mm
+            add("distance", dist[i], lim, dist[i] - lim, "mm", station_of[i], i)
+        if np.isfinite(constraints.max_range_mm):
+            i = int(np.argmax(dist))
+            lim = constraints.max_range_mm
+            add("range", dist[i], lim, lim - dist[i], "mm", station_of[i], i)
+        cyl = [ob for ob in constraints.obstacles if ob.kind == "cylinder"]
+        if cyl:
+            clear = np.full(len(P), np.inf)
+            for ob in cyl:
+                shift = P if ob.moves_with == "tool" else np.zeros((1, 3))
+                p0 = np.broadcast_to(np.asarray(ob.p0) + shift, P.shape)
+                p1 = np.broadcast_to(np.asarray(ob.p1) + shift, P.shape)
+                clear = np.minimum(clear, _segment_segment_distance(P, S, p0, p1) - ob.radius)
+            i = int(np.argmin(clear))
+            add("sight", clear[i], 0.0, clear[i], "mm", station_of[i], i)
+    if constraints.regions:
+        depth = np.max([r.clearance(St) for r in constraints.regions], axis=0)
+        k = int(np.argmin(depth))
+        add("region", depth[k], 0.0, depth[k], "mm", k, -1)
+    return pd.DataFrame(
+        rows, columns=["constraint", "worst", "limit", "slack", "unit", "station", "reading"]
+    )
+
+
 def station_feasible(
     stations: np.ndarray, constraints: Constraints, *, check_sight: bool = False
 ) -> np.ndarray:
@@ -325,14 +486,17 @@ def station_feasible(
 # ---- declarations (TOML tables / dicts: data, never code) ---------------------------------
 
 
+def _is_num(a: Any) -> bool:
+    return isinstance(a, (int, float, np.integer, np.floating)) and not isinstance(a, bool)
+
+
 def _vec(d: Mapping[str, Any], key: str, where: str, n: int = 3) -> tuple[float, ...]:
     v = d.get(key)
-    try:
-        out = tuple(float(a) for a in v)  # type: ignore[union-attr]
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: '{key}' must be a list of {n} numbers (mm)") from None
+    if not isinstance(v, (list, tuple, np.ndarray)) or not all(_is_num(a) for a in v):
+        raise InputError(f"{where}: '{key}' must be a list of {n} numbers (mm), got {v!r}")
+    out = tuple(float(a) for a in v)
     if len(out) != n or not np.all(np.isfinite(out)):
-        raise InputError(f"{where}: '{key}' must be a list of {n} finite numbers (mm)")
+        raise InputError(f"{where}: '{key}' must be a list of {n} finite numbers (mm), got {v!r}")
     return out
 
 
@@ -343,16 +507,58 @@ def _pair(v: Any, where: str, key: str) -> tuple[Any, Any]:
     return v[0], v[1]
 
 
-def _num(d: Mapping[str, Any], key: str, where: str, default: float | None = None) -> float:
+def _num(
+    d: Mapping[str, Any],
+    key: str,
+    where: str,
+    default: float | None = None,
+    *,
+    infinite: bool = False,
+) -> float:
     if key not in d:
         if default is None:
             raise InputError(f"{where}: missing '{key}'")
         return default
-    try:
-        v = float(d[key])
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: '{key}' must be a number, got {d[key]!r}") from None
+    v = d[key]
+    if not _is_num(v) or np.isnan(v) or (np.isinf(v) and not infinite):
+        raise InputError(f"{where}: '{key}' must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _table(v: Any, where: str) -> Mapping[str, Any]:
+    if not isinstance(v, Mapping):
+        raise InputError(f"{where}: expected a table of keys, got {v!r}")
     return v
+
+
+def _keys(d: Mapping[str, Any], known: set[str], where: str) -> None:
+    unknown = sorted(map(str, set(d) - known))
+    if unknown:
+        raise InputError(f"{where}: unknown key(s) {', '.join(unknown)}; expected {sorted(known)}")
+
+
+def _tables(doc: Mapping[str, Any], key: str, where: str) -> list[Mapping[str, Any]]:
+    """``[[where.key]]``: an array of tables (a single table is taken as one)."""
+    v = doc.get(key, [])
+    if isinstance(v, Mapping):
+        v = [v]
+    if not isinstance(v, list):
+        raise InputError(f"{where}: '{key}' must be an array of tables [[{key}]], got {v!r}")
+    return [_table(t, f"{where}.{key}[{k}]") for k, t in enumerate(v)]
+
+
+def _name(d: Mapping[str, Any], where: str, default: str) -> str:
+    v = d.get("name", default)
+    if not isinstance(v, str):
+        raise InputError(f"{where}: 'name' must be a string, got {v!r}")
+    return v
+
+
+_REGION_KEYS = {"box": {"name", "box"}, "polygon": {"name", "polygon", "low", "high", "up"}}
+_OBSTACLE_KEYS = {
+    "box": {"name", "box", "moves_with"},
+    "cylinder": {"name", "cylinder", "radius", "moves_with"},
+}
 
 
 def constraints_from_dict(doc: Mapping[str, Any], where: str = "constraints") -> Constraints:
@@ -361,7 +567,8 @@ def constraints_from_dict(doc: Mapping[str, Any], where: str = "constraints") ->
     min_distance_mm = 150
     max_range_mm = 10000
     [reflector]
-    half_angle_deg = 60        # acceptance about the mounting axis
+    half_angle_deg = 60        # acceptance about the mounting axis, 0 < angle <= 90;
+    #                            omit it for a reflector without a limit
     axis = [0, 0, -1]          # in the tool frame; omit: re-aimed at each station
     [[region]]
     name = "left"
@@ -374,75 +581,107 @@ def constraints_from_dict(doc: Mapping[str, Any], where: str = "constraints") ->
     moves_with = "tool"
     [[obstacle]]
     box = [[..], [..]]
+
+    Every key is checked (unknown keys, types, ranges, inverted boxes) and an error names
+    ``where`` (the file and table) and the key: raises :class:`InputError`.
     """
-    known = {"min_distance_mm", "max_range_mm", "reflector", "region", "obstacle"}
-    unknown = sorted(set(doc) - known)
-    if unknown:
-        raise InputError(f"{where}: unknown key(s) {', '.join(unknown)}; expected {sorted(known)}")
+    doc = _table(doc, where)
+    _keys(doc, {"min_distance_mm", "max_range_mm", "reflector", "region", "obstacle"}, where)
     regions = []
-    for k, r in enumerate(doc.get("region", []) or []):
+    for k, r in enumerate(_tables(doc, "region", where)):
         w = f"{where}.region[{k}]"
-        name = str(r.get("name", f"region{k + 1}"))
-        if "box" in r:
+        name = _name(r, w, f"region{k + 1}")
+        kind = next((kd for kd in ("box", "polygon") if kd in r), None)
+        if kind is None or ("box" in r and "polygon" in r):
+            raise InputError(f"{w}: expected either 'box' or 'polygon'")
+        _keys(r, _REGION_KEYS[kind], w)
+        if kind == "box":
             lo, hi = _pair(r["box"], w, "box")
-            regions.append(Region.box(_vec({"v": lo}, "v", w), _vec({"v": hi}, "v", w), name=name))
-        elif "polygon" in r:
-            try:
-                v = np.asarray(r["polygon"], float)
-            except (TypeError, ValueError):
+            lo, hi = _vec({"box": lo}, "box", w), _vec({"box": hi}, "box", w)
+            bad = [f"{c}: {a:g} > {b:g}" for c, a, b in zip("xyz", lo, hi, strict=True) if a > b]
+            if bad:
                 raise InputError(
-                    f"{w}: 'polygon' must be a list of [x, y] pairs of numbers (mm)"
-                ) from None
-            regions.append(
-                Region(v, _num(r, "low", w), _num(r, "high", w), str(r.get("up", "z")), name)
-            )
+                    f"{w}: 'box' must be [[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]] (mm) with "
+                    f"lo <= hi, got {'; '.join(bad)}"
+                )
+            v = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+            low, high, up = lo[2], hi[2], "z"
         else:
-            raise InputError(f"{w}: expected 'box' or 'polygon'")
+            poly = r["polygon"]
+            if not (
+                isinstance(poly, list)
+                and all(isinstance(v, list) and len(v) == 2 for v in poly)
+                and all(_is_num(a) and np.isfinite(a) for v in poly for a in v)
+            ):
+                raise InputError(
+                    f"{w}: 'polygon' must be a list of [x, y] pairs of finite numbers (mm)"
+                )
+            up = r.get("up", "z")
+            if up not in ("x", "y", "z"):
+                raise InputError(f'{w}: \'up\' must be "x", "y" or "z", got {up!r}')
+            low, high = _num(r, "low", w), _num(r, "high", w)
+            if low > high:
+                raise InputError(f"{w}: 'low' {low:g} > 'high' {high:g} (mm)")
+            v = np.asarray(poly, float)
+        try:
+            regions.append(Region(v, low, high, up, name))
+        except InputError as exc:  # the region's own checks (convex, ...), with the place
+            raise InputError(f"{w}: {exc}") from None
     obstacles = []
-    for k, o in enumerate(doc.get("obstacle", []) or []):
+    for k, o in enumerate(_tables(doc, "obstacle", where)):
         w = f"{where}.obstacle[{k}]"
-        name = str(o.get("name", f"obstacle{k + 1}"))
-        mw = str(o.get("moves_with", "frame"))
-        if "box" in o:
-            lo, hi = _pair(o["box"], w, "box")
-            obstacles.append(
-                Obstacle(
-                    "box",
-                    lo=_vec({"v": lo}, "v", w),  # type: ignore[arg-type]
-                    hi=_vec({"v": hi}, "v", w),  # type: ignore[arg-type]
-                    moves_with=mw,
-                    name=name,
+        name = _name(o, w, f"obstacle{k + 1}")
+        mw = o.get("moves_with", "frame")
+        if mw not in ("frame", "tool"):
+            raise InputError(f'{w}: \'moves_with\' must be "frame" or "tool", got {mw!r}')
+        kind = next((kd for kd in ("box", "cylinder") if kd in o), None)
+        if kind is None or ("box" in o and "cylinder" in o):
+            raise InputError(f"{w}: expected either 'box' or 'cylinder'")
+        _keys(o, _OBSTACLE_KEYS[kind], w)
+        a, b = _pair(o[kind], w, kind)
+        a, b = _vec({kind: a}, kind, w), _vec({kind: b}, kind, w)
+        if kind == "box":
+            bad = [f"{c}: {x:g} > {y:g}" for c, x, y in zip("xyz", a, b, strict=True) if x > y]
+            if bad:
+                raise InputError(
+                    f"{w}: 'box' must be [[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]] (mm) with "
+                    f"lo <= hi, got {'; '.join(bad)}"
                 )
-            )
-        elif "cylinder" in o:
-            a, b = _pair(o["cylinder"], w, "cylinder")
-            obstacles.append(
-                Obstacle(
-                    "cylinder",
-                    p0=_vec({"v": a}, "v", w),  # type: ignore[arg-type]
-                    p1=_vec({"v": b}, "v", w),  # type: ignore[arg-type]
-                    radius=_num(o, "radius", w),
-                    moves_with=mw,
-                    name=name,
-                )
-            )
+            ob = Obstacle("box", lo=a, hi=b, moves_with=mw, name=name)  # type: ignore[arg-type]
         else:
-            raise InputError(f"{w}: expected 'box' or 'cylinder'")
-    rd = doc.get("reflector", {}) or {}
+            radius = _num(o, "radius", w)
+            if not radius > 0:
+                raise InputError(f"{w}: 'radius' must be > 0 mm, got {radius:g}")
+            ob = Obstacle("cylinder", p0=a, p1=b, radius=radius, moves_with=mw, name=name)  # type: ignore[arg-type]
+        obstacles.append(ob)
+    wr = f"{where}.reflector"
+    rd = _table(doc.get("reflector", {}), wr)
+    _keys(rd, {"half_angle_deg", "axis"}, wr)
     axis = None
     if "axis" in rd:
-        a = np.asarray(_vec(rd, "axis", f"{where}.reflector"))
+        a = np.asarray(_vec(rd, "axis", wr))
         if np.linalg.norm(a) == 0:
-            raise InputError(f"{where}.reflector: 'axis' must not be zero")
+            raise InputError(f"{wr}: 'axis' must not be zero")
         axis = tuple(float(v) for v in a / np.linalg.norm(a))
-    ref = Reflector(_num(rd, "half_angle_deg", f"{where}.reflector", 180.0), axis)  # type: ignore[arg-type]
-    return Constraints(
-        tuple(regions),
-        tuple(obstacles),
-        ref,
-        _num(doc, "min_distance_mm", where, 0.0),
-        _num(doc, "max_range_mm", where, float("inf")),
-    )
+    half = 180.0  # no acceptance limit
+    if "half_angle_deg" in rd:
+        half = _num(rd, "half_angle_deg", wr)
+        if not 0 < half <= 90:
+            raise InputError(
+                f"{wr}: 'half_angle_deg' must be > 0 and <= 90 deg (the acceptance half-angle "
+                f"about the reflector's axis), got {half:g}; omit it for a reflector without "
+                "a limit"
+            )
+    ref = Reflector(half, axis)  # type: ignore[arg-type]
+    min_d = _num(doc, "min_distance_mm", where, 0.0)
+    if min_d < 0:
+        raise InputError(f"{where}: 'min_distance_mm' must be >= 0, got {min_d:g}")
+    max_r = _num(doc, "max_range_mm", where, float("inf"), infinite=True)
+    if not max_r > min_d:
+        raise InputError(
+            f"{where}: 'max_range_mm' ({max_r:g}) must be larger than 'min_distance_mm' ({min_d:g})"
+        )
+    return Constraints(tuple(regions), tuple(obstacles), ref, min_d, max_r)
 
 
 def stations_ok(

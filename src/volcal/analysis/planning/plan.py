@@ -14,6 +14,16 @@
    never returned), the predicted uncertainties (error motions, volumetric error over the
    workspace, error parameters) and what would stay unidentifiable.
 
+The search runs in constraints made stricter by margins (``margin_deg`` off the
+reflector's acceptance angle, ``margin_mm`` inside the regions, on the distance, range and
+obstacles; defaults :data:`DEFAULT_MARGIN_DEG`, :data:`DEFAULT_MARGIN_MM`), so that the
+planned worst case is not on a declared limit: a tracker set up ``margin_mm`` off its
+planned spot, or a reflector aimed a few degrees off, still keeps every declared limit.
+:meth:`PlanResult.slack` reports how much room the plan leaves on each declared limit, and
+:meth:`PlanResult.setup_sheet` what the operator does at each station (where the tracker
+stands, where the reflector points and how it is mounted, the order of the readings and
+the time they take).
+
 Units: mm and degrees at the interface (poses in file units as in
 :mod:`volcal.measurement.plans`), mm and rad inside.
 """
@@ -34,6 +44,8 @@ import pandas as pd
 from volcal.analysis.planning.evaluator import CRITERIA, PlanEvaluator
 from volcal.analysis.planning.geometry import (
     Constraints,
+    aim_axes,
+    constraint_slack,
     constraints_from_dict,
     reading_violations,
 )
@@ -45,15 +57,31 @@ from volcal.analysis.planning.search import (
     gradient_placement,
 )
 from volcal.base.exceptions import InputError
+from volcal.base.progress import stage as progress_stage
 from volcal.measurement.budget import Budget, load_budget
 from volcal.measurement.plans import grid_plan
 from volcal.model.errors import ErrorForm, ErrorModel
 from volcal.model.machine import Machine
 
-__all__ = ["plan", "PlanResult", "OPTIMIZERS", "candidate_poses", "spread_poses"]
+__all__ = [
+    "plan",
+    "PlanResult",
+    "OPTIMIZERS",
+    "DEFAULT_MARGIN_DEG",
+    "DEFAULT_MARGIN_MM",
+    "candidate_poses",
+    "spread_poses",
+]
 
 #: station placement methods
 OPTIMIZERS = ("gradient", "ga", "none")
+
+#: default margins (deg off the acceptance half-angle; mm inside regions and on distances
+#: and obstacles): a tracker tripod set up by tape measure lands within a couple of cm of
+#: its mark, and 20 mm sideways at 250 mm or more from the reflector turns a beam by less
+#: than 5 deg
+DEFAULT_MARGIN_DEG = 5.0
+DEFAULT_MARGIN_MM = 20.0
 
 
 def candidate_poses(
@@ -151,6 +179,21 @@ class PlanResult:
     notes: list[str] = field(default_factory=list)
     #: the workspace centre (mm) a re-aimed reflector points from
     centre_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    #: the margins the search kept from the declared limits: (deg, mm)
+    margins: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def planning_constraints(self) -> Constraints:
+        """The declared constraints made stricter by the margins (what the search kept)."""
+        return self.constraints.with_margins(*self.margins)
+
+    def _planned(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Nominal points (n, 3) mm, reflector axes turned with the tool (n, 3) and station
+        index (n,) of every planned reading in :meth:`measurement_plan` order."""
+        ev = self.evaluator
+        keep = self.selected[ev.pose_of]
+        axes = _tool_axes(self.machine, ev.q[keep], ev.t[keep], self.constraints.reflector.axis)
+        return ev.points[keep], axes, ev.station_of[keep]
 
     # ---- tables ----------------------------------------------------------------------
     @property
@@ -201,19 +244,121 @@ class PlanResult:
         df["length_mm"] = np.nan
         return df
 
-    def violations(self) -> pd.DataFrame:
-        """Every planned reading that breaks a constraint (empty for a returned plan)."""
-        ev = self.evaluator
-        keep = self.selected[ev.pose_of]
-        axes = _tool_axes(self.machine, ev.q[keep], ev.t[keep], self.constraints.reflector.axis)
-        return reading_violations(
-            ev.points[keep],
-            axes,
-            ev.station_of[keep],
-            self.stations_mm,
-            self.constraints,
-            self.centre_mm,
+    def violations(self, *, with_margins: bool = False) -> pd.DataFrame:
+        """Every planned reading that breaks a declared constraint (``with_margins``: the
+        constraints the search kept, :attr:`planning_constraints`); empty for a returned
+        plan.  Columns as :func:`volcal.analysis.planning.geometry.reading_violations`."""
+        P, axes, st = self._planned()
+        cons = self.planning_constraints if with_margins else self.constraints
+        return reading_violations(P, axes, st, self.stations_mm, cons, self.centre_mm)
+
+    def slack(self) -> pd.DataFrame:
+        """How much room the plan leaves on each declared limit, worst case over its
+        readings: constraint, worst, limit, slack, unit, station, reading (see
+        :func:`volcal.analysis.planning.geometry.constraint_slack`); ``station`` as its id
+        (S1, ...)."""
+        P, axes, st = self._planned()
+        df = constraint_slack(P, axes, st, self.stations_mm, self.constraints, self.centre_mm)
+        df["station"] = [f"S{k + 1}" for k in df["station"]]
+        return df
+
+    def aim(self) -> pd.DataFrame:
+        """Where the reflector points at each station: station, mode (``re-aimed``: the
+        axis points from the workspace centre at the tracker, fixed in the machine frame
+        for the whole set-up; ``tool frame``: a fixed axis in the tool frame that turns
+        with the rotary axes; ``any``: no acceptance limit), from_x_mm, from_y_mm,
+        from_z_mm (the point the axis is aimed from, the workspace centre; NaN unless
+        re-aimed), dir_x, dir_y, dir_z (unit vector: machine frame when re-aimed, tool
+        frame otherwise), azimuth_deg (from +x towards +y), elevation_deg (from the x-y
+        plane towards +z) and max_beam_angle_deg (the largest angle between the axis and
+        a beam of the station, over its planned readings; limit: the declared
+        half-angle)."""
+        ref = self.constraints.reflector
+        P, axes, st = self._planned()
+        S = self.stations_mm[st]
+        ax = aim_axes(P, axes, S, ref, self.centre_mm)
+        d = S - P
+        ang = np.degrees(
+            np.arccos(np.clip(np.sum(d / np.linalg.norm(d, axis=1, keepdims=True) * ax, 1), -1, 1))
         )
+        rows = []
+        for k, s in enumerate(self.stations_mm):
+            if not ref.limited:
+                mode, frm, u = "any", np.full(3, np.nan), np.full(3, np.nan)
+            elif ref.axis is None:
+                mode, frm = "re-aimed", np.asarray(self.centre_mm, float)
+                u = (s - frm) / np.linalg.norm(s - frm)
+            else:
+                mode, frm, u = "tool frame", np.full(3, np.nan), np.asarray(ref.axis, float)
+            rows.append(
+                {
+                    "station": f"S{k + 1}",
+                    "mode": mode,
+                    "from_x_mm": frm[0],
+                    "from_y_mm": frm[1],
+                    "from_z_mm": frm[2],
+                    "dir_x": u[0],
+                    "dir_y": u[1],
+                    "dir_z": u[2],
+                    "azimuth_deg": float(np.degrees(np.arctan2(u[1], u[0]))),
+                    "elevation_deg": float(np.degrees(np.arcsin(np.clip(u[2], -1, 1)))),
+                    "max_beam_angle_deg": float(ang[st == k].max()) if (st == k).any() else np.nan,
+                }
+            )
+        return pd.DataFrame(rows)
+
+    def setup_sheet(self, seconds_per_reading: float | None = None) -> list[dict[str, Any]]:
+        """What the operator does at each station, in measuring order: one dict per
+        station with ``station``, ``position_mm`` (x, y, z), ``region`` (the declared
+        region it stands in), ``aim`` (a row of :meth:`aim` as a dict), ``blocks`` (one per
+        tool offset in measuring order: ``tool_offset_mm`` (x, y, z in the tool frame),
+        ``first_row`` and ``last_row`` (1-based rows of :meth:`measurement_plan`),
+        ``points`` (the point ids, in order) and ``readings``), ``readings`` and
+        ``minutes`` (readings x ``seconds_per_reading``, default the plan's setting, 4 s;
+        setting up the tracker and changing the reflector come on top)."""
+        spr = float(
+            self.settings.get("seconds_per_reading", 4.0)
+            if seconds_per_reading is None
+            else seconds_per_reading
+        )
+        mp = self.measurement_plan(with_tool_index=True)
+        aim = self.aim()
+        regs = self.constraints.regions
+        sheet = []
+        for k, s in enumerate(self.stations_mm):
+            sid = f"S{k + 1}"
+            rows = np.flatnonzero(mp["station"].to_numpy() == sid)
+            blocks = []
+            for t in pd.unique(mp["tool"].to_numpy()[rows]):
+                r = rows[mp["tool"].to_numpy()[rows] == t]
+                blocks.append(
+                    {
+                        "tool_offset_mm": [float(v) for v in self.tools[int(t)]],
+                        "first_row": int(r[0]) + 1,
+                        "last_row": int(r[-1]) + 1,
+                        "points": [int(p) for p in mp["point"].to_numpy()[r]],
+                        "readings": int(len(r)),
+                    }
+                )
+            region = ""
+            if regs:
+                depth = [float(g.clearance(s[None])[0]) for g in regs]
+                region = regs[int(np.argmax(depth))].name
+            sheet.append(
+                {
+                    "station": sid,
+                    "position_mm": [float(v) for v in s],
+                    "region": region,
+                    "aim": {
+                        key: (None if isinstance(v, float) and np.isnan(v) else v)
+                        for key, v in aim.iloc[k].to_dict().items()
+                    },
+                    "blocks": blocks,
+                    "readings": int(len(rows)),
+                    "minutes": len(rows) * spr / 60.0,
+                }
+            )
+        return sheet
 
     # ---- prediction --------------------------------------------------------------------
     def covariance(self) -> np.ndarray:
@@ -328,6 +473,8 @@ class PlanResult:
             ],
             "seconds": round(self.seconds, 3),
             "notes": self.notes,
+            "margins": {"deg": self.margins[0], "mm": self.margins[1]},
+            "slack": self.slack().to_dict(orient="records"),
         }
 
     def _repr_html_(self) -> str:
@@ -389,10 +536,12 @@ def plan(
     population: int = 40,
     generations: int = 30,
     rounds: int = 2,
+    margin_deg: float = DEFAULT_MARGIN_DEG,
+    margin_mm: float = DEFAULT_MARGIN_MM,
     workers: int | None = 1,
     scheduler: Any = None,
     checkpoint_dir: str | Path | None = None,
-    progress: Callable[[str, int, float], None] | None = None,
+    progress: Callable[[str, int, int, float], None] | None = None,
 ) -> PlanResult:
     """Plan a sequential multilateration measurement (see the module docstring).
 
@@ -407,9 +556,15 @@ def plan(
     spread); stations: start or given stations (K, 3) mm or a table with x_mm, y_mm,
     z_mm; grid: candidate positions per linear axis; seed: every random draw;
     starts / population / generations: search sizes; rounds: placement / exchange
-    alternations; workers / scheduler: where the GA scores (1: this process; None: all
-    cores; a Dask address or Client); checkpoint_dir: searches save there after every
-    generation or start and resume from what they find; progress(stage, step, best)."""
+    alternations; margin_deg / margin_mm: how far the plan keeps from the declared limits
+    (deg off the acceptance half-angle; mm inside the regions, on the distance, range and
+    obstacles; see the module docstring); workers / scheduler: where the GA scores (1:
+    this process; None: all cores; a Dask address or Client); checkpoint_dir: searches
+    save there after every generation or start and resume from what they find;
+    progress(stage, step, total, best): called after every generation, start and
+    exchange, e.g. ("GA round 1 of 2: generation", 5, 30, 0.29) (step 1-based, 0 when a
+    search round begins; best: the criterion reached, um for I and MC, the solver's
+    scaled units for A, D and E)."""
     t0 = time.perf_counter()
     if criterion not in CRITERIA:
         raise InputError(f"unknown criterion {criterion!r}; expected one of {', '.join(CRITERIA)}")
@@ -427,11 +582,14 @@ def plan(
     T = np.zeros((1, 3)) if tools is None else np.atleast_2d(np.asarray(tools, float))
     if T.shape[1] != 3 or not np.isfinite(T).all():
         raise InputError("tool offsets must be finite (T, 3) mm")
-    cons = (
+    declared = (
         constraints
         if isinstance(constraints, Constraints)
         else constraints_from_dict(constraints or {})
     )
+    # every search and check below works in the stricter constraints
+    cons = declared.with_margins(margin_deg, margin_mm)
+    rounds = max(1, int(rounds))
     if not cons.regions and (optimizer != "none" or stations is None):
         raise InputError(
             "declare at least one region where the tracker may stand ([[constraints.region]] "
@@ -458,7 +616,8 @@ def plan(
             f"({n_total} readings / ({n_stations} stations x {len(T)} tool offsets)); "
             f"at least {n_min} are needed"
         )
-    ev = PlanEvaluator(machine, em, q_cand, T, n_stations, bud)
+    with progress_stage(f"building the prediction for {len(q_cand)} candidate poses"):
+        ev = PlanEvaluator(machine, em, q_cand, T, n_stations, bud)
     rng = np.random.default_rng(seed)
     sel = spread_poses(machine, cand, n_poses)
     # the workspace centre the re-aimed reflector points from: the middle of the bounding
@@ -486,8 +645,9 @@ def plan(
         if bad.any() and optimizer == "none":
             raise InputError(
                 f"given station(s) {', '.join(f'S{k + 1}' for k in np.flatnonzero(bad))} "
-                f"cannot read every planned point: {sampler._why(S0[bad])}; move them or "
-                "let a search place them (optimizer gradient or ga)",
+                f"cannot read every planned point: {sampler._why(S0[bad])} (the limits "
+                f"less the margins of {margin_deg:g} deg and {margin_mm:g} mm); move them, "
+                "lower the margins or let a search place them (optimizer gradient or ga)",
                 source="stations",
             )
         if bad.any():
@@ -498,18 +658,30 @@ def plan(
             S0[bad] = sampler.draw(rng, int(bad.sum()))
     else:
         S0 = sampler.draw(rng, n_stations)
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), progress_stage("choosing the datum at the start design"):
         warnings.simplefilter("ignore")
         ev.freeze(S0, sel)
     scorer = ev.scorer
     scorer.criterion_name = criterion
     start_value = scorer.score(S0, sel)
     S, searches = S0, []
-    for rnd in range(max(1, rounds)):
+    current = start_value  # the criterion of (S, sel), kept to score each design once
+    for rnd in range(rounds):
+        # what the search counts: GA generations or gradient starts
+        unit, total = ("generation", generations) if optimizer == "ga" else ("start", starts)
+        name = "GA" if optimizer == "ga" else optimizer
 
-        def report(step: int, best: float, _r: int = rnd) -> None:
+        def report(
+            step: int,
+            best: float,
+            _what: str = f"{name} round {rnd + 1} of {rounds}: {unit}",
+            _n: int = total,
+        ) -> None:
             if progress is not None:
-                progress(f"{optimizer} round {_r + 1}", step, best)
+                progress(_what, step + 1, _n, best)
+
+        if optimizer != "none":
+            report(-1, current)  # step 0: the round begins
 
         # what a checkpoint must belong to: the readings to place stations for, the
         # constraints and the criterion
@@ -547,13 +719,14 @@ def plan(
                 fingerprint=fp,
             )
             searches.append(res)
-        if searches and searches[-1].value < scorer.score(S, sel):
-            S = searches[-1].stations
+        if searches and searches[-1].value < current:
+            S, current = searches[-1].stations, searches[-1].value
         if poses == "exchange":
             allowed = _readable(ev, machine, cons, S, centre)
             sel, _, swaps = exchange_poses(scorer, S, sel, allowed=allowed)
+            current = scorer.score(S, sel)
             if progress is not None:
-                progress("pose exchange", rnd, scorer.score(S, sel))
+                progress("pose exchange: round", rnd + 1, rounds, current)
             sampler = sampler_for(sel)
             if swaps == 0 and rnd > 0:
                 break
@@ -570,7 +743,7 @@ def plan(
         value,
         start_value,
         searches,
-        cons,
+        declared,
         {
             "n_stations": n_stations,
             "tools_mm": T.tolist(),
@@ -588,12 +761,16 @@ def plan(
             "degree": degree,
             "travel": {k: list(map(float, v)) for k, v in (travel or {}).items()},
             "centre_mm": centre.tolist(),
+            "seconds_per_reading": float(seconds_per_reading),
+            "margin_deg": float(margin_deg),
+            "margin_mm": float(margin_mm),
         },
         time.perf_counter() - t0,
         notes,
         centre,
+        (float(margin_deg), float(margin_mm)),
     )
-    bad = result.violations()
+    bad = result.violations(with_margins=True)
     if len(bad):
         raise RuntimeError(  # never returned: the searches only keep feasible designs
             f"internal error: the plan breaks {len(bad)} reading constraint(s):\n{bad.head()}"

@@ -186,33 +186,29 @@ def run_coverage(
 ) -> list[dict]:
     """n experiments (0 .. n-1), in ``workers`` processes."""
     jobs = [(setup, k, seed, mc) for k in range(n)]
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    from volcal.base.progress import counter
 
-        bar = tqdm(total=n, unit="experiment")
     out = []
-    if workers <= 1:
-        from volcal.base.threads import blas_threads
+    # a bar on a terminal, plain lines with the time left in logs
+    with counter(n, "coverage", "experiment", on=progress) as bar:
+        if workers <= 1:
+            from volcal.base.threads import blas_threads
 
-        with blas_threads(1):
-            for j in jobs:
-                out.append(coverage_experiment(setup, j[1], seed=seed, mc=mc))
-                if bar is not None:
+            with blas_threads(1):
+                for j in jobs:
+                    out.append(coverage_experiment(setup, j[1], seed=seed, mc=mc))
                     bar.update(1)
-    else:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
+        else:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
 
-        from volcal.analysis.uncertainty.parallel import _start_method
+            from volcal.analysis.uncertainty.parallel import _start_method
 
-        with ProcessPoolExecutor(workers, mp_context=mp.get_context(_start_method())) as pool:
-            for r in pool.map(_worker, jobs):
-                out.append(r)
-                if bar is not None:
+            ctx = mp.get_context(_start_method())
+            with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+                for r in pool.map(_worker, jobs):
+                    out.append(r)
                     bar.update(1)
-    if bar is not None:
-        bar.close()
     return sorted(out, key=lambda r: r["k"])
 
 

@@ -29,6 +29,7 @@ uncertainty of the estimate, their mean the GUM S1 estimate.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -45,6 +46,8 @@ import pandas as pd
 
 from volcal.analysis.uncertainty.engine import StructuredLSQ, VolumetricMap, unpack_data
 from volcal.analysis.uncertainty.sampling import InputSampler
+from volcal.base.folders import stale_temporaries
+from volcal.base.progress import counter
 
 log = logging.getLogger(__name__)
 
@@ -282,7 +285,7 @@ def build_kernel(
     """The Monte Carlo kernel of an identification (Identifier ``ider``, solution x_hat,
     data vector p, held variables ``fixed``) with a budget.  eval_q (M, n_axes; mm, rad)
     and eval_tool (M, 3) are the poses whose volumetric errors are collected (default: a
-    5-per-axis grid over the travel with tool offset 0)."""
+    5-per-axis grid over the travel with tool offset (0, 0, 0) mm)."""
     from volcal.measurement.plans import grid_plan
 
     pr = ider.problem
@@ -356,7 +359,10 @@ def _save_npz(path: Path, arrays: dict[str, np.ndarray], chunk: Chunk) -> None:
     # a signal (Ctrl-C, SIGTERM) waits until the chunk is whole or gone: an interrupt inside
     # numpy's zip writer can otherwise leave a temporary file or print a traceback
     with uninterrupted():
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npz")
+        # named with the process id: a rerun removes what a writer killed outright left
+        fd, tmp = tempfile.mkstemp(
+            dir=path.parent, prefix=f".chunk-{os.getpid()}-", suffix=".tmp.npz"
+        )
         os.close(fd)
         try:
             # numpy's stub types **kwargs as allow_pickle; these are arrays
@@ -403,7 +409,8 @@ def run_trials(
     and chunk size give the same numbers whatever the workers); workers: local worker
     processes (None: every core, this process computing too; 1: this process only);
     scheduler: Dask scheduler address or Client; out_dir: folder for the chunk files
-    (resumable); progress: a tqdm bar on stderr; on_start: called once the trials are
+    (resumable); progress: a bar on a terminal, plain lines with the time left otherwise
+    (:func:`volcal.base.progress.counter`); on_start: called once the trials are
     under way (see
     :func:`~volcal.analysis.uncertainty.parallel.run_chunks`).
     """
@@ -437,6 +444,9 @@ def run_trials(
         name = (label or "all") + "-" + key
         folder = Path(out_dir) / "samples" / name
         folder.mkdir(parents=True, exist_ok=True)
+        for stale in stale_temporaries(folder, ".chunk-"):  # of a run killed outright
+            with contextlib.suppress(OSError):
+                stale.unlink()
         meta = {
             "seed": int(seed),
             "chunk_size": int(chunk_size),
@@ -453,27 +463,21 @@ def run_trials(
                     put(c, got)
     todo = [c for c in chunks if c.index not in done]
     resumed = len(done)
-    bar = None
-    if progress:
-        bar = _progress_bar()(
-            total=int(trials),
-            unit="trial",
-            desc=label or mode,
-            leave=False,
-            initial=sum(c.stop - c.start for c in chunks if c.index in done),
-        )
     if todo and scheduler is None:
         kernel.prepare(mode)  # once here, inherited by forked workers
-    try:
+    # a bar on a terminal, plain lines with the time left in logs (volcal.base.progress)
+    with counter(
+        int(trials),
+        label or mode,
+        "trial",
+        initial=sum(c.stop - c.start for c in chunks if c.index in done),
+        on=bool(progress),
+    ) as bar:
         for c, res in _dispatch(kernel, todo, workers, scheduler, on_start):
             put(c, res)
             if folder is not None:
                 _save_npz(folder / f"chunk{c.index:05d}.npz", res, c)
-            if bar is not None:
-                bar.update(c.stop - c.start)
-    finally:
-        if bar is not None:
-            bar.close()
+            bar.update(c.stop - c.start)
     return MCSamples(
         cat["x"],
         cat["vol"],
@@ -486,18 +490,6 @@ def run_trials(
         time.perf_counter() - t0,
         resumed,
     )
-
-
-def _progress_bar():
-    """tqdm's class: the notebook widget under IPython, else the plain terminal bar (whose
-    import skips the asyncio machinery of ``tqdm.auto``)."""
-    import sys
-
-    if "ipykernel" in sys.modules:
-        from tqdm.auto import tqdm
-    else:
-        from tqdm.std import tqdm
-    return tqdm
 
 
 def _dispatch(kernel, chunks, workers, scheduler, on_start=None):
@@ -1039,6 +1031,9 @@ def _monte_carlo(
 
         machine = model if isinstance(model, Machine) else Machine.from_model(model)
         bud = load_budget(budget)
+        # the trials draw every axis' positioning scatter from the budget, whatever sigma
+        # the data carry: an axis without a term has none (warned once per run)
+        bud.warn_uncovered(machine.spec)
         st_table = (
             load_stations(stations)
             if stations is not None

@@ -140,14 +140,7 @@ def run_demo(
 def _adequacy_line(res) -> str:
     from volcal.analysis.adequacy import assess
 
-    ad = assess(res)
-    lo, hi = ad.interval
-    if ad.adequate:
-        return f"fits (chi2/dof {ad.chi2_per_dof:.3g} inside [{lo:.3g}, {hi:.3g}])"
-    return (
-        f"INADEQUATE (chi2/dof {ad.chi2_per_dof:.3g} outside [{lo:.3g}, {hi:.3g}]; "
-        f"likely cause: {', '.join(c.kind for c in ad.causes)})"
-    )
+    return assess(res).summary
 
 
 def _handler(args: argparse.Namespace) -> int:
@@ -167,7 +160,7 @@ def _handler(args: argparse.Namespace) -> int:
         print(f"  solver status            {s.status}")
         print(
             f"  largest volumetric error {s.max_volumetric_um:.1f} um (workspace grid over "
-            f"{', '.join(s.grid_axes)}, tool offset 0)"
+            f"{', '.join(s.grid_axes)}, tool offset (0, 0, 0) mm)"
         )
         print(f"  residual RMS             {s.residual_rms_um:.3f} um")
         print(f"  model adequacy           {s.adequacy}")

@@ -5,10 +5,13 @@ Example::
     volcal identify --model mcv754_wxyzt --data sim/measurements.csv --out result/
 
 Writes the result folder of DESIGN.md (see :mod:`volcal.outputs.results`) and prints a short
-summary.  When chi2/dof lies outside its 99.9 % interval (the model adequacy test,
-:mod:`volcal.analysis.adequacy`) a warning naming the likely cause goes to the terminal
-(stderr; silenced only by -q), as does a warning for data from a single station.  Exit
-codes: 0 success, 1 the solver did not converge, 2 bad input.  The input
+summary.  The model adequacy test (:mod:`volcal.analysis.adequacy`) has three outcomes:
+the model fits; it fits but the uncertainty budget is pessimistic (chi2/dof below its
+99.9 % interval, no significant residual structure: the uncertainties are conservative,
+exit code 0, no warning); it does not fit (chi2/dof above its interval or significant
+residual structure): then a warning naming the likely cause goes to the terminal (stderr;
+silenced only by -q), as does a warning for data from a single station.  Exit codes: 0
+success (whatever the adequacy), 1 the solver did not converge, 2 bad input.  The input
 files are only read; the output folder is written atomically and replaces only a previous
 result folder, with --force.
 """
@@ -60,6 +63,15 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "volcal's columns, with the file's unit in brackets, e.g. "
         "'length=Distance[m],station=Tracker,point=Target' (units: mm, m, um, in, deg, "
         "rad, s, ms, min)",
+    )
+    p.add_argument(
+        "--max-memory-gb",
+        type=float,
+        default=None,
+        metavar="GB",
+        help="memory the identification may take, GB; a table whose estimated peak "
+        "(readings x unknowns, see docs/robustness.md) exceeds it is refused before the "
+        "solve (default: the memory available now; inf: no check)",
     )
     p.add_argument(
         "--stations",
@@ -172,7 +184,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--scale-covariance",
         action="store_true",
-        help="scale the covariance by the residual variance factor (chi2/dof)",
+        help="scale the covariance by the residual variance factor (chi2/dof); for a "
+        "budget that is off, not for residual structure (a misfit is not noise)",
     )
     p.add_argument(
         "--out",
@@ -198,21 +211,57 @@ def _inside(path: Path, folder: Path) -> bool:
         return False
 
 
+def _read_inputs(args: argparse.Namespace):
+    """The measurement table (and the stations table) read and validated first, before
+    the model is built, the solver imported or the plotting processes started: a bad
+    table is reported at once (exit code 2).  Returns (Measurements, stations table or
+    None, seconds spent reading the measurement table)."""
+    import time
+
+    from volcal.measurement.instruments import get_instrument
+    from volcal.measurement.tables import (
+        load_instrument_stations,
+        load_measurements,
+        load_stations,
+    )
+    from volcal.model.spec import resolve_model
+
+    spec = resolve_model(args.model)
+    ins = get_instrument(args.instrument)
+    stations = None
+    if args.stations is not None:
+        stations = (
+            load_stations(args.stations)
+            if ins.name == "tracker"
+            else load_instrument_stations(args.stations, ins.station_param_names)
+        )
+    t0 = time.perf_counter()
+    meas = load_measurements(
+        args.data,
+        spec,
+        stations=stations,
+        relative_lengths=not ins.positive_readings,
+        columns=args.columns,
+    )
+    return meas, stations, time.perf_counter() - t0
+
+
 def run(args: argparse.Namespace) -> int:
     from volcal.outputs.plot_process import plotting
 
-    # first, before the numerics are imported: two children that import matplotlib on the
-    # other core while this process reads and solves, then draw the plots two at a time
-    # while this one writes the report
+    inputs = _read_inputs(args)
+    # then, before the numerics are imported: two children that import matplotlib on the
+    # other core while this process solves, then draw the plots two at a time while this
+    # one writes the report
     with plotting(not args.no_plots) as plotter:
-        code = _run(args, plotter)
+        code = _run(args, plotter, inputs)
     # everything is written and closed: skip the interpreter's teardown (0.1 s of freeing
     # modules; see volcal.cli.main._exit_now)
     args.exit_now = True
     return code
 
 
-def _run(args: argparse.Namespace, plotter) -> int:
+def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
     from volcal.analysis.adequacy import assess
     from volcal.analysis.identify import identify
     from volcal.base.exceptions import InputError
@@ -237,6 +286,10 @@ def _run(args: argparse.Namespace, plotter) -> int:
             source="--order-criterion",
         )
     forms = dict(parse_basis(b) for b in args.basis) or None
+    if args.max_memory_gb is not None and not args.max_memory_gb > 0:
+        raise InputError(
+            f"expected a memory limit > 0 GB, got {args.max_memory_gb:g}", source="--max-memory-gb"
+        )
     if args.reject_k is not None and not args.robust:
         raise InputError("--reject-k applies with --robust only", source="--reject-k")
     reject_k = 4.0 if args.reject_k is None else args.reject_k
@@ -258,10 +311,11 @@ def _run(args: argparse.Namespace, plotter) -> int:
             )
 
     log.info("identifying: model %s, data %s, strategy %s", args.model, args.data, args.strategy)
+    meas, stations, read_s = inputs
     res = identify(
         args.model,
-        args.data,
-        args.stations,
+        meas,
+        stations,
         strategy=args.strategy,
         degree=degree,
         forms=forms,
@@ -280,8 +334,12 @@ def _run(args: argparse.Namespace, plotter) -> int:
         solver=args.solver,
         instrument=args.instrument,
         columns=args.columns,
+        max_memory_gb=args.max_memory_gb,
     )
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
+    from volcal.base.progress import record
+
+    record("reading the data", read_s)  # read before identify() started its record
     from volcal.base.processes import return_freed_memory
 
     return_freed_memory()  # the solve's freed work memory, before the plotting processes draw
@@ -329,27 +387,14 @@ def _run(args: argparse.Namespace, plotter) -> int:
             f"  residual RMS             {res.residual_rms_um:.3f} um (chi2/dof "
             f"{res.conditions.get('chi2_per_dof', float('nan')):.3g})"
         )
-        lo, hi = adequacy.interval
-        print(
-            "  model adequacy           "
-            + (
-                f"fits (chi2/dof inside [{lo:.3g}, {hi:.3g}])"
-                if adequacy.adequate
-                else f"INADEQUATE (chi2/dof outside [{lo:.3g}, {hi:.3g}]; likely cause: "
-                + ", ".join(
-                    c.kind + (f" against axis {c.numbers['axis']}" if c.kind == "structure" else "")
-                    for c in adequacy.causes
-                )
-                + ")"
-            )
-        )
+        print("  model adequacy           " + adequacy.summary)
         axes = meta.get("max_volumetric_axes") or []
         fixed = [a for a in spec.axis_names if a not in axes]
         print(
             f"  largest volumetric error {meta['max_volumetric_um']:.2f} um "
             f"(grid over {', '.join(axes) or 'no axis'}"
             + (f", {', '.join(fixed)} at reference" if fixed else "")
-            + ", tool offset 0)"
+            + ", tool offset (0, 0, 0) mm)"
         )
         print("  unidentifiable           " + (", ".join(unid) if unid else "none"))
         if res.datum is not None and len(res.datum):
@@ -371,8 +416,14 @@ def _run(args: argparse.Namespace, plotter) -> int:
     # warnings reach the terminal (stderr) unless -q
     if not adequacy.adequate:
         log.warning("%s (report: %s)", adequacy.message, path / "report.md")
+    elif adequacy.verdict == "budget_pessimistic":
+        # not a failure: said once, at info level (the summary line above has it too)
+        log.info("%s (report: %s)", adequacy.message, path / "report.md")
     for w in adequacy.warnings:
         log.warning("%s", w)
+    why = res.unidentifiable_explanation()
+    if why is not None:
+        log.warning("%s (report: %s)", why["text"], path / "report.md")
     if not res.success:
         return 1
     return 0

@@ -20,7 +20,10 @@ the chunks saved in ``--out/samples``.  Exit codes: 0 done, 1 solver failure, 2 
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 MC_FILES = (
     "parameters.csv",
@@ -40,17 +43,25 @@ def _write(out_dir: Path, inputs, write) -> dict:
     """The outputs through :func:`volcal.base.folders.write_folder` (temporary folder, manifest,
     rename); the resumable ``samples/`` chunks written during the run move in with them."""
     import os
+    import shutil
 
     from volcal.base.folders import write_folder
 
     summary: dict = {}
 
+    def link(src: str, dst: str) -> None:
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copy2(src, dst)
+
     def writer(tmp: Path) -> None:
         summary.update(write(tmp))
-        # last, so that a failure above leaves the chunks where a rerun resumes them
+        # linked, not moved: until the finished folder is renamed into place the chunks
+        # stay where a rerun resumes them, whatever fails (a full disk, a signal)
         samples = Path(out_dir) / "samples"
         if samples.is_dir():
-            os.rename(samples, tmp / "samples")
+            shutil.copytree(samples, tmp / "samples", copy_function=link)
 
     write_folder(
         out_dir,
@@ -351,6 +362,9 @@ def _run(args: argparse.Namespace, stages, t_run: float, started: float | None, 
                 "strategy": res.strategy,
                 "chi2_per_dof": res.conditions.get("chi2_per_dof"),
                 "residual_rms_um": res.residual_rms_um,
+                # the verdict on the identification the trials scatter around
+                "adequacy": res.adequacy.verdict,
+                "adequacy_causes": res.adequacy.cause_kinds,
             },
             "verify_against_ipopt": out["verify"],
         }
@@ -379,6 +393,10 @@ def _run(args: argparse.Namespace, stages, t_run: float, started: float | None, 
             - t_write
             - sum(v - inner.get(k, 0.0) for k, v in stages.seconds.items()),
         )
+    if not res.adequacy.adequate:
+        # the trials draw the budget's noise around the identified model: a misfit the
+        # model cannot follow is not in their spread
+        log.warning("%s; the Monte Carlo uncertainties leave that misfit out", res.adequacy.message)
     if not getattr(args, "quiet", False):
         mv, ag = summary["max_volumetric"], summary["agreement_with_linearised"]
         print(
@@ -391,6 +409,7 @@ def _run(args: argparse.Namespace, stages, t_run: float, started: float | None, 
             )
         )
         print(f"  input sources            {', '.join(summary['sources'])}")
+        print(f"  identification           {res.adequacy.summary}")
         print(
             f"  largest volumetric error {mv['max_norm_um']:.2f} um, U(k=2) "
             f"{mv['U_norm_at_max_um']:.2f} um; largest U(|d|) {mv['U_norm_largest_um']:.2f} um"

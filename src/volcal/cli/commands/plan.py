@@ -84,7 +84,27 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--travel", type=_travel, metavar="AX=LO:HI,...", help="travel to cover, mm / deg"
     )
-    p.add_argument("--criterion", choices=("I", "A", "D", "E"), help="design criterion")
+    p.add_argument(
+        "--criterion",
+        choices=("I", "A", "D", "E", "MC", "MC-nonlinear"),
+        help="design criterion: I (default; RMS predicted u of the volumetric error, um), "
+        "A, D, E (on the error parameters), MC or MC-nonlinear (paper 004's Monte Carlo "
+        "fitness: the RMS identified volumetric error over simulated measurements, um; "
+        "scored by --optimizer ga, the gradient search uses I for it)",
+    )
+    p.add_argument(
+        "--margin-deg",
+        type=float,
+        metavar="DEG",
+        help="kept off the reflector's acceptance half-angle (default 5 deg)",
+    )
+    p.add_argument(
+        "--margin-mm",
+        type=float,
+        metavar="MM",
+        help="kept inside the regions, on the minimum distance, the range and around "
+        "obstacles (default 20 mm)",
+    )
     p.add_argument(
         "--optimizer", choices=("gradient", "ga", "none"), help="station placement method"
     )
@@ -159,6 +179,8 @@ def run(args: argparse.Namespace) -> int:
         "population": args.population,
         "generations": args.generations,
         "rounds": args.rounds,
+        "margin_deg": args.margin_deg,
+        "margin_mm": args.margin_mm,
         "seed": args.seed,
         "budget": args.budget,
         "degree": args.degree,
@@ -184,11 +206,24 @@ def run(args: argparse.Namespace) -> int:
         stations = pd.DataFrame(stations)
     quiet = getattr(args, "quiet", False)
 
+    from volcal.analysis.planning.plan import DEFAULT_MARGIN_DEG, DEFAULT_MARGIN_MM
     from volcal.base import progress as report
 
-    def progress(stage: str, step: int, best: float) -> None:
-        # one report per generation / start: long searches show life (volcal.base.progress)
-        report.update(f"{stage}, step {step + 1}: criterion {best:.4g}")
+    crit = cfg.get("criterion", "I")
+    unit = " um" if crit in ("I", "MC", "MC-nonlinear") else " (scaled units)"
+    started: dict[str, float] = {}
+
+    def progress(stage: str, step: int, total: int, best: float) -> None:
+        # one report per generation / start / exchange, with the total and the time left
+        # in this round at its rate so far (volcal.base.progress)
+        import time
+
+        now = time.monotonic()
+        if step == 0:  # a search round begins
+            started[stage] = now
+        t0 = started.get(stage)
+        left = "" if t0 is None else f", ETA of this round {report.eta(step, total, now - t0)}"
+        report.update(f"{stage} {step} of {total}, criterion {crit} {best:.4g}{unit}{left}")
 
     with report.stage("planning"):
         res = plan(
@@ -214,6 +249,8 @@ def run(args: argparse.Namespace) -> int:
             population=int(cfg.get("population", 40)),
             generations=int(cfg.get("generations", 30)),
             rounds=int(cfg.get("rounds", 2)),
+            margin_deg=float(cfg.get("margin_deg", DEFAULT_MARGIN_DEG)),
+            margin_mm=float(cfg.get("margin_mm", DEFAULT_MARGIN_MM)),
             workers=None if args.workers == 0 else args.workers,
             scheduler=args.dask,
             checkpoint_dir=args.checkpoint,
@@ -235,11 +272,14 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"{s['model']}: {s['stations']} stations, {s['poses']} poses x "
             f"{s['tool_offsets']} tool offset(s) = {s['readings']} readings\n"
-            f"criterion {s['criterion']}: {s['criterion_value']:.4g} "
+            f"criterion {s['criterion']}: {s['criterion_value']:.4g}{unit} "
             f"(start {s['start_value']:.4g}); predicted volumetric u RMS "
             f"{s['volumetric_u_rms_um']:.3g} um, max {s['volumetric_u_max_um']:.3g} um\n"
             f"unidentifiable error parameters: "
             f"{', '.join(s['unidentifiable_error_parameters']) or 'none'}\n"
+            f"margins {s['margins']['deg']:g} deg, {s['margins']['mm']:g} mm; slack left: "
+            + ", ".join(f"{r['constraint']} {r['slack']:.3g} {r['unit']}" for r in s["slack"])
+            + "\n"
             f"written to {out} in {s['seconds']:.1f} s"
         )
     return 0

@@ -81,7 +81,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "several linear and rotary positions, see "
         "volcal.measurement.plans.default_plan), "
         "a grid over the travel, lines along the axes, the ISO 230-6 body "
-        "diagonals, or a CSV of poses (axis columns, mm/deg)",
+        "diagonals, a CSV of poses (axis columns, mm/deg), or a measurement plan "
+        "(measurement_plan.csv of `volcal plan`: its poses, tool offsets and stations "
+        "in its order; the station positions from --stations, by default the "
+        "stations.csv beside it)",
     )
     p.add_argument(
         "--grid",
@@ -161,7 +164,9 @@ def run(args: argparse.Namespace) -> int:
         default_stations,
         diagonal_plan,
         grid_plan,
+        is_measurement_plan,
         line_plan,
+        measurement_plan_from_csv,
         plan_from_csv,
     )
     from volcal.measurement.simulate import (
@@ -229,7 +234,45 @@ def run(args: argparse.Namespace) -> int:
             machine, em, rng, 60.0 if args.max_volumetric_um is None else args.max_volumetric_um
         )
 
-    if args.stations is not None:
+    # a measurement plan (``volcal plan``'s measurement_plan.csv) brings its poses, tool
+    # offsets and station ids; the positions come from --stations or the stations.csv
+    # written beside it
+    plan_stations: list[str] = []
+    if plan_kind not in ("default", "grid", "lines", "diagonals") and is_measurement_plan(
+        plan_kind
+    ):
+        plan, plan_tools, plan_stations = measurement_plan_from_csv(plan_kind, spec)
+        if tools is not None and not (
+            tools.shape == plan_tools.shape and np.allclose(tools, plan_tools)
+        ):
+            raise InputError(
+                "the measurement plan gives its own tool offsets ("
+                + "; ".join(",".join(f"{v:g}" for v in t) for t in plan_tools)
+                + " mm): drop --tools",
+                source="--tools",
+            )
+        tools = plan_tools
+        beside = Path(plan_kind).parent / "stations.csv"
+        where = args.stations or (beside if beside.exists() else None)
+        if where is None:
+            raise InputError(
+                f"the measurement plan measures from stations {', '.join(plan_stations)}: "
+                "give their positions with --stations (station, x_mm, y_mm, z_mm), e.g. the "
+                "stations.csv of the plan's folder",
+                source=str(plan_kind),
+            )
+        from volcal.measurement.tables import load_stations
+
+        st_all = load_stations(where)
+        missing = [s for s in plan_stations if s not in set(st_all["station"])]
+        if missing:
+            raise InputError(
+                f"no position for station(s) {', '.join(missing)} of the measurement plan",
+                source=str(where),
+            )
+        stations = st_all.set_index("station").loc[plan_stations].reset_index()
+        log.info("stations of the measurement plan from %s", where)
+    elif args.stations is not None:
         stations = args.stations
     elif ex is not None:
         stations = ex.stations
@@ -247,8 +290,7 @@ def run(args: argparse.Namespace) -> int:
     elif plan_kind == "diagonals":
         plan = diagonal_plan(spec, counts)
     else:
-        plan = plan_from_csv(plan_kind, spec)
-
+        plan = plan_from_csv(plan_kind, spec) if not plan_stations else plan
     if tools is None:
         tools = ex.tools if ex is not None else parse_tools(_DEFAULT_TOOLS)
     budget = args.budget or (ex.budget if ex is not None else "paper002")

@@ -1,0 +1,135 @@
+"""Whether an identification fits in memory, checked before it starts.
+
+The peak resident memory of ``volcal identify`` grows with the readings times the
+unknowns (the Jacobian and the arrays of its size that the solver and the covariance
+hold) plus a part per reading (the table, the residuals, the per-reading results).  The
+factors below were measured with ``python benchmarks/bench_memory.py`` (peak resident
+set of ``volcal identify --no-plots`` on simulated mcv754_wxyzt tables of 12,288 to
+139,968 readings with 75 to 147 unknowns; least-squares fit, residuals below 13 MB;
+benchmarks/results/memory.txt):
+
+    peak ~ 140 MB + readings x (2.50 kB + 61.6 B x unknowns)
+
+:func:`check_memory` refuses a run whose estimate exceeds the memory available
+(the smaller of ``MemAvailable`` in /proc/meminfo and the room left under the control
+group's limit, plus what this process already holds) with the estimate and the limit,
+instead of the kernel ending the process (the OOM killer) minutes later.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from volcal.base.exceptions import InputError
+
+__all__ = [
+    "BASE_BYTES",
+    "BYTES_PER_READING",
+    "BYTES_PER_READING_UNKNOWN",
+    "estimate_peak_bytes",
+    "available_bytes",
+    "check_memory",
+]
+
+#: measured (see the module docstring): the interpreter, CasADi, the model
+BASE_BYTES = 140e6
+#: per reading, whatever the unknowns (table, residuals, per-reading results)
+BYTES_PER_READING = 2.50e3
+#: per reading and unknown (the Jacobian and the arrays of its size)
+BYTES_PER_READING_UNKNOWN = 61.6
+
+
+def estimate_peak_bytes(readings: int, unknowns: int) -> float:
+    """Estimated peak resident memory (bytes) of an identification of ``readings``
+    readings with ``unknowns`` unknowns (error parameters, station parameters, ...)."""
+    return BASE_BYTES + readings * (BYTES_PER_READING + BYTES_PER_READING_UNKNOWN * unknowns)
+
+
+def _read_int(path: str) -> int | None:
+    try:
+        text = Path(path).read_text().split()[0]
+    except (OSError, IndexError):
+        return None
+    return int(text) if text.isdigit() else None
+
+
+def _meminfo_available() -> int | None:
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _cgroup_room() -> int | None:
+    """Limit less usage of this process's control group (v2, else v1); None without one."""
+    try:
+        rel = next(
+            (
+                line.split(":", 2)[2]
+                for line in Path("/proc/self/cgroup").read_text().splitlines()
+                if line.startswith("0::")
+            ),
+            None,
+        )
+    except OSError:
+        rel = None
+    if rel is not None:
+        base = "/sys/fs/cgroup" + rel.rstrip("/")
+        limit, used = _read_int(f"{base}/memory.max"), _read_int(f"{base}/memory.current")
+        if limit is not None and used is not None:
+            return max(limit - used, 0)
+    limit = _read_int("/sys/fs/cgroup/memory/memory.limit_in_bytes")
+    used = _read_int("/sys/fs/cgroup/memory/memory.usage_in_bytes")
+    if limit is not None and used is not None and limit < 1 << 60:
+        return max(limit - used, 0)
+    return None
+
+
+def _own_resident() -> int:
+    """Resident bytes of this process now (0 where unknown)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+def available_bytes() -> int | None:
+    """Memory this process may still take (bytes): the smaller of the system's available
+    memory and its control group's room; None where neither is known (not Linux)."""
+    room = [v for v in (_meminfo_available(), _cgroup_room()) if v is not None]
+    return min(room) if room else None
+
+
+def check_memory(
+    readings: int, unknowns: int, *, limit_gb: float | None = None, what: str = "the data"
+) -> float:
+    """Raise :class:`InputError` when the estimated peak of an identification
+    (:func:`estimate_peak_bytes`) does not fit: in ``limit_gb`` (GB = 1e9 bytes) when
+    given, else in what this process holds plus :func:`available_bytes`.  ``limit_gb =
+    inf`` skips the check.  Returns the estimate in bytes."""
+    need = estimate_peak_bytes(readings, unknowns)
+    if limit_gb is not None:
+        limit = float(limit_gb) * 1e9
+        source = "--max-memory-gb"
+    else:
+        room = available_bytes()
+        if room is None:
+            return need
+        limit = float(room + _own_resident())
+        source = "the memory available now"
+    if need > limit:
+        raise InputError(
+            f"{readings:,} readings x {unknowns} unknowns need about {need / 1e9:.2f} GB "
+            f"of memory at the peak of the identification, more than the limit of "
+            f"{limit / 1e9:.2f} GB ({source}); refused before the solve. Use fewer "
+            "readings (a subset of poses or stations) or a lower degree, run it on a "
+            "machine with more memory, or pass --max-memory-gb with a larger limit "
+            "if you know the estimate is too high",
+            source=what,
+        )
+    return need

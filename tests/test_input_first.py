@@ -1,0 +1,70 @@
+"""A bad measurement table is reported before anything is built (issue 27): neither the
+model nor the plotting processes are started, from the command line or the Python API."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+import volcal.cli.main
+from volcal.base.exceptions import InputError
+
+
+@pytest.fixture()
+def no_build(monkeypatch):
+    """Machine.from_model and the plotting processes fail the test if they are reached."""
+    from volcal.model.machine import Machine
+    from volcal.outputs.plot_process import PlotProcess
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("built before the table was checked")
+
+    monkeypatch.setattr(Machine, "from_model", classmethod(forbidden))
+    monkeypatch.setattr(PlotProcess, "start", classmethod(forbidden))
+
+
+def _bad_table(tmp_path: Path) -> Path:
+    path = tmp_path / "bad.csv"
+    pd.DataFrame(
+        {"station": ["A"] * 4, "point": ["1", "2", "3", "4"], "X": [0.0, 10.0, 20.0, 30.0],
+         "Y": 0.0, "Z": 0.0, "length": ["800", "801", "abc", "803"]}
+    ).to_csv(path, index=False)
+    return path
+
+
+def test_cli_reports_a_bad_table_before_building(tmp_path, capsys, no_build):
+    code = volcal.cli.main.main(["identify", "--model", "mcv754_wxyzt", "--data",
+                                 str(_bad_table(tmp_path)), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "bad.csv, row 4, column 'length'" in err and "expected a number (mm)" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_api_reports_a_bad_table_before_building(tmp_path, no_build):
+    from volcal.analysis.identify import identify
+
+    with pytest.raises(InputError, match=r"row 4, column 'length'"):
+        identify("mcv754_wxyzt", _bad_table(tmp_path))
+
+
+def test_unique_rows_is_numpy_unique_on_rows():
+    """base.linalg.unique_rows (the fast pose grouping) against np.unique(axis=0): the
+    same distinct rows in the same order and the same inverse, on rows with many
+    repeats, ties in the leading columns and negative values."""
+    import numpy as np
+
+    from volcal.base.linalg import unique_rows
+
+    rng = np.random.default_rng(7)
+    for n, k in ((1, 3), (50, 1), (2000, 6)):
+        base = np.round(rng.normal(0.0, 100.0, (max(n // 8, 1), k)), 1)
+        base[: len(base) // 2, 0] = 5.0  # ties in the first column
+        a = base[rng.integers(0, len(base), n)]
+        uniq, inv = unique_rows(a)
+        ref_u, ref_i = np.unique(a, axis=0, return_inverse=True)
+        np.testing.assert_array_equal(uniq, ref_u)
+        np.testing.assert_array_equal(inv, ref_i.ravel())
+        np.testing.assert_array_equal(uniq[inv], a)
