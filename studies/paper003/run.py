@@ -163,7 +163,7 @@ def curves_table(cfg: dict, extra: dict) -> str:
                      "paper": float(vals.max() - vals.min()), "fit": "-"})
         rows.append({"q": f"printed digits of {eq}: worst-case curve change (um)",
                      "paper": rounding_um(coef, grid), "fit": "-"})
-        rows.append({"q": f"largest |fit - paper's curve| over the travel, {eq}, all data "
+        rows.append({"q": f"largest abs(fit - paper's curve) over the travel, {eq}, all data "
                           f"sets (um)", "paper": "-", "fit": f"{extra['max_err_um'][c]:.2f}"})
         rows.append({"q": f"coverage of the band ±U(P), {eq}: GUM-S1 / eq. 10 (%)",
                      "paper": "-", "fit": f"{extra['band']['gum-s1'][c]:.1f} / "
