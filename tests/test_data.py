@@ -426,8 +426,8 @@ def test_warn_few_readings(spec3):
 def test_warn_constant_tool_offset(spec3):
     df = make_table(tool=False)
     with pytest.warns(DataWarning, match=r"tool offset is the same in every row .* last axis "
-                                         r"of the chain \(Z: EAZ, EBZ, ECZ, and what they mix with\) "
-                                         r"cannot be separated"):
+                                         r"of the chain \(Z: EAZ, EBZ, ECZ, and what they mix "
+                                         r"with\) cannot be separated"):
         load_measurements(df, spec3)
 
 

@@ -4,16 +4,14 @@ Two result folders, each made once per module: the demo (MCV 754, `run_demo`, wi
 plots, plus a generic compensation export) and a poor fit of the same readings (one tool
 offset, Legendre degree 1: the model does not fit and some parameters are not
 identifiable), written without plots.  The browser test runs only where a Chromium is
-installed (CI installs one in .ci/run); with VOLCAL_UPDATE_SCREENSHOT=1 it also writes
-docs/images/report.png.
+installed (CI installs one in .ci/run); the README's screenshots of the report are
+written by `python docs/make_images.py --only report`.
 """
 from __future__ import annotations
 
 import base64
 import hashlib
-import io
 import json
-import os
 import re
 import subprocess
 import warnings
@@ -26,9 +24,6 @@ import pytest
 import volcal.cli.main
 from volcal.outputs import html_report as hr
 
-ROOT = Path(__file__).resolve().parents[1]
-SCREENSHOT = ROOT / "docs" / "images" / "report.png"
-SCREENSHOT_MAX_BYTES = 300_000
 SECTIONS = ("header", "identification", "model", "data", "datum", "unidentifiable",
             "uncertainty", "parameters")
 
@@ -135,7 +130,7 @@ def test_report_is_self_contained_with_every_section(demo, monkeypatch, capsys):
     assert "mcv754_wxyzt" in html and "simulation/measurements.csv" in html
     assert "3576" in html and "Reading uncertainties from" in html
     assert "Datum convention <code>iso230</code>" in html
-    assert "Every error parameter is identifiable" in html and "Gauge freedoms held" in html
+    assert "Every parameter is identifiable" in html and "Gauge freedoms held" in html
     assert "Largest parameter uncertainties" in html and "RMS standard uncertainty" in html
     # every parameter, six significant digits
     params = pd.read_csv(demo["result"] / "parameters.csv")
@@ -310,22 +305,3 @@ def test_report_renders_in_headless_chromium(demo, tmp_path, monkeypatch):
     # the PDF prints through the same engine
     pdf = hr.write_report(demo["result"], tmp_path / "report.html", pdf=True)
     assert pdf == tmp_path / "report.pdf" and pdf.read_bytes().startswith(b"%PDF")
-
-    if os.environ.get("VOLCAL_UPDATE_SCREENSHOT") == "1":
-        # relative folder names, as a user who ran `volcal demo` sees them
-        monkeypatch.chdir(demo["tmp"])
-        page = hr.write_report(Path("demo/identification"), tmp_path / "shot.html",
-                               compensation_dir=Path("comp"))
-        shot = tmp_path / "shot.png"
-        run = _chromium("--hide-scrollbars", "--window-size=1100,1500",
-                        f"--screenshot={shot}", page.as_uri(), cwd=tmp_path)
-        assert run.returncode == 0 and shot.is_file(), run.stderr[-3000:]
-        from PIL import Image
-
-        # a palette image keeps the text sharp at a fraction of the size
-        with Image.open(shot) as im:
-            buf = io.BytesIO()
-            im.convert("RGB").quantize(colors=128).save(buf, "PNG", optimize=True)
-        assert len(buf.getvalue()) < SCREENSHOT_MAX_BYTES
-        SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
-        SCREENSHOT.write_bytes(buf.getvalue())

@@ -357,8 +357,10 @@ def test_cli_plan_writes_a_plan_identify_can_read(tmp_path):
         text=True,
     )
     assert r.returncode == 0, r.stderr
-    # progress went to a pipe: plain lines, never a carriage return
-    assert "\r" not in r.stderr and "planning" in r.stderr
+    # progress went to a pipe: plain lines, never a carriage return (the "planning" stage
+    # is announced only once it lasts a second, so a quick run may print none; the plain
+    # form itself is checked deterministically in tests/test_progress.py)
+    assert "\r" not in r.stderr and "\x1b" not in r.stderr
     assert "margins 4 deg, 15 mm" in r.stdout
     for f in (
         "stations.csv",

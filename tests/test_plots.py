@@ -1,12 +1,15 @@
-"""The public plots (volcal.plots): every one returns a Figure and writes a PNG; the
-volumetric slices cover each rotary axis; the correlation plot leaves out what the datum
-ties (no exact +-1 off the diagonal) and what the data cannot see."""
+"""The public plots (volcal.plots): every one returns a Figure and writes a PNG, legible at
+its printed size with one unit spelling; the volumetric slices are to scale, cover each
+rotary axis and say where the other axes stand; the correlation plot names its strongest
+pairs and leaves out what the datum ties (no exact +-1 off the diagonal) and what the
+data cannot see."""
 from __future__ import annotations
 
 import functools
 import warnings
 
 import numpy as np
+import pytest
 
 import volcal
 from volcal.analysis.identify import identify
@@ -66,3 +69,103 @@ def test_volumetric_slices_cover_every_rotary_axis():
     assert sum(t.startswith("Z =") for t in titles) == 2
     assert sum(t.startswith("C =") for t in titles) == 3  # full turn: 3 distinct angles
     assert sum(t.startswith("A =") for t in titles) == 3
+    # each slice says where the axes out of its plane stand
+    c = [t for t in titles if t.startswith("C =")]
+    assert c and all("A = 0 deg" in t and "Z = -225 mm" in t for t in c), c
+    z = [t for t in titles if t.startswith("Z =")]
+    assert z and all("A = 0 deg" in t and "C = 0 deg" in t for t in z), z
+
+
+def _texts(fig):
+    """Every visible non-empty text of a figure (titles, labels, tick labels, legends, keys)
+    after drawing."""
+    from matplotlib.text import Text
+
+    fig.canvas.draw()
+    return [t for t in fig.findobj(Text) if t.get_visible() and t.get_text().strip()]
+
+
+def test_every_plot_is_legible_at_its_printed_size_with_one_unit_spelling(tmp_path):
+    """The report shows a figure up to ~1040 px wide at its own size (100 dpi): no figure is
+    wider than 10.4 in, so no text is smaller than 8 pt where it is read; units are spelt
+    µm / µrad (never um) and the bands ±2u; every panel names its axes."""
+    import re
+
+    from volcal.outputs import figures
+
+    res = _result()
+    P = volcal.plots
+    comp = component_error_table(
+        res.error_model, res.theta, res.cov_theta, res.identifiable, COMPONENT_POINTS
+    )
+    figs = [
+        P.component_errors(comp, res.error_model),
+        P.volumetric_slices(res.machine, res.error_model, res.theta),
+        P.residuals(res.residuals),
+        P.residuals_vs_axes(res),
+        P.correlations(res),
+    ]
+    for fig in figs:
+        assert fig.get_figwidth() <= figures.MAX_WIDTH + 1e-9
+        texts = _texts(fig)
+        small = [(t.get_text(), t.get_fontsize()) for t in texts if t.get_fontsize() < 8]
+        assert not small, small
+        words = " ".join(t.get_text() for t in texts)
+        assert not re.search(r"\b(um|urad)\b|\+-", words), words
+        for ax in fig.axes:
+            if ax.get_visible() and ax.images and ax.get_label() != "<colorbar>":
+                assert ax.get_xlabel() or ax.get_xticklabels()
+    assert "±2u" in figs[0]._suptitle.get_text()
+    assert any("(µm)" in ax.get_ylabel() for ax in figs[0].axes)
+    assert any("(µrad)" in ax.get_ylabel() for ax in figs[0].axes)
+
+
+def test_volumetric_slices_are_drawn_to_scale_with_an_arrow_key():
+    """754 x 500 mm is drawn 754 x 500 (equal mm on both axes, not square panels), and one
+    arrow scale serves every panel, with a key in µm."""
+    from matplotlib.quiver import Quiver, QuiverKey
+
+    res = _result()
+    fig = volcal.plots.volumetric_slices(res.machine, res.error_model, res.theta)
+    fig.canvas.draw()
+    panels = [ax for ax in fig.axes if ax.images and ax.get_xlabel() == "X (mm)"]
+    assert len(panels) == 3
+    for ax in panels:
+        box = ax.get_window_extent()
+        assert box.height / box.width == pytest.approx(500 / 754, rel=0.02)
+    scales = {q.scale for ax in panels for q in ax.collections if isinstance(q, Quiver)}
+    assert len(scales) == 1
+    keys = [a for ax in panels for a in ax.get_children() if isinstance(a, QuiverKey)]
+    assert len(keys) == 1 and keys[0].text.get_text() == f"{keys[0].U:g} µm"
+    assert keys[0].Q.scale == scales.pop()
+
+
+def test_correlations_name_the_strongest_pairs():
+    """A correlation planted between two parameters of a 5-axis model (112+ parameters,
+    too many to name on the matrix) is named in the title and heads the list of the
+    strongest pairs; the matrix is labelled by the axes of the error quantities."""
+    from types import SimpleNamespace
+
+    m = Machine.from_model("trunnion_ac")
+    em = ErrorModel(m.spec)
+    rng = np.random.default_rng(3)
+    n = em.n_params
+    A = np.eye(n) + 0.05 * rng.standard_normal((n, n))
+    cov = A @ A.T
+    i, j = em.param_names.index("EXX_1"), em.param_names.index("ECA_2")
+    cov[i, j] = cov[j, i] = -0.9995 * np.sqrt(cov[i, i] * cov[j, j])
+    res = SimpleNamespace(
+        error_model=em, cov_theta=cov, identifiable=np.ones(n, bool), state=None
+    )
+    data = volcal.plots.correlations_data(res)
+    assert len(data["names"]) > 60
+    fig = volcal.plots.correlations(res)
+    assert "EXX_1 ~ ECA_2" in fig._suptitle.get_text() or "ECA_2 ~ EXX_1" in (
+        fig._suptitle.get_text()
+    )
+    pairs = fig.axes[-1]
+    first = pairs.get_yticklabels()[0].get_text()
+    assert set(first.split(" ~ ")) == {"EXX_1", "ECA_2"}
+    ticks = {t.get_text() for t in fig.axes[0].get_xticklabels()}
+    assert {"axis X", "axis A", "axis C"} <= ticks
+    assert min(t.get_fontsize() for t in _texts(fig)) >= 8

@@ -231,6 +231,19 @@ class _Off:
         pass
 
 
+def _in_notebook() -> bool:
+    """Whether this process is a Jupyter kernel (not merely a process that imported
+    ipykernel, as a test runner executing a notebook does)."""
+    ipy = sys.modules.get("IPython")
+    if ipy is None:
+        return False
+    try:
+        shell = ipy.get_ipython()
+    except Exception:  # an IPython too old or half-imported: no widget
+        return False
+    return shell is not None and type(shell).__name__ == "ZMQInteractiveShell"
+
+
 @contextmanager
 def counter(
     total: int | None,
@@ -259,8 +272,9 @@ def counter(
     except (OSError, ValueError):
         tty = False
     bar = None
-    if "ipykernel" in sys.modules or tty:
-        if "ipykernel" in sys.modules:
+    notebook = _in_notebook()
+    if notebook or tty:
+        if notebook:
             from tqdm.auto import tqdm
         else:  # the plain terminal bar, whose import skips tqdm.auto's asyncio machinery
             from tqdm.std import tqdm

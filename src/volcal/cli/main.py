@@ -133,6 +133,39 @@ def _exit_now(code: int) -> None:  # pragma: no cover - ends the process
     os._exit(code)
 
 
+class _Formatter(logging.Formatter):
+    """Log lines as the command's other messages: ``volcal identify: warning: ...``."""
+
+    def __init__(self, command: str) -> None:
+        super().__init__()
+        self.command = command
+
+    def format(self, record: logging.LogRecord) -> str:
+        return f"volcal {self.command}: {record.levelname.lower()}: {record.getMessage()}"
+
+
+def _warning_printer(command: str, quiet: bool):
+    """A ``warnings.showwarning`` that prints ``volcal <command>: warning: <message>``:
+    the user is told what is wrong with the input, not which line of volcal's source
+    noticed it (Python's default prints the source path, line number and code line).
+    Warnings of other packages keep their category name; ``-q`` silences them all."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        if quiet:
+            return
+        ours = category.__module__.split(".")[0] in ("volcal", "builtins") and issubclass(
+            category, UserWarning
+        )
+        tail = "" if ours else f" ({category.__name__})"
+        stream = file if file is not None else sys.stderr
+        try:
+            print(f"volcal {command}: warning: {message}{tail}", file=stream)
+        except (OSError, ValueError):  # a closed stream: nothing to tell
+            pass
+
+    return show
+
+
 PROJECT_FILE = "volcal.toml"
 
 
@@ -351,7 +384,7 @@ def main(argv: list[str] | None = None) -> int:
             logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING
         )
     )
-    logging.basicConfig(level=level, format="%(levelname)s: %(message)s")
+    logging.basicConfig(level=level)
     if not args.quiet:  # stages longer than a moment report on stderr (volcal.base.progress)
         from volcal.base import progress
 
@@ -378,6 +411,16 @@ def main(argv: list[str] | None = None) -> int:
         previous = prev_int = None
     out = getattr(args, "out", None)
     args.out_existed = out is not None and os.path.lexists(str(out))
+    # warnings and log lines as the command's other messages: `volcal identify: warning: ...`
+    import warnings
+
+    formatters = []
+    for handler in logging.getLogger().handlers:
+        if type(handler) is logging.StreamHandler:  # basicConfig's, not a test's capture
+            formatters.append((handler, handler.formatter))
+            handler.setFormatter(_Formatter(args.command))
+    previous_show = warnings.showwarning
+    warnings.showwarning = _warning_printer(args.command, bool(args.quiet))
     try:
         with output_policy(bool(getattr(args, "force", False))):
             code = int(args.func(args) or 0)
@@ -410,6 +453,9 @@ def main(argv: list[str] | None = None) -> int:
             _exit_soon(130)
         return 130
     finally:
+        warnings.showwarning = previous_show
+        for handler, formatter in formatters:
+            handler.setFormatter(formatter)
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
         if prev_int is not None:

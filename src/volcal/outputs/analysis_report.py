@@ -264,7 +264,7 @@ class AnalysisReport:
         lines = [
             f"volcal analyze ({self.source}): model '{self.model}', "
             f"{self.n_readings} readings, {len(self.names)} variables "
-            f"({self.n_theta} error parameters)",
+            f"({self.n_theta} parameters: the basis coefficients of the error quantities)",
             f"  numerical rank        {idn.rank} of {idn.rank + idn.n_null} free "
             f"directions under the datum constraints (tolerance {idn.tol:.3g} on "
             f"column-scaled singular values)",
@@ -284,7 +284,7 @@ class AnalysisReport:
         if unid:
             lines.append(
                 f"  unidentifiable        {sum(d.dimension for d in unid)} "
-                "direction(s) involving error parameters:"
+                "direction(s) involving parameters of the error quantities:"
             )
             for d in unid:
                 lines.append(f"    {d.line()}")
@@ -520,7 +520,7 @@ def plot_correlation(R: pd.DataFrame, path: Path) -> None:
         fs = max(3.0, min(8.0, 400.0 / max(n, 1)))
         ax.set_xticks(range(n), R.columns, rotation=90, fontsize=fs)
         ax.set_yticks(range(n), R.index, fontsize=fs)
-    ax.set_title("Correlation of the identifiable error parameters")
+    ax.set_title("Correlation of the identifiable parameters (basis coefficients)")
     fig.savefig(path, dpi=110)
 
 
@@ -530,7 +530,7 @@ def plot_uncertainty_map(vol: pd.DataFrame, path: Path) -> None:
     P = vol[["x_mm", "y_mm", "z_mm"]].to_numpy()
     sc = ax.scatter(*P.T, c=vol["u_total_um"].to_numpy(), cmap="viridis", s=25)
     fig.colorbar(
-        sc, ax=ax, shrink=0.6, label="standard uncertainty of the volumetric error vector (um)"
+        sc, ax=ax, shrink=0.6, label="standard uncertainty of the volumetric error vector (µm)"
     )
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
@@ -948,7 +948,7 @@ def analyze_plan(
     notes = [
         f"plan: {len(plan)} poses x {len(tools)} tool offset(s) x {len(st)} stations; "
         f"budget {bud.name}; readings noise-free at the "
-        f"{'given' if theta is not None else 'zero'} error parameters"
+        f"{'given' if theta is not None else 'zero'} parameters"
     ]
     return analyze_jacobian_report(
         ider,

@@ -29,6 +29,11 @@ __all__ = [
 ]
 
 DPI = 100
+#: widest figure (inches): the HTML report shows a figure up to about 1040 px wide at its
+#: own size (DPI 100), so its fonts keep their point size there
+MAX_WIDTH = 10.4
+#: units as the figures print them (the data carry the ASCII names of the CSV columns)
+_DISPLAY = {"um": "µm", "urad": "µrad"}
 #: ticks per axis at most: tick labels are most of a figure's drawing time
 _NBINS = 5
 
@@ -75,7 +80,7 @@ def draw_component_errors(data: dict[str, Any], path: Target = None):
     axes = data["axes"]
     if not axes:
         return _message("no component error motions in this model", path)
-    fig = figure(11, 2.6 * len(axes) + 0.6)
+    fig = figure(MAX_WIDTH, 2.6 * len(axes) + 0.7)
     grid = fig.subplots(len(axes), 2, squeeze=False)
     for row, a in zip(grid, axes):
         x = a["x"]
@@ -95,69 +100,127 @@ def draw_component_errors(data: dict[str, Any], path: Target = None):
                         linewidth=0,
                     )
             ax.set_title(panel["title"], fontsize=10)
+            ax.tick_params(labelsize=9)
             ax.set_xlabel(f"{a['name']} position ({a['unit']})")
-            ax.set_ylabel(f"error ({panel['unit']})")
+            ax.set_ylabel(f"error ({_DISPLAY.get(panel['unit'], panel['unit'])})")
             ax.axhline(0.0, color="0.6", linewidth=0.6)
             ax.grid(True, alpha=0.3)
             _few_ticks(ax)
             if panel["series"]:
-                ax.legend(fontsize=7, loc="upper left", ncol=3)
+                ax.legend(fontsize=8, loc="upper left", ncol=3)
             else:
                 ax.text(0.5, 0.5, "none in this model", transform=ax.transAxes, ha="center")
-    fig.suptitle("Component error motions (error = actual - nominal), band = +-2 u")
-    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.06, top=0.93, hspace=0.55, wspace=0.2)
+    h = fig.get_figheight()
+    fig.suptitle(
+        "Component error motions (error = actual − nominal), band = ±2u (k = 2)",
+        y=1 - 0.15 / h,
+        va="top",
+    )
+    fig.subplots_adjust(
+        left=0.08, right=0.98, bottom=0.5 / h, top=1 - 0.8 / h, hspace=0.6, wspace=0.22
+    )
     return save(fig, path)
+
+
+def _nice(x: float) -> float:
+    """The largest of 1, 2, 5 x 10^k not above ``x`` (for a scale key)."""
+    if not np.isfinite(x) or x <= 0:
+        return 1.0
+    e = 10.0 ** np.floor(np.log10(x))
+    return float(max(m for m in (1.0, 2.0, 5.0, 10.0) if m * e <= x * (1 + 1e-9)) * e)
 
 
 def draw_volumetric_slices(data: dict[str, Any], path: Target = None):
     """data: ``{"g1", "g2"`` (grid positions, mm), ``"labels"`` (x, y), ``"slices"``:
-    ``[{"title", "norm" (n1, n2) um, "d1", "d2" (in-plane components, um)}]``, ``"vmax"``,
-    ``"title"}``; or ``{"message": text}``."""
+    ``[{"title", "norm" (n1, n2) µm, "d1", "d2" (in-plane components, µm)}]``, ``"vmax"``,
+    ``"title"}``; or ``{"message": text}``.  Panels to scale (equal mm on both axes), one
+    arrow scale for all, with its key."""
     if "message" in data:
         return _message(data["message"], path)
     slices = data["slices"]
     g1, g2 = data["g1"], data["g2"]
     G1, G2 = np.meshgrid(g1, g2, indexing="ij")
-    ncol = min(len(slices), 4)
+    span1 = float(g1.max() - g1.min()) or 1.0
+    span2 = float(g2.max() - g2.min()) or 1.0
+    # panel sizes (inches) follow the travel: 800 x 500 mm is drawn 800 x 500
+    ncol = min(len(slices), 3)
     nrow = int(np.ceil(len(slices) / ncol))
-    height = 2.9 * nrow + 1.1
-    fig = figure(3.2 * ncol + 1.0, height)
-    axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
+    gap_w, gap_h = 0.85, 1.0  # y labels; two-line titles and x labels
+    left, right, top, bottom = 0.75, 1.3, 0.9, 0.55
+    # at most MAX_WIDTH wide: the report shows it at its own size
+    pw = min(2.7, (MAX_WIDTH - left - right - (ncol - 1) * gap_w) / ncol)
+    ph = float(np.clip(pw * span2 / span1, 0.8, 4.0))
+    pw = ph * span1 / span2 if ph != pw * span2 / span1 else pw
+    width = left + ncol * pw + (ncol - 1) * gap_w + right
+    height = top + nrow * ph + (nrow - 1) * gap_h + bottom + 0.25
+    fig = figure(width, height)
     ext = [g1.min(), g1.max(), g2.min(), g2.max()]
     step = max(1, len(g1) // 9)
-    im = None
-    for ax, s in zip(axes, slices):
+    spacing = span1 / max(1, (len(g1) - 1) / step)
+    vmax = float(data["vmax"]) or 1.0
+    # one scale for every panel: the largest error is drawn 1.6 arrow spacings long
+    scale = vmax / (1.6 * spacing)
+    im = quiv = None
+    axes = []
+    for k, s in enumerate(slices):
+        r, c = divmod(k, ncol)
+        x0 = left + c * (pw + gap_w)
+        y0 = bottom + 0.25 + (nrow - 1 - r) * (ph + gap_h)
+        ax = fig.add_axes((x0 / width, y0 / height, pw / width, ph / height))
+        axes.append(ax)
         im = ax.imshow(
             s["norm"].T,
             origin="lower",
             extent=ext,
             cmap="viridis",
             vmin=0,
-            vmax=data["vmax"],
-            aspect="auto",
+            vmax=vmax,
+            aspect="equal",
         )
-        ax.quiver(
+        quiv = ax.quiver(
             G1[::step, ::step],
             G2[::step, ::step],
             s["d1"][::step, ::step],
             s["d2"][::step, ::step],
             color="white",
             angles="xy",
+            scale_units="xy",
+            scale=scale,
             pivot="mid",
         )
         ax.set_title(s["title"], fontsize=9)
-        ax.set_xlabel(data["labels"][0], fontsize=8)
-        ax.set_ylabel(data["labels"][1], fontsize=8)
-        ax.tick_params(labelsize=7)
+        ax.set_xlabel(data["labels"][0], fontsize=9)
+        ax.set_ylabel(data["labels"][1], fontsize=9)
+        ax.tick_params(labelsize=8)
         _few_ticks(ax)
-    for ax in axes[len(slices) :]:
-        ax.set_visible(False)
-    # margins in inches: room for the suptitle and the x labels whatever the row count
-    top, bottom = 1 - 0.8 / height, 0.5 / height
-    fig.subplots_adjust(left=0.07, right=0.88, bottom=bottom, top=top, hspace=0.55, wspace=0.3)
-    cax = fig.add_axes((0.9, bottom + 0.02, 0.015, top - bottom - 0.04))
-    fig.colorbar(im, cax=cax, label="|volumetric error| (um)")
-    fig.suptitle(data["title"], fontsize=10)
+    cb_x = (width - right + 0.3) / width
+    cb_h = min(nrow * ph + (nrow - 1) * gap_h, 4.0)
+    cb_top = bottom + 0.25 + nrow * ph + (nrow - 1) * gap_h  # level with the first row
+    cax = fig.add_axes((cb_x, (cb_top - cb_h) / height, 0.15 / width, cb_h / height))
+    fig.colorbar(im, cax=cax, label="|volumetric error| (µm)")
+    cax.tick_params(labelsize=8)
+    if quiv is not None:
+        key = _nice(vmax)
+        fig.text(
+            (left + ncol * pw + (ncol - 1) * gap_w) / width,
+            0.2 / height,
+            "arrow scale:",
+            ha="right",
+            va="center",
+            fontsize=9,
+        )
+        axes[0].quiverkey(
+            quiv,
+            (left + ncol * pw + (ncol - 1) * gap_w + 0.15 + key / scale * pw / span1) / width,
+            0.2 / height,
+            key,
+            f"{key:g} µm",
+            labelpos="E",
+            coordinates="figure",
+            color="black",
+            fontproperties={"size": 9},
+        )
+    fig.suptitle(data["title"], fontsize=10, y=1 - 0.3 / height)
     return save(fig, path)
 
 
@@ -165,7 +228,7 @@ def draw_residuals(data: dict[str, Any], path: Target = None):
     """data: ``{"kept", "rejected"`` (residuals, um), ``"bins"``, ``"rms"``, ``"qq"``:
     (normal quantiles, sorted standardised residuals) or None, ``"lim"``, ``"by_station"``:
     ``[(station, reading numbers, residuals um)]``, ``"rejected_at"``: reading numbers}``."""
-    fig = figure(14, 4.2)
+    fig = figure(MAX_WIDTH, 4.0)
     ax1, ax2, ax3 = fig.subplots(1, 3, width_ratios=[1, 1, 2])
     kept, rej = data["kept"], data["rejected"]
     # histograms as one filled outline each (one artist instead of one per bar)
@@ -176,15 +239,16 @@ def draw_residuals(data: dict[str, Any], path: Target = None):
         counts, edges = np.histogram(rej, bins=10)
         ax1.stairs(counts, edges, fill=True, color="tab:red", alpha=0.8, label="rejected")
         ax1.legend(fontsize=8)
-    ax1.set_title(f"residuals (RMS {data['rms']:.3g} um, {len(kept)} readings)", fontsize=10)
-    ax1.set_xlabel("residual (um)")
+    ax1.set_title(f"residuals (RMS {data['rms']:.3g} µm,\n{len(kept)} readings)", fontsize=10)
+    ax1.set_xlabel("residual (µm)")
+    ax1.set_ylabel("readings")
     _few_ticks(ax1)
     if data["qq"] is not None:
         theo, zs = data["qq"]
         ax2.plot(theo, zs, ".", markersize=2, rasterized=True)
         lim = data["lim"]
         ax2.plot([-lim, lim], [-lim, lim], color="0.4", linewidth=0.8)
-    ax2.set_title("normal QQ plot of the standardised residuals", fontsize=10)
+    ax2.set_title("normal QQ plot of the\nstandardised residuals", fontsize=10)
     ax2.set_xlabel("normal quantile")
     ax2.set_ylabel("standardised residual")
     ax2.grid(True, alpha=0.3)
@@ -195,12 +259,14 @@ def draw_residuals(data: dict[str, Any], path: Target = None):
         ax3.plot(data["rejected_at"], rej, "x", color="tab:red", label="rejected")
     ax3.axhline(0.0, color="0.5", linewidth=0.6)
     ax3.set_xlabel("reading (order in the data file)")
-    ax3.set_ylabel("residual (um)")
-    ax3.set_title("residual (model - measured) per reading, by station", fontsize=10)
+    ax3.set_ylabel("residual (µm)")
+    ax3.set_title("residual (model − measured) per reading,\nby station", fontsize=10)
     ax3.grid(True, alpha=0.3)
     _few_ticks(ax3)
-    ax3.legend(fontsize=7, ncol=2, markerscale=4, loc="upper right")
-    fig.subplots_adjust(left=0.05, right=0.99, bottom=0.13, top=0.9, wspace=0.28)
+    ax3.legend(fontsize=8, ncol=2, markerscale=4, loc="upper right")
+    for ax in (ax1, ax2, ax3):
+        ax.tick_params(labelsize=9)
+    fig.subplots_adjust(left=0.07, right=0.99, bottom=0.13, top=0.85, wspace=0.3)
     return save(fig, path)
 
 
@@ -214,7 +280,7 @@ def draw_residuals_vs_axes(data: dict[str, Any], path: Target = None):
     n = max(len(panels), 1)
     ncol = min(n, 3)
     nrow = int(math.ceil(n / ncol))
-    fig = figure(4.2 * ncol, 3.0 * nrow + 0.6)
+    fig = figure(min(MAX_WIDTH, 3.5 * ncol), 2.9 * nrow + 0.8)
     axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
     for ax, p in zip(axes, panels):
         ax.plot(p["x"], p["z"], ".", color="0.65", markersize=2, rasterized=True)
@@ -225,12 +291,13 @@ def draw_residuals_vs_axes(data: dict[str, Any], path: Target = None):
         ax.set_xlabel(p["xlabel"])
         ax.set_ylabel("normalised residual")
         ax.set_title(p["title"], fontsize=9)
+        ax.tick_params(labelsize=8)
         ax.grid(True, alpha=0.3)
         _few_ticks(ax)
     for ax in axes[len(panels) :]:
         ax.set_visible(False)
     if panels:
-        axes[0].legend(fontsize=7, loc="upper right")
+        axes[0].legend(fontsize=8, loc="upper right")
     fig.suptitle(data["title"], fontsize=10)
     top = 1.0 - 0.6 / fig.get_figheight()
     fig.subplots_adjust(
@@ -244,23 +311,85 @@ def draw_residuals_vs_axes(data: dict[str, Any], path: Target = None):
     return save(fig, path)
 
 
-def draw_correlations(data: dict[str, Any], path: Target = None, max_labels: int = 60):
-    """data: ``{"R"`` (correlation matrix), ``"names"}``."""
+def strongest_pairs(R: np.ndarray, names: list[str], n: int = 12) -> list[tuple[str, str, float]]:
+    """The ``n`` off-diagonal pairs of the correlation matrix ``R`` with the largest |r|,
+    strongest first, as ``(name, name, r)``."""
+    if len(R) < 2:
+        return []
+    i, j = np.triu_indices(len(R), k=1)
+    r = R[i, j]
+    order = np.argsort(-np.abs(r), kind="stable")[:n]
+    return [(names[i[k]], names[j[k]], float(r[k])) for k in order]
+
+
+def _blocks(groups: list[str]) -> list[tuple[int, int, str]]:
+    """Runs of equal labels as ``(first, last + 1, label)``."""
+    out: list[tuple[int, int, str]] = []
+    for k, g in enumerate(groups):
+        if out and out[-1][2] == g:
+            out[-1] = (out[-1][0], k + 1, g)
+        else:
+            out.append((k, k + 1, g))
+    return out
+
+
+def draw_correlations(data: dict[str, Any], path: Target = None, max_labels: int = 30):
+    """data: ``{"R"`` (correlation matrix), ``"names"``, ``"groups"`` (optional: the axis
+    of each parameter's error quantity)}``.  Left: the matrix, each parameter named when
+    there are at most ``max_labels``, else labelled by blocks of its axis; right: the
+    strongest pairs by name."""
     R, names = data["R"], data["names"]
-    size = 7.5 if len(names) <= max_labels else 6.5
-    fig = figure(size + 1.2, size)
-    ax = fig.add_subplot()
+    groups = data.get("groups") or [""] * len(names)
+    fig = figure(10.4, 6.2)
+    ax = fig.add_axes((0.08, 0.1, 0.5, 0.5 * 10.4 / 6.2 * 0.95))
     im = ax.imshow(R, cmap="RdBu_r", vmin=-1, vmax=1, interpolation="nearest")
     if len(names) <= max_labels:
-        ax.set_xticks(range(len(names)), names, rotation=90, fontsize=5)
-        ax.set_yticks(range(len(names)), names, fontsize=5)
-    cax = fig.add_axes((0.86, 0.2, 0.02, 0.6))
-    fig.colorbar(im, cax=cax, label="correlation")
+        ax.set_xticks(range(len(names)), names, rotation=90, fontsize=8)
+        ax.set_yticks(range(len(names)), names, fontsize=8)
+    else:
+        blocks = _blocks(groups)
+        centres = [0.5 * (a + b - 1) for a, b, _ in blocks]
+        labels = [("tool" if g == "T" else f"axis {g}") if g else "" for *_, g in blocks]
+        ax.set_xticks(centres, labels, fontsize=9)
+        ax.set_yticks(centres, labels, fontsize=9, rotation=90, va="center")
+        for a, *_ in blocks[1:]:
+            ax.axhline(a - 0.5, color="0.2", linewidth=0.6)
+            ax.axvline(a - 0.5, color="0.2", linewidth=0.6)
+        ax.tick_params(length=0)
+    ax.set_xlabel("parameter (basis coefficient)", fontsize=9)
+    cax = fig.add_axes((0.595, 0.1, 0.012, 0.5 * 10.4 / 6.2 * 0.95))
+    fig.colorbar(im, cax=cax)
+    cax.tick_params(labelsize=8)
+    pairs = strongest_pairs(R, names)
+    pax = fig.add_axes((0.79, 0.1, 0.19, 0.79))
+    if pairs:
+        y = np.arange(len(pairs))
+        r = np.array([p[2] for p in pairs])
+        pax.barh(y, r, color=np.where(r > 0, "#b2182b", "#2166ac"), height=0.6)
+        pax.set_yticks(y, [f"{a} ~ {b}" for a, b, _ in pairs], fontsize=8)
+        pax.invert_yaxis()
+        pax.set_xlim(-1, 1)
+        pax.axvline(0, color="0.3", linewidth=0.6)
+        for k, v in enumerate(r):
+            inside = abs(v) > 0.35  # the value on its bar, or beyond a short one
+            pax.text(
+                v - np.sign(v) * 0.04 if inside else v + np.copysign(0.04, v),
+                k,
+                f"{v:+.3f}",
+                va="center",
+                ha=("left" if v < 0 else "right") if inside else ("right" if v < 0 else "left"),
+                fontsize=8,
+                color="white" if inside else "black",
+            )
+    pax.set_xticks([-1, 0, 1])
+    pax.tick_params(labelsize=8)
+    pax.set_xlabel("correlation r", fontsize=9)
+    pax.set_title("strongest pairs", fontsize=10)
     off = np.abs(R[~np.eye(len(R), dtype=bool)]) if len(R) > 1 else np.zeros(0)
     worst = float(off.max()) if len(off) else 0.0
-    ax.set_title(
-        f"correlations of the {len(names)} identifiable error parameters (largest |r| {worst:.3f})",
-        fontsize=10,
+    fig.suptitle(
+        f"Correlations of the {len(names)} identifiable parameters (basis coefficients; "
+        f"largest |r| {worst:.3f}" + (f": {pairs[0][0]} ~ {pairs[0][1]})" if pairs else ")"),
+        fontsize=11,
     )
-    fig.subplots_adjust(left=0.12, right=0.84, bottom=0.12, top=0.94)
     return save(fig, path)

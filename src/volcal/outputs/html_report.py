@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 import jinja2
 import numpy as np
 import pandas as pd
+from markupsafe import Markup, escape
 
 from volcal import __version__
 from volcal.analysis.adequacy import STRUCTURE_P, Adequacy
@@ -77,12 +78,13 @@ _MANIFEST = "manifest.json"
 _COMPENSATION_FORMAT = "volcal-compensation"
 _UNITS = {"um": "µm", "urad": "µrad"}
 _PLOT_CAPTIONS = {
-    "component_errors.png": "Component error motions of each axis (error = actual - "
-    "nominal), band = ±2 u",
+    "component_errors.png": "Component error motions of each axis (error = actual − "
+    "nominal), band = ±2u (k = 2)",
     "volumetric_map.png": "Volumetric error over the workspace",
     "residuals.png": "Residuals of the length readings (model - measured)",
     "residuals_vs_axes.png": "Normalised residuals against each axis position, binned means",
-    "correlations.png": "Correlations of the identifiable error parameters",
+    "correlations.png": "Correlations of the identifiable parameters (basis coefficients) "
+    "and the strongest pairs",
 }
 
 
@@ -104,6 +106,31 @@ def _g(v: Any, digits: int = 4) -> str:
 def _unit(u: Any) -> str:
     """Report unit as a reader writes it (um -> µm)."""
     return _UNITS.get(str(u), str(u))
+
+
+def _option(v: Any) -> str:
+    """An identification option as a reader writes it, not as Python does (``None`` ->
+    "not given", ``True`` -> "yes", lists joined)."""
+    if v is None:
+        return "not given"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, (list, tuple)):
+        return ", ".join(_option(x) for x in v) or "none"
+    if isinstance(v, dict):
+        return "; ".join(f"{k} {_option(x)}" for k, x in v.items()) or "none"
+    return str(v)
+
+
+def code_spans(text: Any) -> Markup:
+    """Escaped text whose Markdown code spans (`` `x` ``, as notes and messages write
+    them) become ``<code>x</code>``: no literal backticks in the document."""
+    parts = str(text).split("`")
+    if len(parts) % 2 == 0:  # an unpaired backtick: leave the text as it is
+        return escape(str(text))
+    return Markup("").join(
+        escape(p) if k % 2 == 0 else Markup("<code>%s</code>") % p for k, p in enumerate(parts)
+    )
 
 
 def _axis_unit(axis: Any) -> str:
@@ -465,7 +492,12 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
         "seconds": _g(meta.get("seconds"), 3),
         "phases": phases,
         "conditions": conditions,
-        "options": [f"{k} = {v}" for k, v in options.items()],
+        "options": [
+            {"name": str(k).replace("_", " "), "value": _option(v)} for k, v in options.items()
+        ],
+        "timings": [
+            {"stage": str(k), "seconds": _g(v, 3)} for k, v in (meta.get("timings_s") or {}).items()
+        ],
         "adequacy": verdict,
         "notes": [str(n) for n in meta.get("notes") or []],
     }
@@ -555,6 +587,53 @@ def _uncertainty(res: LoadedResult, grid: pd.DataFrame | None) -> dict[str, Any]
     return {"largest": largest, "volumetric": vol}
 
 
+def _error_motions(
+    res: LoadedResult, comp: pd.DataFrame | None, motions: pd.DataFrame | None
+) -> dict[str, Any]:
+    """The error-motion section: peak-to-peak per motion (error_motions.csv, or computed
+    from the saved result for a folder written before it existed) and the motions at
+    positions along each axis (rows of component_errors.csv)."""
+    from volcal.outputs.results import error_motion_table, error_motions_at_positions
+
+    if motions is None:
+        motions = error_motion_table(res.error_model, res.theta, res.cov_theta, res.identifiable)
+    peak = [
+        {
+            "axis": str(r.axis),
+            "name": str(r.error_motion),
+            "description": str(r.description),
+            "pp": _g(r.peak_to_peak_in_unit, 4),
+            "u": _g(r.u_peak_to_peak_in_unit, 2) or "not identifiable",
+            "unit": _unit(r.unit),
+            "min": _g(r.min_in_unit, 4),
+            "max": _g(r.max_in_unit, 4),
+            "at_min": f"{_g(r.position_of_min_in_axis_unit, 6)} {r.axis_unit}",
+            "at_max": f"{_g(r.position_of_max_in_axis_unit, 6)} {r.axis_unit}",
+        }
+        for r in motions.itertuples(index=False)
+    ]
+    tables = []
+    for axis, t in error_motions_at_positions(comp) if comp is not None else []:
+        pos, cols = t.columns[0], list(t.columns[1:])
+
+        def head(c: str) -> str:
+            name, _, unit = c.rpartition("_")
+            return f"{name} ({_unit(unit)})"
+
+        tables.append(
+            {
+                "axis": axis,
+                "head": [head(pos).replace("position", f"{axis} position")]
+                + [head(c) for c in cols],
+                "rows": [
+                    [_g(r[pos], 6)] + [_g(0.0 if abs(r[c]) < 1e-9 else r[c], 3) for c in cols]
+                    for _, r in t.iterrows()
+                ],
+            }
+        )
+    return {"peak": peak, "tables": tables}
+
+
 def _compensation(doc: Mapping[str, Any], comp_dir: Path) -> dict[str, Any]:
     spacing = doc.get("spacing") or {}
     per_tool = [
@@ -602,13 +681,15 @@ def _compensation(doc: Mapping[str, Any], comp_dir: Path) -> dict[str, Any]:
 @lru_cache(maxsize=1)
 def _environment() -> jinja2.Environment:
     # autoescape on: model descriptions, file names and notes are user text in HTML
-    return jinja2.Environment(
+    env = jinja2.Environment(
         loader=jinja2.FileSystemLoader(str(TEMPLATE_DIR)),
         undefined=jinja2.StrictUndefined,
         autoescape=True,
         trim_blocks=True,
         lstrip_blocks=True,
     )
+    env.filters["code_spans"] = code_spans
+    return env
 
 
 def find_comparison(result_dir: Path, compare_dir: Path | None) -> tuple[Path, Path | None]:
@@ -682,6 +763,8 @@ def html_report(
     folder = res.path
     residuals = _read_table(folder, "residuals.csv")
     grid = _read_table(folder, "volumetric_grid.csv")
+    comp_table = _read_table(folder, "component_errors.csv")
+    motions = _read_table(folder, "error_motions.csv")
     context = {
         "header": _header(res, title, compensation_dir),
         "model": _model(res),
@@ -690,6 +773,7 @@ def html_report(
         "ident": _identification(res),
         "unid": _unidentifiable(res),
         "uncertainty": _uncertainty(res, grid),
+        "motions": _error_motions(res, comp_table, motions),
         "parameters": _parameters(res),
         "plots": _plots(res, draw_missing=True, plotter=plotter) if plots else [],
         "compensation": comp,

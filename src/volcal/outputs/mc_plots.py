@@ -26,14 +26,14 @@ def _plot_volumetric_U(
     # axes placed by hand where the constrained layout put them
     ax = fig.add_axes((0.0, 0.0, 0.86, 0.93), projection="3d")
     sc = ax.scatter(*np.asarray(points).T, c=u_norm, cmap="viridis", s=25)
-    fig.colorbar(sc, cax=fig.add_axes((0.895, 0.2, 0.022, 0.55)), label="U(|d|), k = 2 (um)")
+    fig.colorbar(sc, cax=fig.add_axes((0.895, 0.2, 0.022, 0.55)), label="U(|d|), k = 2 (µm)")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_zlabel("z (mm)")
     ax.set_title(
         f"Monte Carlo expanded uncertainty of the volumetric error |d|\n"
-        f"(|d| up to {max_norm:.1f} um; U up to "
-        f"{np.max(u_norm):.2f} um)",
+        f"(|d| up to {max_norm:.1f} µm; U up to "
+        f"{np.max(u_norm):.2f} µm)",
         fontsize=10,
     )
     save(fig, path, dpi=110)
@@ -49,9 +49,9 @@ def _plot_max_hist(mx: np.ndarray, path: Path | BinaryIO) -> None:
     lo, hi = np.quantile(mx, [0.025, 0.975])
     for v in (lo, hi):
         ax.axvline(v, color="tab:red", linestyle="--", linewidth=0.8)
-    ax.set_xlabel("largest volumetric error over the evaluation poses (um)")
+    ax.set_xlabel("largest volumetric error over the evaluation poses (µm)")
     ax.set_ylabel("trials")
-    ax.set_title(f"{len(mx)} trials; 95 % interval [{lo:.2f}, {hi:.2f}] um")
+    ax.set_title(f"{len(mx)} trials; 95 % interval [{lo:.2f}, {hi:.2f}] µm")
     save(fig, path, dpi=110)
 
 

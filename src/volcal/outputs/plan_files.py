@@ -232,7 +232,7 @@ def _plot(result: Any, vol: pd.DataFrame, path: Path) -> None:
         ax.set_ylabel("xyz"[j] + " / mm")
         ax.set_title(lab)
         ax.set_aspect("equal", adjustable="datalim")
-    fig.colorbar(sc, ax=axes, label="predicted u of the volumetric error / um")
+    fig.colorbar(sc, ax=axes, label="predicted u of the volumetric error (µm)")
     axes[0].legend(loc="best", fontsize=8)
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -124,9 +124,22 @@ def volumetric_slices_data(
     ax3 = lin[2] if len(lin) > 2 else None
     ref = {a.name: a.reference for a in spec.axes}
     slices: list[tuple[str, dict[str, float]]] = []
+
+    def where(fixed: dict[str, float], first: str) -> str:
+        # the slice's own axis first, then where every other axis not in the plane stands
+        # (a reader must not have to guess the rotary axes' or the height's position)
+        others = [
+            f"{a.name} = {fixed.get(a.name, ref[a.name]):g} {_unit(spec, a.name)}"
+            for a in spec.axes
+            if a.name not in (ax1.name, ax2.name, first)
+        ]
+        head = f"{first} = {fixed.get(first, ref[first]):g} {_unit(spec, first)}"
+        return head + (f"\n({', '.join(others)})" if others else "")
+
     if ax3 is not None:
         for h in np.linspace(ax3.travel[0], ax3.travel[1], heights):
-            slices.append((f"{ax3.name} = {h:g} mm", {ax3.name: float(h)}))
+            fixed = {ax3.name: float(h)}
+            slices.append((where(fixed, ax3.name), fixed))
     else:
         slices.append((f"{ax1.name}{ax2.name} plane", {}))
     for r in rot:
@@ -135,7 +148,8 @@ def volumetric_slices_data(
         vals = np.linspace(r.travel[0], r.travel[1], angles + (1 if full else 0))
         vals = vals[:-1] if full else vals
         for v in vals:
-            slices.append((f"{r.name} = {v:g} deg", {r.name: float(v), **mid}))
+            fixed = {r.name: float(v), **mid}
+            slices.append((where(fixed, r.name), fixed))
     g1 = np.linspace(ax1.travel[0], ax1.travel[1], n)
     g2 = np.linspace(ax2.travel[0], ax2.travel[1], n)
     G1, G2 = np.meshgrid(g1, g2, indexing="ij")
@@ -163,7 +177,7 @@ def volumetric_slices_data(
         "labels": (f"{ax1.name} (mm)", f"{ax2.name} (mm)"),
         "slices": out,
         "vmax": vmax,
-        "title": f"Volumetric error (actual - nominal), {what}; arrows: in-plane components",
+        "title": f"Volumetric error (actual − nominal), {what}; arrows: in-plane components",
     }
 
 
@@ -181,7 +195,8 @@ def volumetric_slices(
     """2-D maps of the volumetric error (tool offset ``tool`` mm, default 0): XY slices at
     ``heights`` positions of the third linear axis (rotary axes at their reference), and
     for each rotary axis XY slices at ``angles`` angles over its travel (the third linear
-    axis mid-travel).  Colour: |d| (um); arrows: the in-plane components."""
+    axis mid-travel).  Colour: |d| (µm); arrows: the in-plane components, one scale for
+    every panel (the key gives it); panels drawn to scale (equal mm on both axes)."""
     data = volumetric_slices_data(
         machine, error_model, theta, n=n, heights=heights, angles=angles, tool=tool
     )
@@ -370,18 +385,24 @@ def correlations_data(result: Any) -> dict[str, Any]:
     # parameter per condition (QR with column pivoting picks them), so the picture shows
     # the correlations the data leave, not the datum's
     keep &= ~_datum_determined(result, keep)
-    names = [n for n, k in zip(result.error_model.param_names, keep) if k]
+    em = result.error_model
+    names = [n for n, k in zip(em.param_names, keep) if k]
+    # the axis each parameter's error quantity belongs to ("T": the tool), to label the
+    # matrix by blocks when there are too many parameters to name each
+    groups = [em.errors[e].axis for e, k in zip(em.param_error, keep) if k]
     C = cov[np.ix_(keep, keep)]
     d = np.sqrt(np.diag(C))
     R = C / np.outer(d, d) if len(d) else np.zeros((0, 0))
-    return {"R": R, "names": names}
+    return {"R": R, "names": names, "groups": groups}
 
 
-def correlations(result: Any, path: Target = None, max_labels: int = 60):
-    """Correlation matrix of the identifiable error parameters: parameters that are held,
-    unidentifiable, fixed by the datum alone (zero variance) or determined from the others
-    by a datum condition are left out, so the picture shows what the data determine, not
-    the datum's ties."""
+def correlations(result: Any, path: Target = None, max_labels: int = 30):
+    """Correlation matrix of the identifiable error parameters, beside the strongest
+    pairs by name: parameters that are held, unidentifiable, fixed by the datum alone
+    (zero variance) or determined from the others by a datum condition are left out, so
+    the picture shows what the data determine, not the datum's ties.  Up to
+    ``max_labels`` parameters are named on the matrix; more are labelled by the axis their
+    error quantity belongs to."""
     return F.draw_correlations(correlations_data(result), path, max_labels)
 
 

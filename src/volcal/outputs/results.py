@@ -5,10 +5,11 @@
 =========================  ==================================================================
 file                       content
 =========================  ==================================================================
-``parameters.csv``         ``name, value, unit, u, identifiable, imposed``: every error
-                           parameter in um / urad (``unit`` says which); ``u`` its standard
-                           uncertainty (empty for unidentifiable parameters: their values
-                           are one representative of what the data allow, not determined);
+``parameters.csv``         ``name, value, unit, u, identifiable, imposed``: every parameter
+                           (basis coefficient of an error quantity) in um / urad (``unit``
+                           says which); ``u`` its standard uncertainty (empty for
+                           unidentifiable parameters: their values are one representative
+                           of what the data allow, not determined);
                            ``imposed``: set to zero by the datum (a convention, u = 0, not
                            a measurement; the conditions are in ``datum.csv``)
 ``stations.csv``           the identified stations: ``station, x_mm, y_mm, z_mm,
@@ -21,6 +22,10 @@ file                       content
                            per component error motion of that axis with its unit
                            (``EXX_um``, ``EAX_urad``) and its standard uncertainty
                            (``u_EXX_um``); cells of other axes' errors are empty
+``error_motions.csv``      per component error motion: ``axis``, ``error_motion``,
+                           ``description``, ``unit`` (um / urad), ``peak_to_peak_in_unit``
+                           over the travel and its standard uncertainty, the extremes and
+                           where they lie (``axis_unit``: mm / deg)
 ``volumetric_grid.csv``    a grid over the box of the linear axes and, on a coarse grid,
                            the rotary axes' whole travel (tool offset (0, 0, 0) mm): axis columns
                            (mm / deg), ``dx_um, dy_um, dz_um``, ``u_dx_um, u_dy_um,
@@ -35,7 +40,7 @@ file                       content
                            angles
 ``residuals.png``          residual histogram, normal QQ plot of the standardised
                            residuals, residuals per reading by station
-``correlations.png``       correlations of the identifiable error parameters
+``correlations.png``       correlations of the identifiable parameters (basis coefficients)
 ``residuals_vs_axes.png``  normalised residuals against each axis position, binned means
 =========================  ==================================================================
 
@@ -98,6 +103,8 @@ __all__ = [
     "check_out_dir",
     "read_points",
     "component_error_table",
+    "error_motion_table",
+    "error_motions_at_positions",
     "volumetric_grid_table",
     "RESULT_FORMAT",
     "RESULT_FORMAT_VERSION",
@@ -117,6 +124,7 @@ DATA_FILES = (
     "residuals.csv",
     "datum.csv",
     "component_errors.csv",
+    "error_motions.csv",
     "volumetric_grid.csv",
     "report.md",
     "result.json",
@@ -140,6 +148,11 @@ GRID_POINTS = 7
 GRID_POINTS_WITH_ROTARY = 5
 #: positions per axis of the component error table
 COMPONENT_POINTS = 41
+#: positions per axis on which the peak-to-peak value of each error motion is found
+PEAK_POINTS = 401
+#: positions per axis of the printed error-motion tables (report.md, HTML report): every
+#: tenth of the travel, as ISO 230-1 reports and tracker software print them
+TABLE_POSITIONS = 11
 
 _VOL = ["dx_um", "dy_um", "dz_um"]
 _UVOL = ["u_dx_um", "u_dy_um", "u_dz_um"]
@@ -212,6 +225,129 @@ def component_error_table(
     if not frames:
         return pd.DataFrame(columns=cols)
     return pd.concat(frames, ignore_index=True)[cols]
+
+
+def describe_error_motion(spec: MachineSpec, symbol: Any) -> str:
+    """What an ISO 230-1 component error motion is, in words (``EXX``: "positioning error
+    of X"; ``EYX``: "straightness of X in Y"; ``EBX``: "tilt of X about B")."""
+    axis = spec.axis(symbol.axis)
+    own = symbol.component == axis.dir_index
+    letter = ("XYZ" if symbol.quantity == "translation" else "ABC")[symbol.component]
+    if not axis.is_rotary:
+        if symbol.quantity == "translation":
+            return (
+                f"positioning error of {axis.name}"
+                if own
+                else (f"straightness of {axis.name} in {letter}")
+            )
+        return f"roll of {axis.name}" if own else f"tilt of {axis.name} about {letter}"
+    if symbol.quantity == "translation":
+        if own:
+            return f"axial motion of {axis.name}"
+        return f"radial motion of {axis.name} in {letter}"
+    return (
+        f"angular positioning error of {axis.name}"
+        if own
+        else (f"tilt of {axis.name} about {letter}")
+    )
+
+
+def error_motion_table(
+    error_model: ErrorModel,
+    theta: np.ndarray,
+    cov_theta: np.ndarray | None = None,
+    identifiable: np.ndarray | None = None,
+    n: int = PEAK_POINTS,
+) -> pd.DataFrame:
+    """The peak-to-peak value of every component error motion over its axis' travel (other
+    axes at their reference), as ISO 230-1 reports it: one row per motion, chain order.
+
+    Columns: ``axis``, ``error_motion`` (ISO name), ``description``, ``unit`` (um or urad:
+    the unit of every ``*_in_unit`` column), ``peak_to_peak_in_unit`` (largest minus
+    smallest value on ``n`` evenly spaced positions), ``u_peak_to_peak_in_unit`` (its
+    standard uncertainty, k = 1, propagated through the two positions; empty where the
+    motion involves an unidentifiable parameter or without ``cov_theta``),
+    ``min_in_unit``, ``max_in_unit``, ``axis_unit`` (mm or deg) and
+    ``position_of_min_in_axis_unit``, ``position_of_max_in_axis_unit``.  Location errors
+    (constants) have no peak-to-peak value and are not listed."""
+    em = error_model
+    spec = em.spec
+    theta = np.asarray(theta, float)
+    ident = np.ones(em.n_params, bool) if identifiable is None else np.asarray(identifiable, bool)
+    cov = None if cov_theta is None else np.nan_to_num(np.asarray(cov_theta, float))
+    ref = np.array([np.deg2rad(a.reference) if a.is_rotary else a.reference for a in spec.axes])
+    rows = []
+    for j, a in enumerate(spec.axes):
+        comps = [k for k, s in enumerate(em.errors) if s.axis == a.name and s.kind == "component"]
+        if not comps:
+            continue
+        pos = np.linspace(a.travel[0], a.travel[1], n)
+        q = np.tile(ref, (n, 1))
+        q[:, j] = np.deg2rad(pos) if a.is_rotary else pos
+        B = em.basis(q)
+        for k in comps:
+            s = em.errors[k]
+            f, u_name = _unit_factor(s.unit)
+            y = B[:, k, :] @ theta * f
+            y[np.abs(y) < 1e-9] = 0.0  # rounding noise of a value the datum makes zero
+            lo, hi = int(np.argmin(y)), int(np.argmax(y))
+            u = float("nan")
+            if cov is not None and ident[em.param_error_arr == k].all():
+                d = B[hi, k, :] - B[lo, k, :]
+                u = float(np.sqrt(max(float(d @ cov @ d), 0.0))) * f
+            rows.append(
+                {
+                    "axis": a.name,
+                    "error_motion": s.name,
+                    "description": describe_error_motion(spec, s),
+                    "unit": u_name,
+                    "peak_to_peak_in_unit": float(y[hi] - y[lo]),
+                    "u_peak_to_peak_in_unit": u,
+                    "min_in_unit": float(y[lo]),
+                    "max_in_unit": float(y[hi]),
+                    "axis_unit": _axis_unit(spec, a.name),
+                    "position_of_min_in_axis_unit": float(pos[lo]),
+                    "position_of_max_in_axis_unit": float(pos[hi]),
+                }
+            )
+    cols = [
+        "axis",
+        "error_motion",
+        "description",
+        "unit",
+        "peak_to_peak_in_unit",
+        "u_peak_to_peak_in_unit",
+        "min_in_unit",
+        "max_in_unit",
+        "axis_unit",
+        "position_of_min_in_axis_unit",
+        "position_of_max_in_axis_unit",
+    ]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def error_motions_at_positions(
+    component_table: pd.DataFrame, n: int = TABLE_POSITIONS
+) -> list[tuple[str, pd.DataFrame]]:
+    """The printed tables of the error motions at positions along each axis: per axis
+    ``(axis, table)`` with the position column and that axis' error-motion columns of
+    ``component_table`` (:func:`component_error_table`, e.g. read back from
+    component_errors.csv), on ``n`` of its rows evenly spread over the travel (every fourth
+    of the 41 rows by default: exact rows, nothing interpolated)."""
+    out = []
+    t = component_table
+    for axis in dict.fromkeys(t["axis"].astype(str)):
+        sub = t[t["axis"].astype(str) == axis]
+        keep = [
+            c
+            for c in sub.columns
+            if c != "axis" and not c.startswith("u_") and sub[c].notna().all()
+        ]
+        if len(keep) < 2:  # a position column and at least one motion
+            continue
+        rows = np.unique(np.round(np.linspace(0, len(sub) - 1, min(n, len(sub)))).astype(int))
+        out.append((axis, sub.iloc[rows][keep].reset_index(drop=True)))
+    return out
 
 
 def volumetric_grid_table(
@@ -708,6 +844,9 @@ def _report(
     n_grid: int,
     n_comp: int,
     plots: bool,
+    comp: pd.DataFrame | None = None,
+    motions: pd.DataFrame | None = None,
+    timings: Mapping[str, float] | None = None,
 ) -> str:
     em = result.error_model
     spec = result.machine.spec
@@ -759,7 +898,11 @@ def _report(
     rows += [
         ("unidentifiable parameters", str(len(unid))),
         ("rejected readings", str(int(rej.sum()))),
-        ("total time", f"{result.seconds:.3g} s"),
+        (
+            "identification time",
+            f"{result.seconds:.3g} s (reading and checking the readings, building and solving "
+            "the problem, uncertainty; not writing this folder)",
+        ),
     ]
     add(_md_table(pd.DataFrame(rows, columns=["quantity", "value"])))
     add("")
@@ -797,7 +940,11 @@ def _report(
         else:
             label = f.describe()
         kinds.setdefault(label, []).append(s.name)
-    add(f"{em.n_errors} error quantities, {em.n_params} parameters, datum convention `{em.datum}`:")
+    add(
+        f"{em.n_errors} error quantities (component error motions and location errors, ISO "
+        f"230-1 names), {em.n_params} parameters (the coefficients of their bases, which "
+        f"the identification fits), datum convention `{em.datum}`:"
+    )
     add("")
     for label, names in kinds.items():
         add(f"- {label}: {', '.join(names)}")
@@ -862,9 +1009,16 @@ def _report(
     add("")
     m = result.machine
     add(
-        f"Timings: total {result.seconds:.3g} s (solver phases "
-        f"{sum(o.seconds for o in result.outcomes):.3g} s); machine functions "
+        f"Timings: identification {result.seconds:.3g} s (solver phases "
+        f"{sum(o.seconds for o in result.outcomes):.3g} s of it); machine functions "
         f"{'loaded from the cache' if m.from_cache else 'built'} in {m.build_seconds:.3g} s."
+        + (
+            " Per stage, until this report was written: "
+            + "; ".join(f"{k} {v:.3g} s" for k, v in timings.items())
+            + "."
+            if timings
+            else ""
+        )
     )
     add("")
     add("### Condition numbers")
@@ -899,7 +1053,7 @@ def _report(
             add("")
             add(f"**Why, and what to measure:** {_sentence(why['text'])}")
     else:
-        add("Every error parameter is identifiable from these data.")
+        add("Every parameter is identifiable from these data.")
     add("")
     if result.datum is not None:
         add(_datum_section(result))
@@ -961,6 +1115,7 @@ def _report(
     if plots:
         add("![component error motions](component_errors.png)")
         add("")
+    L.extend(_error_motion_lines(spec, comp, motions))
 
     add("## Volumetric error")
     add("")
@@ -1048,7 +1203,8 @@ def _report(
     add("")
     add(
         "`parameters.csv`, `stations.csv`, `residuals.csv`, `component_errors.csv`, "
-        "`volumetric_grid.csv`, `result.json` (everything `volcal predict --result` needs)"
+        "`error_motions.csv`, `volumetric_grid.csv`, `result.json` (everything "
+        "`volcal predict --result` needs)"
         + (
             ", `component_errors.png`, `volumetric_map.png`, `residuals.png`, "
             "`residuals_vs_axes.png`, `correlations.png`"
@@ -1059,6 +1215,57 @@ def _report(
     )
     add("")
     return "\n".join(L)
+
+
+def _error_motion_lines(
+    spec: MachineSpec, comp: pd.DataFrame | None, motions: pd.DataFrame | None
+) -> list[str]:
+    """Report text: peak-to-peak per error motion (error_motions.csv) and the error motions
+    at positions along each axis (rows of component_errors.csv)."""
+    L: list[str] = []
+    if motions is not None and len(motions):
+        L += [
+            "### Peak-to-peak per error motion",
+            "",
+            f"`error_motions.csv`: largest minus smallest value of each error motion over "
+            f"its axis' travel ({PEAK_POINTS} positions, other axes at their reference), "
+            "with its standard uncertainty and where the extremes lie.",
+            "",
+        ]
+        view = pd.DataFrame(
+            {
+                "error motion": motions["error_motion"],
+                "what": motions["description"],
+                "peak-to-peak": motions["peak_to_peak_in_unit"],
+                "u (k = 1)": motions["u_peak_to_peak_in_unit"],
+                "unit": motions["unit"],
+                "min at": [
+                    f"{p:g} {u}"
+                    for p, u in zip(motions["position_of_min_in_axis_unit"], motions["axis_unit"])
+                ],
+                "max at": [
+                    f"{p:g} {u}"
+                    for p, u in zip(motions["position_of_max_in_axis_unit"], motions["axis_unit"])
+                ],
+            }
+        )
+        L += [_md_table(view, ".3g"), ""]
+    if comp is not None and len(comp):
+        L += [
+            "### Error motions at positions along each axis",
+            "",
+            "Rows of `component_errors.csv` every tenth of the travel (other axes at their "
+            "reference); um for translational, urad for angular motions.",
+            "",
+        ]
+        for axis, table in error_motions_at_positions(comp):
+            table = table.copy()
+            pos = table.columns[0]
+            table[pos] = [f"{v:g}" for v in table[pos]]  # positions in full, not 3 digits
+            vals = table.columns[1:]
+            table[vals] = table[vals].mask(table[vals].abs() < 1e-9, 0.0)
+            L += [f"Axis {axis}:", "", _md_table(table, ".3g"), ""]
+    return L
 
 
 def _write_order_selection(result: IdentificationResult, folder: Path) -> None:
@@ -1186,7 +1393,7 @@ def _adequacy_section(ad, plots: bool) -> str:
         lines += [
             "![normalised residuals against each axis](residuals_vs_axes.png)",
             "",
-            "![correlations of the identifiable error parameters](correlations.png)",
+            "![correlations of the identifiable parameters](correlations.png)",
             "",
         ]
     return "\n".join(lines)
@@ -1295,6 +1502,8 @@ def save_result(
                     tmp / "datum.csv", index=False
                 )
             comp.to_csv(tmp / "component_errors.csv", index=False)
+            motions = error_motion_table(em, result.theta, result.cov_theta, result.identifiable)
+            motions.to_csv(tmp / "error_motions.csv", index=False)
             log.info("evaluating the volumetric error on the grid")
             grid = volumetric_grid_table(machine, em, result.theta, result.cov_theta, grid_points)
             grid.to_csv(tmp / "volumetric_grid.csv", index=False)
@@ -1317,6 +1526,9 @@ def save_result(
                 n_grid=grid_points,
                 n_comp=component_points,
                 plots=plots,
+                comp=comp,
+                motions=motions,
+                timings=doc["timings_s"],
             ),
             encoding="utf-8",
         )

@@ -170,7 +170,7 @@ def _handler(args: argparse.Namespace) -> int:
             f"{100 * s.within_2u_fraction:.0f} % of components within 2 u"
         )
         print("  unidentifiable           " + (", ".join(s.unidentifiable) or "none"))
-        print(f"  time                     {s.seconds:.1f} s")
+        print(f"  time                     {s.seconds:.1f} s (simulating, identifying, writing)")
         print(f"  report                   {s.out_dir / 'identification' / 'report.md'}")
         print(f"  files                    {s.out_dir}")
     return 0

@@ -1,5 +1,5 @@
 """``volcal models`` (list the bundled machine models) and ``volcal show MODEL`` (one model's
-axes, error parameters and first-order volumetric error, written out).
+axes, error quantities and first-order volumetric error, written out).
 
 Only the ``show`` path touches SymPy, through :mod:`volcal.model.symbolic`, and it imports it
 inside the handler: ``volcal --help`` and ``volcal models`` never load it.
@@ -26,7 +26,7 @@ def add_parser(subparsers) -> None:
         "models",
         help="list the bundled machine models",
         description="List the machine models shipped with volcal: name, number of axes, "
-        "number of error parameters and description. Use the name with --model "
+        "number of error quantities and description. Use the name with --model "
         "or with 'volcal show'.",
     )
     p.add_argument(
@@ -36,12 +36,12 @@ def add_parser(subparsers) -> None:
 
     s = subparsers.add_parser(
         "show",
-        help="show a model: axes, error parameters, first-order volumetric error",
+        help="show a model: axes, error quantities, first-order volumetric error",
         description="Show one machine model: its axes (travel in mm or deg), its error "
-        "parameters (ISO 230-1 / 230-7 names; mm and rad inside volcal, printed "
+        "quantities (ISO 230-1 / 230-7 names; mm and rad inside volcal, printed "
         "as um and urad in reports) and the first-order volumetric error "
         "dx, dy, dz (actual minus nominal tool point, mm, in the workpiece frame) "
-        "as a sum of coefficient * error, one term per error parameter. "
+        "as a sum of coefficient * error, one term per error quantity. "
         "See docs/conventions.md.",
     )
     s.add_argument(
@@ -130,7 +130,7 @@ def _linear_axis_along(spec: MachineSpec, k: int) -> str:
 
 
 def describe_error(spec: MachineSpec, s: ErrorSymbol) -> str:
-    """What an error parameter is, in ISO 230-1 / 230-7 words."""
+    """What an error quantity is, in ISO 230-1 / 230-7 words."""
     if s.kind == "tool":
         d = "xyz"[s.component]
         return (
@@ -278,7 +278,7 @@ def run_show(args) -> int:
         # seconds, 6 a quarter of a minute, 12 hours; the model itself builds in linear time
         too_big = (
             f"the first-order volumetric error is not written out: written out in "
-            f"full it has about 2^{n_rot} terms per error parameter ({n_rot} rotary "
+            f"full it has about 2^{n_rot} terms per error quantity ({n_rot} rotary "
             f"axes; at most {MAX_WRITTEN_ROTARY} are written out); volcal builds and "
             "uses the model without it"
         )
@@ -313,7 +313,9 @@ def run_show(args) -> int:
         out += [
             f"model {spec.name}: {spec.description}".rstrip(": "),
             f"chain {chain_string(spec)} (W workpiece, F machine frame, T tool); "
-            f"{len(spec.axes)} axes, {len(error_symbols(spec))} error parameters",
+            f"{len(spec.axes)} axes, {len(error_symbols(spec))} error quantities (each a "
+            "function of its axis or a constant; an identification fits the parameters of "
+            "their bases)",
             "",
         ]
     if "axes" in sections:
@@ -337,7 +339,7 @@ def run_show(args) -> int:
             for n, ax, kind, _q, unit, rep, meaning in error_rows(spec)
         ]
         out += [
-            "error parameters (error = actual - nominal; mm and rad inside volcal, "
+            "error quantities (error = actual - nominal; mm and rad inside volcal, "
             "µm and µrad in reports)",
             _text_table(["name", "axis", "kind", "unit", "meaning"], rows),
             "",
