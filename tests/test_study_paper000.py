@@ -8,6 +8,7 @@ import re
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,3 +63,30 @@ def test_paper000_smoke(capsys):
     all6 = sub[sub["n_stations"] == 6].iloc[0]
     assert lt14["sv3_mm"] < 5.0 and lt14["linear_true_rms_um"] > 100.0
     assert all6["linear_true_rms_um"] < 20.0
+    # the per-station pattern the README reports: the paper's differences from Trac-Cal are
+    # largest at LT6 for every method, ours from the reference at LT1 or LT2. The relative
+    # standard error of a 2-trial per-station RMS (the smoke's), from the scatter of the
+    # committed 200-trial results/stations_per_trial.csv, is at most 0.035, except for the
+    # Taylor refinement at LT5/LT6 (0.14, small values): 3 of them from the README's figures.
+    readme = (STUDY / "README.md").read_text(encoding="utf-8")
+    block = readme.split("<!-- table: per_station -->")[1].split("<!-- /table -->")[0]
+
+    def rows(md):
+        cells = [[x.strip() for x in ln.strip().strip("|").split("|")]
+                 for ln in md.strip().splitlines()[2:]]
+        return {(c[0], c[1]): c[2:] for c in cells}
+
+    got, want = rows(tables["per_station"]), rows(block)
+    assert set(got) == set(want) and len(got) == 8
+    for (meth, who), cells in got.items():
+        top = cells[-1].split()
+        if who == "ours":
+            assert top[0] in ("LT1", "LT2") and "LT6" not in top, (meth, top)
+            ours = np.array([float(x) for x in cells[:-1]])
+            full = np.array([float(x) for x in want[(meth, who)][:-1]])
+            rtol = np.full(6, 0.1)
+            if meth == "linear_taylor":
+                rtol[4:] = 0.42
+            assert np.all(np.abs(ours - full) <= rtol * full), (meth, ours, full)
+        else:
+            assert top[0] == "LT6", (meth, top)

@@ -482,6 +482,31 @@ def paper_measure_table(s: pd.DataFrame, cfg: dict) -> str:
                         "rank", "ours: vs truth, rigid removed RMS ± SE um", "rank"])
 
 
+def per_station_table(st: pd.DataFrame, cfg: dict) -> str:
+    """Station by station: the paper's difference from Trac-Cal (Tables 6-9, the norm of each
+    station's row, um) next to ours from the reference self-calibration (RMS over trials,
+    um), and where each is largest: the pattern, not only the size."""
+    paper = cfg.get("paper", {})
+    ids = sorted(st["station"].unique())
+    ours = (st.groupby(["method", "station"])["vs_reference_um"]
+            .apply(lambda v: float(np.sqrt(np.mean(np.asarray(v) ** 2)))).unstack())
+    rows = []
+    for meth, tab in PAPER_TABLES.items():
+        D = 1e3 * np.linalg.norm(np.asarray(paper[tab], float), axis=1)
+        o = ours.loc[meth, ids].to_numpy(float)
+        for who, v in ((f"paper, {tab.replace('table', 'Table ')}", D), ("ours", o)):
+            rows.append({"m": meth, "who": who, **{k: f"{x:.3g}" for k, x in zip(ids, v)},
+                         "top": " ".join(ids[i] for i in np.argsort(v)[::-1][:2])})
+    return rt.markdown(rows, ["m", "who", *ids, "top"],
+                       ["method", "source", *(f"{k} um" for k in ids),
+                        "two largest"])
+
+
+def per_station_from(csv: Path, cfg: dict) -> str:
+    """:func:`per_station_table` from a finished run's stations_per_trial.csv."""
+    return per_station_table(pd.read_csv(csv), cfg)
+
+
 def advantage_table(sums: dict, floors: dict) -> str:
     rows = []
     for truth, (s, p) in sums.items():
@@ -543,7 +568,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--update-readme", action="store_true",
                     help="copy the printed tables into README.md's marked tables")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--per-station-from", type=Path, default=None, metavar="CSV",
+                    help="print (and with --update-readme write) the per_station table from "
+                         "a finished run's stations_per_trial.csv; compute nothing")
     args = ap.parse_args(argv)
+    if args.per_station_from is not None:
+        tab = per_station_from(args.per_station_from, tomllib.loads(args.config.read_text()))
+        print(tab)
+        if args.update_readme:
+            rt.update_readme(HERE / "README.md", {"per_station": tab})
+        return 0
     cfg = tomllib.loads(args.config.read_text())
     from volcal.measurement.simulate import example
 
@@ -579,6 +613,7 @@ def main(argv: list[str] | None = None) -> int:
         tables[f"points_{truth_name}"] = points_table(p_sum)
         if truth_name == "model":
             tables["paper_measure"] = paper_measure_table(s_sum, cfg)
+            tables["per_station"] = per_station_table(st, cfg)
         runinfo.append({"part": f"trials, truth {truth_name}", "n": trials,
                         "seconds": time.perf_counter() - t0})
     tables["advantage"] = advantage_table(sums, floors)

@@ -419,6 +419,44 @@ def _printed(s) -> tuple[float, float]:
     return float(s), 0.5 * 10.0 ** (int(exp or 0) - dec)
 
 
+FIXED_STATS = (("mean", "mean_um"), ("std", "std_um"), ("max", "max_um"), ("min", "min_um"))
+
+
+def fixed_markdown(rows: list[dict], paper: list[dict]) -> str:
+    """The Table 1 rows whose trials do not scatter (SE below 1e-6 of the mean: the result is
+    set by the start values, so every trial and the paper's run give the same numbers),
+    statistic by statistic: the paper's printed value, ours to six digits, and whether ours
+    lies within half a unit of the paper's last printed digit."""
+    ours = {(r["case"], str(r["initial_accuracy_pct"])): r for r in rows}
+    tab = []
+    for p in paper:
+        key = (p["case"], str(p.get("accuracy", "")))
+        r = ours.get(key)
+        if r is None or not (0 < r["mean_um"] and r["mean_se_um"] <= 1e-6 * r["mean_um"]):
+            continue
+        for stat, col in FIXED_STATS:
+            pv, rnd = _printed(p[stat])
+            diff = abs(float(r[col]) - pv)
+            tab.append({"row": f"{p['case']} @ {key[1]} %: {stat}", "paper": str(p[stat]),
+                        "ours": f"{float(r[col]):.6g}", "rnd": f"{rnd:.3g}",
+                        "ok": "yes" if diff <= rnd else "no",
+                        "rel": f"{100 * (float(r[col]) - pv) / pv:+.3f}"})
+    return rt.markdown(tab, ["row", "paper", "ours", "rnd", "ok", "rel"],
+                       ["statistic (trials do not scatter)", "paper um", "ours um",
+                        "half a unit of the paper's last digit, um", "within the rounding",
+                        "(ours - paper) / paper %"])
+
+
+def fixed_from_csv(csv: Path, cfg: dict) -> str:
+    """:func:`fixed_markdown` from a run's table_paper.csv (no computation)."""
+    import pandas as pd
+
+    rows = pd.read_csv(csv, keep_default_na=False).to_dict("records")
+    for r in rows:
+        r["initial_accuracy_pct"] = str(r["initial_accuracy_pct"])
+    return fixed_markdown(rows, cfg["paper_table1"])
+
+
 def table1_markdown(rows: list[dict], paper: list[dict]) -> str:
     """Paper 001 Table 1 next to ours (scenario `paper`).  The gap of the means is given in
     standard errors of ours, after allowing for the rounding of the paper's printed value:
@@ -530,6 +568,45 @@ def write_csv(path: Path, rows: list[dict]) -> None:
     pd.DataFrame(rows).to_csv(path, index=False)
 
 
+NOISE_SCENARIOS = ("paper", "paper_per_laser")
+
+
+def noise_alternatives(cfg: dict, args) -> int:
+    """The sphere intersection's errors under the two readings of how f(t) enters d12, d13,
+    d23 (one phase set for the three lasers, or one per laser), next to the paper's Table 1
+    sphere row: the table ``sphere_noise``."""
+    cfg = dict(cfg)
+    cfg["case"] = [c for c in cfg["case"] if c["strategy"] == "sphere"]
+    st = cfg.setdefault("study", {})
+    trials = args.trials or (int(st.get("smoke_trials", 4)) if args.smoke else 1000)
+    out = rt.output_folder(args.out, True, HERE / "results", "paper001-noise")
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [ScenarioJob(cfg, sc) for sc in NOISE_SCENARIOS]
+    stats = run_jobs(jobs, {j.name: trials for j in jobs}, out,
+                     int(st.get("chunk_trials", 250)), progress=not args.no_progress)
+    paper = next(p for p in cfg["paper_table1"] if p["case"] == "sphere")
+    tab = [{"s": "paper 001, Table 1", "mode": "-", "n": 10000, "mean": paper["mean"],
+            "std": paper["std"], "max": paper["max"]}]
+    for j in jobs:
+        r = summarize(stats[j.name][0], j.labels, bootstrap=int(st.get("bootstrap", 200)),
+                      seed=int(st.get("seed", 1)))[0]
+        tab.append({"s": j.name, "mode": cfg["scenario"][j.name]["drift_mode"],
+                    "n": r["trials"], "mean": _pm(r["mean_um"], r["mean_se_um"]),
+                    "std": _pm(r["std_um"], r["std_se_um"]),
+                    "max": _pm(r["max_um"], r["max_se_um"])})
+    md = rt.markdown(tab, ["s", "mode", "n", "mean", "std", "max"],
+                     ["scenario", "f on d12 d13 d23", "trials", "sphere: mean ± SE um",
+                      "std ± SE um", "max ± SE um"])
+    rt.write_tables(out, {"sphere_noise": md})
+    print(md)
+    print(f"results in {out}", file=sys.stderr)
+    if args.update_readme:
+        if args.smoke:
+            raise SystemExit("--update-readme with --smoke would put smoke figures in the README")
+        rt.update_readme(HERE / "README.md", {"sphere_noise": md})
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--smoke", action="store_true", help="a handful of trials (config "
@@ -550,10 +627,25 @@ def main(argv: list[str] | None = None) -> int:
                     help="tables from the complete chunks on disk; compute nothing")
     ap.add_argument("--update-readme", action="store_true",
                     help="copy the tables into README.md's marked tables")
+    ap.add_argument("--fixed-from", type=Path, default=None, metavar="CSV",
+                    help="print (and with --update-readme write) the table1_fixed table "
+                         "from a finished run's table_paper.csv; compute nothing")
+    ap.add_argument("--noise-alternatives", action="store_true",
+                    help="only the sphere intersection, on scenario `paper` (one f for the "
+                         "three lasers) and `paper_per_laser` (own phases per laser); "
+                         "--trials of each (default 1000)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
+    if args.fixed_from is not None:
+        tab = fixed_from_csv(args.fixed_from, load_config(args.config))
+        print(tab)
+        if args.update_readme:
+            rt.update_readme(HERE / "README.md", {"table1_fixed": tab})
+        return 0
 
     cfg = load_config(args.config)
+    if args.noise_alternatives:
+        return noise_alternatives(cfg, args)
     st = cfg.setdefault("study", {})
     if args.initial_accuracy_applies_to:
         st["initial_accuracy_applies_to"] = args.initial_accuracy_applies_to
@@ -611,6 +703,7 @@ def main(argv: list[str] | None = None) -> int:
                                                     encoding="utf-8")
             if j.name == "paper" and cfg.get("paper_table1"):
                 tables["table1_paper"] = table1_markdown(rows, cfg["paper_table1"])
+                tables["table1_fixed"] = fixed_markdown(rows, cfg["paper_table1"])
             per_trial = [{"trial": k, "case": lab, "mean_um": float(s["s1"][k, c] / s["n"][k, c]),
                           "max_um": float(s["mx"][k, c]), "success": bool(s["success"][k, c])}
                          for k in range(n) for c, lab in enumerate(j.labels)]
