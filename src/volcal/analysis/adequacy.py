@@ -875,8 +875,9 @@ def assess(result: Any) -> Adequacy:
     tools = None
     if tcols:
         # One "x,y,z" key per reading, joined column-wise: a row-wise agg(",".join) took
-        # seconds at 10^5 readings for the same strings.
-        txt = res[tcols].round(6).astype(str)
+        # seconds at 10^5 readings for the same strings.  "+ 0.0" turns -0.0 (a tiny
+        # negative offset rounded) into 0.0, so one offset gets one key.
+        txt = (res[tcols].round(6) + 0.0).astype(str)
         key = txt[tcols[0]]
         for c in tcols[1:]:
             key = key + "," + txt[c]

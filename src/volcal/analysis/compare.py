@@ -533,13 +533,14 @@ def compare(
         n_readings=len(meas.table),
         notes=notes,
     )
-    if trials:
-        if ref is None:
-            raise SolverError(
-                f"the reference strategy {reference} did not solve; the trials need its "
-                "stations (and, without a truth, its estimate) to simulate from",
-                status=runs[reference].status,
-            )
+    if trials and ref is None:
+        # the table of the strategies that did solve is still worth writing
+        cmp.notes.append(
+            f"trials skipped: the reference strategy {reference} did not solve "
+            f"({runs[reference].status}); the trials need its stations (and, without a "
+            "truth, its estimate) to simulate from"
+        )
+    elif trials and ref is not None:
         if callable(truth_value) or truth_value is None:
             theta_t, cmp.trials_truth = ref.theta, f"the {reference} estimate of the data"
         else:

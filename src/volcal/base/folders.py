@@ -396,7 +396,11 @@ def remove_stale(out: str | Path) -> list[Path]:
     lock is held (no other writer of ``out`` is running then)."""
     out = Path(out).absolute()
     gone = []
-    for kind in ("tmp", "old"):
+    # a writer killed between moving the earlier output aside and moving its new one in
+    # leaves no ``out``: its ``.old-`` folder is then the only copy of that output and is
+    # kept (the user may rename it back; the next write leaves it alone)
+    kinds = ("tmp", "old") if out.exists() else ("tmp",)
+    for kind in kinds:
         for p in stale_temporaries(out.parent, f".{out.name}.{kind}-"):
             if p.is_dir() and not p.is_symlink():
                 shutil.rmtree(p, ignore_errors=True)

@@ -312,6 +312,16 @@ def _project_defaults(parser: argparse.ArgumentParser, argv: list[str]) -> str |
 
 
 def _what_stays(args: argparse.Namespace) -> str:
+    """:func:`_describe_what_stays`, never raising: it runs inside the handlers of an
+    error or an interrupt, where a folder that cannot be listed must not end in a
+    traceback."""
+    try:
+        return _describe_what_stays(args)
+    except OSError:
+        return "what stays of the output could not be listed"
+
+
+def _describe_what_stays(args: argparse.Namespace) -> str:
     """What an interrupted or failed command leaves behind, as one true clause: nothing,
     the earlier output (untouched: outputs are renamed into place whole), or the resumable
     pieces (``volcal mc``'s finished chunks, ``volcal plan``'s checkpoints) and how to

@@ -148,12 +148,20 @@ class Region:
         v = self.vertices
         e = np.roll(v, -1, axis=0) - v
         n = np.column_stack([e[:, 1], -e[:, 0]])
-        n /= np.linalg.norm(n, axis=1, keepdims=True)  # outward unit normals (CCW polygon)
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        if np.any(length == 0):
+            raise InputError(f"region {self.name!r}: a vertex is listed twice in a row")
+        n /= length  # outward unit normals (CCW polygon)
         c = np.sum(n * v, axis=1) - m  # edge k: n_k . x = c_k
         # vertex k of the inset polygon: where edges k - 1 and k meet
         out = np.empty_like(v)
         for k in range(len(v)):
             A = np.array([n[k - 1], n[k]])
+            if abs(np.linalg.det(A)) < 1e-12:  # a straight or repeated vertex
+                raise InputError(
+                    f"region {self.name!r}: vertex {k + 1} lies on a straight line with its "
+                    "neighbours (or repeats one); list only the corners of the polygon"
+                )
             out[k] = np.linalg.solve(A, np.array([c[k - 1], c[k]]))
         x, y = out[:, 0], out[:, 1]
         area2 = float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))

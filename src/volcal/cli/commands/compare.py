@@ -166,11 +166,14 @@ def run(args: argparse.Namespace) -> int:
     for name, v, lo in (
         ("--trials", args.trials, 0),
         ("--seed", args.seed, 0),
+        ("--sim-seed", 0 if args.sim_seed is None else args.sim_seed, 0),
         ("--degree", args.degree, 0),
         ("--eval-poses", args.eval_poses, 1),
     ):
         if v < lo:
             raise InputError(f"expected {name} >= {lo}, got {v}", source=name)
+    if args.sim_seed is not None and not args.example:
+        raise InputError("--sim-seed applies to --example only", source="--sim-seed")
     if args.model and args.data is None:
         raise InputError("--model needs --data (or use --example)", source="--data")
     if args.example and args.data is not None:

@@ -97,15 +97,26 @@ class Instrument(ABC):
         glob = np.zeros(self.n_global_params) if glob is None else np.asarray(glob, float)
         if N == 0:
             return np.zeros(0), np.zeros((0, 3))
+        stations = np.asarray(stations, float)
+        # the raw buffers below check only that an input is large enough: a wrong shape
+        # would be read silently as other numbers
+        if points.shape != (N, 3) or stations.shape != (N, self.n_station_params):
+            raise ValueError(
+                f"{self.name}: expected points (N, 3) and stations (N, "
+                f"{self.n_station_params}), got {points.shape} and {stations.shape}"
+            )
+        if glob.shape != (self.n_global_params,):
+            raise ValueError(
+                f"{self.name}: expected {self.n_global_params} global parameters, got "
+                f"shape {glob.shape}"
+            )
         try:
             mapped = _mapped(self, N)
         except TypeError:  # an instrument that cannot be hashed is mapped every time
             mapped = self.reading_function.map(N)
         # through the raw buffers (DM conversions cost more than the evaluation); every
         # input of a mapped Function has N columns
-        v, d = NumpyCall(mapped)(
-            points.T, np.asarray(stations, float).T, np.repeat(glob[:, None], N, axis=1)
-        )
+        v, d = NumpyCall(mapped)(points.T, stations.T, np.repeat(glob[:, None], N, axis=1))
         # map stacks the (1, 3) gradients side by side: (1, 3N)
         return v.ravel(), d.reshape(N, 3)
 

@@ -466,6 +466,17 @@ def compensate(
             "documents (docs/compensation.md); --sign applies to the generic grid only",
             source="--sign",
         )
+    # options a format does not read are refused, not silently dropped
+    for given, option, formats in (
+        (machine_datum, "--machine-datum", ("siemens", "heidenhain")),
+        (general_axis_names, "--general-axis-names", ("siemens",)),
+        (control_dir, "--control-dir", ("isg", "heidenhain")),
+    ):
+        if given and fmt not in formats:
+            raise InputError(
+                f"{option} applies to the {' and '.join(formats)} format(s), not to {fmt}",
+                source=option,
+            )
     datum = _parse_datum(machine_datum, [a.name for a in fld.axes])
     created = datetime.now(UTC).isoformat(timespec="seconds")
     options = dict(
@@ -628,7 +639,7 @@ def source_name(result: Any, src: Path | None, theta: np.ndarray) -> str:
     import hashlib
 
     fp = hashlib.sha256(np.ascontiguousarray(theta, dtype="<f8").tobytes()).hexdigest()[:12]
-    name = Path(src).name if src is not None else "(in memory)"
+    name = Path(src).resolve().name if src is not None else "(in memory)"
     return f"{name} (parameters sha256 {fp})"
 
 

@@ -149,18 +149,15 @@ def build(ctx: Context) -> Built:
         return unit_n0 * float(np.dot(t, unit_n0))
 
     def residual(q, t):
-        # the control reports a full-turn axis in [0, 360): the tables are looked up there
-        qq = np.array(q, float)
-        for a in fld.axes:
-            if a.full_turn:
-                qq[:, a.index] = np.mod(qq[:, a.index], 2 * np.pi)
-        e = tabs.errors_at(fld, qq)
+        # a full-turn axis is looked up modulo its turn (tabs.errors_at -> interp1 with
+        # periodic=True), as the control reporting it in [0, 360) does
+        e = tabs.errors_at(fld, q)
         return fld.volumetric(q, t) - fld.volumetric_from_errors(q, known_tool(t), e)
 
     values = (
         "errors (actual - nominal, ISO 230-1; component errors in mm and rad at axis "
         "positions in mm or deg); the control computes the correction (-error) from its "
-        "kinematic model (negate 0)"
+        "kinematic model"
     )
     not_carried = list(tabs.not_carried)
     lateral = [t for t in ctx.tools if np.linalg.norm(t - known_tool(t)) > 1e-9]
