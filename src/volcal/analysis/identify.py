@@ -24,6 +24,7 @@ uncertainties are NaN and ``identifiable`` is False in the parameter table.
 from __future__ import annotations
 
 import logging
+import re
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -209,8 +210,13 @@ class IdentificationResult:
         tools = np.unique(res.loc[used, cols].to_numpy(float), axis=0) if cols else np.zeros((1, 3))
         if len(tools) != 1:
             return None
-        t = ", ".join(f"{v:g}" for v in tools[0])
         errors = sorted({n.split("_")[0].split("@")[0] for n in names})
+        # the cause holds only when angular error motions (EA*, EB*, EC* of an axis, not
+        # location errors) are among those left out: other gaps (one station, too few
+        # positions for a degree) have other causes, which this does not name
+        if not any(re.fullmatch(r"E[ABC][A-Z]", e) for e in errors):
+            return None
+        t = ", ".join(f"{v:g}" for v in tools[0])
         return {
             "cause": "single_tool_offset",
             "parameters": names,
