@@ -143,10 +143,17 @@ def test_example_with_truth_and_trials(example_run):
     assert doc["trials"] == 2 and doc["reference"] == "joint"
     md = (out / "compare.md").read_text()
     assert "| joint" in md and "error vs truth" in md
-    # an earlier comparison is replaced only with --force
+    # an earlier comparison is replaced only with --force (on a copy: later tests read out)
+    import shutil
+
+    copy = tmp / "cmp_copy"
+    shutil.copytree(out, copy)
     again = ["-q", "compare", "--model", "mcv754_wxyzt", "--data",
-             str(tmp / "sim" / "measurements.csv"), "--strategies", "joint", "--out", str(out)]
+             str(tmp / "sim" / "measurements.csv"), "--strategies", "joint", "--out", str(copy)]
     assert main(again) == 2
+    assert list(pd.read_csv(copy / "comparison.csv")["strategy"]) != ["joint"]
+    assert main([*again, "--force"]) == 0
+    assert list(pd.read_csv(copy / "comparison.csv")["strategy"]) == ["joint"]
 
 
 def test_report_embeds_the_comparison(example_run, tmp_path):

@@ -149,8 +149,10 @@ def draw_volumetric_slices(data: dict[str, Any], path: Target = None):
     left, right, top, bottom = 0.75, 1.3, 0.9, 0.55
     # at most MAX_WIDTH wide: the report shows it at its own size
     pw = min(2.7, (MAX_WIDTH - left - right - (ncol - 1) * gap_w) / ncol)
+    # to scale within [0.8, 4] in of height; a travel too long for that (3000 x 100 mm)
+    # keeps the width and gives up the scale rather than grow past MAX_WIDTH
     ph = float(np.clip(pw * span2 / span1, 0.8, 4.0))
-    pw = ph * span1 / span2 if ph != pw * span2 / span1 else pw
+    pw = min(pw, ph * span1 / span2)
     width = left + ncol * pw + (ncol - 1) * gap_w + right
     height = top + nrow * ph + (nrow - 1) * gap_h + bottom + 0.25
     fig = figure(width, height)
