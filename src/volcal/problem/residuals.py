@@ -435,13 +435,37 @@ class DenseJacobian:
 
     def __call__(self, xs: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r, G, rows = self._call(xs, p)
-        N, nt = len(self._pose), self._nt
-        Gp = G.reshape(-1, 3, nt)  # (n_poses, 3, nt): row 3 k + c of G_stack
-        J = np.zeros((N, self._n_x))
+        Gp = G.reshape(-1, 3, self._nt)  # (n_poses, 3, nt): row 3 k + c of G_stack
+        return np.asarray(r).ravel(), self._block(Gp, rows, slice(0, len(self._pose)))
+
+    def _block(self, Gp: np.ndarray, rows: np.ndarray, sl: slice) -> np.ndarray:
+        """The rows ``sl`` of J from the poses' G (n_poses, 3, nt) and the readings' rows."""
+        nt = self._nt
+        pose = self._pose[sl]
+        J = np.zeros((len(pose), self._n_x))
         Jt = J[:, :nt]
         for c in range(3):  # J_theta = sum_c d(r)/d(p_c) * d(p_c)/d(theta) of its pose
-            Jt += rows[c][:, None] * Gp[self._pose, c, :]
-        ar = np.arange(N)
+            Jt += rows[c][sl, None] * Gp[pose, c, :]
+        ar = np.arange(len(pose))
         for k, cols in enumerate(self._rest_cols):
-            J[ar, cols] = rows[3 + k]
-        return np.asarray(r).ravel(), J
+            J[ar, cols[sl]] = rows[3 + k][sl]
+        return J
+
+    def r_factor(
+        self, xs: np.ndarray, p: np.ndarray, block_rows: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(r, R)``: the whitened residuals (N,) and the R factor (n_x, n_x) of the dense
+        Jacobian (``J = Q R``), assembled and factorised in blocks of ``block_rows``
+        readings (default: about 16 MB of J per block) so that J itself is never held
+        (:class:`volcal.base.linalg.StackedQR`).  Everything the analyses take from J
+        (column norms, singular values, null space, covariance) follows from R."""
+        from volcal.base.linalg import StackedQR
+
+        r, G, rows = self._call(xs, p)
+        Gp = G.reshape(-1, 3, self._nt)
+        N = len(self._pose)
+        step = int(block_rows or max(2048, (1 << 21) // max(self._n_x, 1)))
+        acc = StackedQR(self._n_x)
+        for start in range(0, N, step):
+            acc.add(self._block(Gp, rows, slice(start, min(start + step, N))))
+        return np.asarray(r).ravel(), acc.R
