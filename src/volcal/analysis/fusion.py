@@ -347,6 +347,27 @@ def identify_datasets(
         if not converged:
             res.notes.append(f"variance components did not settle in {max_vce_iterations} rounds")
     res.instruments = fit
+    res.stations = _stations_by_instrument(res.stations, joined.instrument)
     res.residuals.insert(0, "data", np.asarray(joined.names, dtype=object)[joined.group])
     res.sigma_source = "; ".join(f"{n}: {s}" for n, s in zip(joined.names, joined.sigma_sources))
     return res
+
+
+def _stations_by_instrument(st: pd.DataFrame, ins: CombinedInstrument) -> pd.DataFrame:
+    """The stations table with an ``instrument`` column instead of the index, and the
+    parameters a station's instrument does not have (and their uncertainties) empty."""
+    from volcal.measurement.instruments.combined import INDEX
+
+    st = st.copy()
+    kinds = [ins.part_of(s) for s in st["station"]]
+    st.insert(1, "instrument", [ins.parts[k].name for k in kinds])
+    ucols = [c for c in st.columns if c.startswith("u_")]
+    for n in ins.station_param_names[1:]:
+        unit = ins._unit(n)
+        base = n[: -len(unit) - 1] if n.endswith("_" + unit) else n
+        ucol = next((c for c in ucols if c == f"u_{base}" or c.startswith(f"u_{base}_")), None)
+        absent = np.array([n not in ins.parts[k].station_param_names for k in kinds])
+        st.loc[absent, n] = np.nan
+        if ucol is not None:
+            st.loc[absent, ucol] = np.nan
+    return st.drop(columns=[c for c in (INDEX, f"u_{INDEX}") if c in st.columns])
