@@ -256,3 +256,57 @@ def test_variance_components_recover_a_budget_wrong_by_two(noisy):
 def test_registry_has_the_new_instruments():
     assert get_instrument("interferometer").name == "interferometer"
     assert get_instrument("ballbar").name == "ballbar"
+
+
+def test_cli_simulates_and_identifies_several_instruments(tmp_path, capsys):
+    """`volcal simulate --instruments` writes each instrument's readings of one true
+    machine; `volcal identify --data ... --data INSTRUMENT=...` identifies them as one
+    problem and writes each table's chi2/dof; a bad table exits 2 naming file, row, column."""
+    import json
+
+    from volcal.cli.main import main
+
+    sim = tmp_path / "sim"
+    args = ["simulate", "--model", MODEL, "--plan", "grid", "--grid", "3", "--degree", "2"]
+    args += ["--tools", "0,0,0;0,0,-100;80,0,-100", "--instruments", "interferometer,ballbar"]
+    assert main([*args, "--seed", "5", "--out", str(sim), "-q"]) == 0
+    assert (sim / "interferometer.csv").is_file() and (sim / "ballbar.csv").is_file()
+    out = tmp_path / "res"
+    data = ["--data", str(sim / "measurements.csv")]
+    data += ["--data", f"interferometer={sim / 'interferometer.csv'}"]
+    data += ["--data", f"ballbar={sim / 'ballbar.csv'}"]
+    code = main(
+        ["identify", "--model", MODEL, *data, "--degree", "2", "--out", str(out)]
+        + ["--no-plots", "-q"]
+    )
+    assert code == 0
+    meta = json.loads((out / "result.json").read_text())
+    inst = {r["instrument"]: r for r in meta["instruments"]}
+    assert set(inst) == {"tracker", "interferometer", "ballbar"}
+    assert all(r["verdict"] == "fits" for r in inst.values()), inst
+    table = pd.read_csv(out / "instruments.csv")
+    assert list(table["instrument"]) == ["tracker", "interferometer", "ballbar"]
+    assert "## Instruments" in (out / "report.md").read_text()
+    # a bad ballbar row: exit code 2, the file, row and column named
+    bad = pd.read_csv(sim / "ballbar.csv", dtype=str)
+    bad.loc[4, "angle_deg"] = "x"
+    bad.to_csv(tmp_path / "bad.csv", index=False)
+    capsys.readouterr()
+    code = main(
+        [
+            "identify",
+            "--model",
+            MODEL,
+            data[0],
+            data[1],
+            "--data",
+            f"ballbar={tmp_path / 'bad.csv'}",
+            "--out",
+            str(tmp_path / "r2"),
+            "-q",
+        ]
+    )
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "bad.csv" in err and "row 6" in err and "angle_deg" in err, err
+    assert not (tmp_path / "r2").exists()

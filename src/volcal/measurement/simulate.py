@@ -100,9 +100,9 @@ SIMULATION_FILES = (
     "true_parameters.csv",
     "true_volumetric.csv",
     "simulation.json",
-    "interferometer.csv",
-    "ballbar.csv",
 )
+#: Files :func:`save_simulation` writes only when asked (other instruments' readings).
+OPTIONAL_SIMULATION_FILES = ("interferometer.csv", "ballbar.csv")
 
 #: Headline sizes (low, high) of drawn error motions, internal units (mm, rad); see
 #: :func:`draw_true_parameters`.
@@ -689,7 +689,7 @@ def save_simulation(
     ``stations.csv`` (true stations: ``station, x_mm, y_mm, z_mm, dead_length_mm``),
     ``true_parameters.csv`` (``name, value, unit`` in um / urad), ``true_volumetric.csv``
     and ``simulation.json`` (seed, model, budget, noise settings, volcal version); and
-    ``tables`` ({file name in SIMULATION_FILES: table}, other instruments' readings of the
+    ``tables`` ({file name in OPTIONAL_SIMULATION_FILES: table}, other instruments' readings of the
     same machine, :mod:`volcal.measurement.simulate_instruments`).
 
     Everything is written into a temporary folder next to ``out_dir`` and renamed into
@@ -724,7 +724,13 @@ def save_simulation(
         }
         (tmp / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
 
-    return write_folder(out_dir, SIMULATION_FILES, "a simulation", writer, force=force)
+    return write_folder(
+        out_dir,
+        SIMULATION_FILES + OPTIONAL_SIMULATION_FILES,
+        "a simulation",
+        writer,
+        force=force,
+    )
 
 
 # --------------------------------------------------------------------------------------

@@ -586,11 +586,7 @@ def _result_document(
         "max_volumetric_axes": _grid_axes(spec, grid),
         "adequacy": assess(result).to_dict(),
         # several instruments' tables: each one's chi2/dof, verdict (and variance component)
-        "instruments": (
-            result.instruments.to_dict(orient="records")
-            if getattr(result, "instruments", None) is not None
-            else None
-        ),
+        "instruments": _instrument_records(result),
         "unidentifiable": list(np.asarray(em.param_names)[~np.asarray(result.identifiable)]),
         "null_space": (list(ident.unidentifiable_combinations) if ident is not None else []),
         "gauge": (list(ident.gauge_combinations) if ident is not None else []),
@@ -1328,6 +1324,12 @@ def _sentence(text: str) -> str:
     return (text[:1].upper() + text[1:]).rstrip(".") + "."
 
 
+def _instrument_records(result) -> list[dict[str, Any]] | None:
+    """Each table's row of ``result.instruments`` (None for a single table)."""
+    table = getattr(result, "instruments", None)
+    return None if table is None else table.to_dict(orient="records")
+
+
 def _instruments_section(table: pd.DataFrame) -> str:
     """Report text: the adequacy check of every instrument's table (and its variance
     component when estimated), see :mod:`volcal.analysis.fusion`."""
@@ -1536,8 +1538,9 @@ def save_result(
             result.parameters().to_csv(tmp / "parameters.csv", index=False)
             result.stations.to_csv(tmp / "stations.csv", index=False)
             result.residuals.to_csv(tmp / "residuals.csv", index=False)
-            if getattr(result, "instruments", None) is not None:
-                result.instruments.to_csv(tmp / "instruments.csv", index=False)
+            by_instrument = getattr(result, "instruments", None)
+            if by_instrument is not None:
+                by_instrument.to_csv(tmp / "instruments.csv", index=False)
             _write_order_selection(result, tmp)
             if result.state is not None:
                 _save_state(result.state, tmp / "solver_state.npz")

@@ -213,11 +213,11 @@ def run(args: argparse.Namespace) -> int:
 
     # the output folder before any model is built
     from volcal.base.folders import check_out_dir
-    from volcal.measurement.simulate import SIMULATION_FILES
+    from volcal.measurement.simulate import OPTIONAL_SIMULATION_FILES, SIMULATION_FILES
 
     check_out_dir(
         args.out,
-        SIMULATION_FILES,
+        SIMULATION_FILES + OPTIONAL_SIMULATION_FILES,
         "a simulation",
         inputs=[
             getattr(args, k, None)
@@ -330,11 +330,16 @@ def run(args: argparse.Namespace) -> int:
         # the same true machine, its own random numbers (the tracker's data stay as
         # without --instruments)
         g = np.random.default_rng(np.random.SeedSequence(args.seed, spawn_key=(32,)))
-        opts = {"tool": tuple(np.atleast_2d(tools)[0]), "noise": not args.no_noise}
+        t0 = np.atleast_2d(tools)[0]
+        tool = (float(t0[0]), float(t0[1]), float(t0[2]))
         if "interferometer" in extra:
-            tables["interferometer.csv"] = si.interferometer_table(machine, em, theta, g, **opts)
+            tables["interferometer.csv"] = si.interferometer_table(
+                machine, em, theta, g, tool=tool, noise=not args.no_noise
+            )
         if "ballbar" in extra:
-            tables["ballbar.csv"] = si.ballbar_table(machine, em, theta, g, **opts)
+            tables["ballbar.csv"] = si.ballbar_table(
+                machine, em, theta, g, tool=tool, noise=not args.no_noise
+            )
     out = save_simulation(sim, args.out, tables=tables)
     if not getattr(args, "quiet", False):
         print(

@@ -81,7 +81,7 @@ class Ballbar(Instrument):
     ) -> dict[str, tuple[str, ...]]:
         """Per set-up, the centre coordinate closest to the normal of its circle's plane."""
         idx = np.asarray(station_index, int)
-        out = {}
+        out: dict[str, tuple[str, ...]] = {}
         for k, sid in enumerate(station_ids):
             n = self._plane(points[idx == k])[2]
             out[str(sid)] = (("x_mm", "y_mm", "z_mm")[int(np.argmax(np.abs(n)))],)
@@ -133,15 +133,16 @@ class Ballbar(Instrument):
             a1, a2 = pair
             q[a1][r] += v["radius_mm"][r] * np.cos(ang[r])
             q[a2][r] += v["radius_mm"][r] * np.sin(ang[r])
-        out = {"station": v["setup"], "point": v.get("point", np.array([f"r{r}" for r in rows]))}
+        out: dict[str, np.ndarray] = {"station": v["setup"]}
+        out["point"] = v.get("point", np.array([f"r{r}" for r in rows], dtype=object))
         for a, u in units.items():
             out[f"{a}_{u}"] = q[a]
         for c in "xyz":
             out[f"tool_{c}_mm"] = v.get(f"tool_{c}_mm", np.zeros(n))
-        from volcal.measurement.instruments.interferometer import _one_of
+        from volcal.measurement.instruments.interferometer import _one_of, _optional_one_of
 
-        out["length_mm"] = _one_of(v, "deviation", label, required=True)
-        sig = _one_of(v, "sigma", label, required=False)
+        out["length_mm"] = _one_of(v, "deviation", label)
+        sig = _optional_one_of(v, "sigma", label)
         if sig is not None:
             out["sigma_mm"] = sig
         return pd.DataFrame(out)

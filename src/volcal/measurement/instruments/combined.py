@@ -81,6 +81,7 @@ class CombinedInstrument(Instrument):
                 s = ca.if_else(mine, s, ca.DM(self.neutral[k]))
             r = part.reading(point, s, glob[gc] if gc else ca.SX(0, 1))
             out = r if out is None else ca.if_else(mine, r, out)
+        assert out is not None  # at least one part (__post_init__)
         return out
 
     def held_station_params(self, station_id: str) -> tuple[str, ...]:

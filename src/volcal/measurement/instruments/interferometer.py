@@ -125,62 +125,95 @@ class LaserInterferometer(Instrument):
             ("sigma_um", False, "optfloat"),
         ]
         v, rows, label = read_columns(source, cols, what="interferometer table")
-        out = {"station": v["setup"], "point": v.get("point", np.array([f"r{r}" for r in rows]))}
+        out: dict[str, np.ndarray] = {"station": v["setup"]}
+        out["point"] = v.get("point", np.array([f"r{r}" for r in rows], dtype=object))
         for n, _, _ in axes:
             out[n] = v[n]
         for c in "xyz":
             out[f"tool_{c}_mm"] = v.get(f"tool_{c}_mm", np.zeros(len(rows)))
-        out["length_mm"] = _one_of(v, "displacement", label, required=True)
-        sig = _one_of(v, "sigma", label, required=False)
+        out["length_mm"] = _one_of(v, "displacement", label)
+        sig = _optional_one_of(v, "sigma", label)
         if sig is not None:
             out["sigma_mm"] = sig
         return pd.DataFrame(out)
 
-    def read_iso230_2(
-        self,
-        source: str | Path | pd.DataFrame,
-        spec,
-        *,
-        line: dict[str, float] | None = None,
-        tool: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    ) -> pd.DataFrame:
-        """An ISO 230-2 data file (:func:`volcal.iso230_2.data.load_readings`) as
-        interferometer readings: one set-up per axis, every (target, cycle, direction)
-        a reading of the actual position target + deviation (mm).  The other axes stand
-        at ``line`` ({axis: position, mm or deg}), else at their reference positions;
-        ``tool``: the tool offset of the reflector (mm).  Linear axes only."""
-        from volcal.iso230_2.data import load_readings
+    def read_iso230_2(self, source: str | Path | pd.DataFrame, spec) -> pd.DataFrame:
+        """An ISO 230-2 data file (the format ``volcal iso230-2`` reads: ``axis``,
+        ``target_mm``, ``cycle``, ``direction``, ``deviation_um`` or ``actual_mm``; names
+        case-insensitive, other columns ignored) as interferometer readings: one set-up per
+        axis (``<axis>-line``), every row a reading of the actual position (target +
+        deviation, mm).  The other axes stand where the optional columns ``Y_mm``, ...
+        (the model's axis names) say, else at their reference positions; the reflector at
+        the optional ``tool_x_mm``, ``tool_y_mm``, ``tool_z_mm`` (default 0).  Linear
+        axes only."""
+        from volcal.measurement.tables import read_columns
 
-        readings = load_readings(source)
-        line = dict(line or {})
-        unknown = [a for a in line if a not in spec.axis_names]
-        if unknown:
+        raw = source if isinstance(source, pd.DataFrame) else None
+        label = "<DataFrame>" if raw is not None else str(source)
+        if raw is None:
+            try:
+                raw = pd.read_csv(source, dtype=str, keep_default_na=False, encoding="utf-8-sig")
+            except (OSError, ValueError) as exc:
+                raise InputError(f"cannot read the ISO 230-2 file: {exc}", source=label) from None
+        axis_cols = [f"{a.name}_{'deg' if a.is_rotary else 'mm'}" for a in spec.axes]
+        known = ["axis", "target_mm", "cycle", "direction", "deviation_um", "actual_mm"]
+        known += axis_cols + [f"tool_{c}_mm" for c in "xyz"] + ["sigma_um", "sigma_mm"]
+        by_lower = {k.lower(): k for k in known}
+        # other columns are allowed and ignored (as volcal iso230-2 does); the rows stay
+        keep = {
+            c: by_lower[str(c).strip().lower()]
+            for c in raw.columns
+            if str(c).strip().lower() in by_lower
+        }
+        table = raw[list(keep)].rename(columns=keep)
+        cols = [("axis", True, "id"), ("target_mm", True, "float"), ("cycle", True, "id")]
+        cols += [("direction", True, "id"), ("deviation_um", False, "float")]
+        cols += [("actual_mm", False, "float")]
+        cols += [(c, False, "float") for c in axis_cols]
+        cols += [(f"tool_{c}_mm", False, "float") for c in "xyz"]
+        cols += [("sigma_um", False, "optfloat"), ("sigma_mm", False, "optfloat")]
+        v, rows, label = read_columns(table, cols, what="ISO 230-2 file", name=label)
+        dev, act = v.get("deviation_um"), v.get("actual_mm")
+        if (dev is None) == (act is None):
             raise InputError(
-                f"the line position names axes {unknown} the model does not have "
-                f"(axes: {', '.join(spec.axis_names)})",
-                source="line",
+                "expected exactly one of the columns 'deviation_um' and 'actual_mm'",
+                source=label,
+                row=1,
             )
-        rows = []
-        for r in readings:
-            if r.units.kind != "linear" or r.axis not in spec.axis_names:
+        actual: np.ndarray = v["target_mm"] + dev * 1e-3 if dev is not None else np.asarray(act)
+        linear = {a.name: a for a in spec.axes if not a.is_rotary}
+        n = len(rows)
+        out: dict[str, np.ndarray] = {}
+        out["station"] = np.array([f"{a}-line" for a in v["axis"]], dtype=object)
+        out["point"] = np.array(
+            [
+                f"{a}-c{c}{d}-r{r}"
+                for a, c, d, r in zip(v["axis"], v["cycle"], v["direction"], rows)
+            ],
+            dtype=object,
+        )
+        for a, col in zip(spec.axes, axis_cols):
+            pos = v.get(col, np.full(n, float(a.reference)))
+            out[col] = pos.astype(float).copy()
+        for r in range(n):
+            name = str(v["axis"][r]).strip().upper()
+            if name not in linear:
                 raise InputError(
-                    f"axis {r.axis}: an interferometer reads linear axes of the model "
-                    f"({', '.join(a.name for a in spec.axes if not a.is_rotary)})",
-                    source=r.source,
+                    f"axis {v['axis'][r]!r}: an interferometer reads a linear axis of the "
+                    f"model ({', '.join(linear)})",
+                    source=label,
+                    row=int(rows[r]),
                     column="axis",
                 )
-            for way, dev in (("+", r.up), ("-", r.down)):
-                for i, target in enumerate(r.targets):
-                    for j in range(r.n):
-                        row = {"station": f"{r.axis}-line", "point": f"{r.axis}{i}c{j + 1}{way}"}
-                        for a in spec.axes:
-                            unit = "deg" if a.is_rotary else "mm"
-                            pos = target if a.name == r.axis else line.get(a.name, a.reference)
-                            row[f"{a.name}_{unit}"] = float(pos)
-                        row.update(zip(("tool_x_mm", "tool_y_mm", "tool_z_mm"), tool))
-                        row["length_mm"] = float(target + dev[i, j])
-                        rows.append(row)
-        return pd.DataFrame(rows)
+            out["station"][r] = f"{name}-line"
+            out[f"{name}_mm"][r] = v["target_mm"][r]
+        for c in "xyz":
+            out[f"tool_{c}_mm"] = v.get(f"tool_{c}_mm", np.zeros(n))
+        out["length_mm"] = actual
+        sig = _optional_one_of(v, "sigma", label)
+        if sig is not None:
+            out["sigma_mm"] = sig
+        return pd.DataFrame(out)
 
 
 def _is_iso230_2(source) -> bool:
@@ -196,9 +229,9 @@ def _is_iso230_2(source) -> bool:
     return "target_mm" in names and "cycle" in names
 
 
-def _one_of(v: dict, base: str, label: str, *, required: bool) -> np.ndarray | None:
-    """The ``base_mm`` or ``base_um`` column in mm (exactly one of them; None if neither
-    and not required)."""
+def _optional_one_of(v: dict, base: str, label: str) -> np.ndarray | None:
+    """The ``base_mm`` or ``base_um`` column in mm (at most one of them; None if
+    neither)."""
     mm, um = v.get(f"{base}_mm"), v.get(f"{base}_um")
     if mm is not None and um is not None:
         raise InputError(
@@ -207,10 +240,16 @@ def _one_of(v: dict, base: str, label: str, *, required: bool) -> np.ndarray | N
             row=1,
             column=f"{base}_um",
         )
-    if mm is None and um is None:
-        if required:
-            raise InputError(
-                f"missing required column '{base}_mm' (or '{base}_um')", source=label, row=1
-            )
-        return None
-    return mm if mm is not None else um * 1e-3
+    if um is not None:
+        return um * 1e-3
+    return mm
+
+
+def _one_of(v: dict, base: str, label: str) -> np.ndarray:
+    """The ``base_mm`` or ``base_um`` column in mm (exactly one of them)."""
+    out = _optional_one_of(v, base, label)
+    if out is None:
+        raise InputError(
+            f"missing required column '{base}_mm' (or '{base}_um')", source=label, row=1
+        )
+    return out
