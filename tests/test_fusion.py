@@ -200,6 +200,11 @@ def test_tracker_interferometer_and_both_on_the_independent_truth(noisy):
     fit = both.instruments.set_index("instrument")
     assert list(fit.index) == ["tracker", "interferometer"]
     assert (fit["verdict"] == "fits").all(), fit
+    # what each determines alone, and the field uncertainty as tables are added
+    assert fit.loc["interferometer", "determined_alone"] < fit.loc["tracker", "determined_alone"]
+    assert "EYX_1" in fit.loc["interferometer", "undetermined_alone"].split()
+    cum = fit["field_u_cumulative_um"].to_numpy()
+    assert cum[1] <= cum[0]
     # the degrees of freedom of the instruments add up to the problem's
     n_free = int((~both.state.fixed).sum())
     total = len(both.residuals) - n_free + both.identifier.problem.C.shape[0]

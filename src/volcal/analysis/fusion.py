@@ -346,6 +346,8 @@ def identify_datasets(
         converged = iterations < max_vce_iterations
         if not converged:
             res.notes.append(f"variance components did not settle in {max_vce_iterations} rounds")
+    with report_stage("what each table determines"):
+        fit = fit.join(contributions(res, dataclasses.replace(joined, meas=meas)))
     res.instruments = fit
     res.stations = _stations_by_instrument(res.stations, joined.instrument)
     res.residuals.insert(0, "data", np.asarray(joined.names, dtype=object)[joined.group])
@@ -371,3 +373,61 @@ def _stations_by_instrument(st: pd.DataFrame, ins: CombinedInstrument) -> pd.Dat
         if ucol is not None:
             st.loc[absent, ucol] = np.nan
     return st.drop(columns=[c for c in (INDEX, f"u_{INDEX}") if c in st.columns])
+
+
+def contributions(result, joined: JoinedData) -> pd.DataFrame:
+    """What each table contributes, at the solution and with the datum in force: the
+    error parameters it determines alone (``determined_alone``, and by name those it
+    leaves undetermined, ``undetermined_alone``), and the field uncertainty with the
+    tables up to it (``field_u_cumulative_um``: RMS over the measured poses of the
+    standard uncertainty |u| of the volumetric error, um; NaN while parameters are
+    undetermined).  Another table's readings are dropped by a zero weight and its set-up
+    parameters held."""
+    from volcal.analysis.covariance import constrained_covariance
+    from volcal.analysis.identify import field_jacobian
+
+    ider, state = result.identifier, result.state
+    pr = ider.problem
+    m = joined.meas
+    nt = pr.n_theta
+    nps = pr.instrument.n_station_params
+    station_of = np.asarray(m.station_index, int)
+    own = [np.unique(station_of[joined.group == i]) for i in range(len(joined.names))]
+    _, first = pr.layout.poses
+    _, _, G = field_jacobian(
+        result.machine, result.error_model, result.theta, m.q_internal[first], m.tool[first]
+    )
+    names = np.asarray(result.error_model.param_names)
+    rows = []
+    for i in range(len(joined.names)):
+        out: dict[str, Any] = {}
+        for label, tables in (("alone", [i]), ("cumulative", list(range(i + 1)))):
+            keep = np.isin(joined.group, tables)
+            p = pr.pack_data(m.q_internal, m.tool, m.length, np.where(keep, state.weights, 0.0))
+            fixed = state.fixed.copy()
+            for k in range(len(joined.names)):
+                if k not in tables:
+                    for st in own[k]:
+                        fixed[nt + nps * st : nt + nps * (st + 1)] = True
+            # global (frame) parameters of an instrument without readings here: held
+            used = {joined.instruments[k] for k in tables}
+            for j, g in enumerate(pr.instrument.global_param_names):
+                if g.split(".")[0] not in used:
+                    fixed[pr.n_x - pr.instrument.n_global_params + j] = True
+            ident = ider.analyse(state.x, p, fixed)
+            undetermined = np.asarray(ident.unidentifiable[:nt], bool)
+            if label == "alone":
+                out["determined_alone"] = int((~undetermined).sum())
+                out["undetermined_alone"] = " ".join(names[undetermined])
+            else:
+                u = float("nan")
+                if not undetermined.any():
+                    fixed[list(ident.pivots)] = True
+                    _, J = ider.jacobian(state.x, p)
+                    cov = constrained_covariance(J, ider._scaled_constraints(), fixed=fixed)
+                    C = np.nan_to_num(cov[:nt, :nt]) * np.outer(pr.scale[:nt], pr.scale[:nt])
+                    var = np.einsum("nij,jk,nik->n", G, C, G)
+                    u = float(np.sqrt(np.mean(var))) * 1e3
+                out["field_u_cumulative_um"] = u
+        rows.append(out)
+    return pd.DataFrame(rows)

@@ -1343,12 +1343,27 @@ def _instruments_section(table: pd.DataFrame) -> str:
     cols = ["data", "instrument", "n_readings", "dof", "chi2_per_dof", "chi2_low", "chi2_high"]
     cols += ["verdict", "sigma_source"]
     extra = ["scale_factor", "u_scale_factor", "scale_low_95", "scale_high_95"]
+    extra += ["determined_alone", "field_u_cumulative_um"]
     cols += [c for c in extra if c in table.columns]
     t = table[cols].copy()
     for c in ("dof", "chi2_per_dof", "chi2_low", "chi2_high", *extra):
-        if c in t.columns:
+        if c in t.columns and c != "determined_alone":
             t[c] = t[c].map(lambda v: f"{v:.4g}")
     lines.append(_md_table(t))
+    if "undetermined_alone" in table.columns:
+        lines.append("")
+        lines.append(
+            "determined_alone: the error parameters each table determines by itself (with "
+            "the datum in force); field_u_cumulative_um: the RMS standard uncertainty of "
+            "the volumetric error over the measured poses with the tables up to that row "
+            "(empty while some parameter is undetermined). Left undetermined by each table "
+            "alone:"
+        )
+        lines.append("")
+        for _, row in table.iterrows():
+            lines.append(
+                f"- {row['data']} ({row['instrument']}): {row['undetermined_alone'] or 'none'}"
+            )
     if "scale_factor" in table.columns:
         lines.append("")
         lines.append(
