@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -305,8 +306,15 @@ def identify_datasets(
             "degree 'auto' is not available with several tables; give an integer degree",
             source="degree",
         )
+    if options.get("strategy") == "classic":
+        raise InputError(
+            "the classic pipeline calibrates tracker stations from one table; with several "
+            "tables use joint, two-phase or points-only",
+            source="strategy",
+        )
     if options.get("robust"):
         raise InputError("robust rejection is not available with several tables", source="robust")
+    t_start = time.perf_counter()
     datasets = as_datasets(data, instrument)
     machine = model if isinstance(model, Machine) else None
     if machine is None:
@@ -349,6 +357,7 @@ def identify_datasets(
     with report_stage("what each table determines"):
         fit = fit.join(contributions(res, dataclasses.replace(joined, meas=meas)))
     res.instruments = fit
+    res.seconds = time.perf_counter() - t_start  # every round of the variance components
     res.stations = _stations_by_instrument(res.stations, joined.instrument)
     res.residuals.insert(0, "data", np.asarray(joined.names, dtype=object)[joined.group])
     res.sigma_source = "; ".join(f"{n}: {s}" for n, s in zip(joined.names, joined.sigma_sources))
