@@ -292,6 +292,10 @@ def test_cli_simulates_and_identifies_several_instruments(tmp_path, capsys):
     table = pd.read_csv(out / "instruments.csv")
     assert list(table["instrument"]) == ["tracker", "interferometer", "ballbar"]
     assert "## Instruments" in (out / "report.md").read_text()
+    # commands that redo an identification from its folder say they cannot (yet)
+    capsys.readouterr()
+    assert main(["analyze", "--result", str(out), "--out", str(tmp_path / "an"), "-q"]) == 2
+    assert "several instruments" in capsys.readouterr().err
     # a bad ballbar row: exit code 2, the file, row and column named
     bad = pd.read_csv(sim / "ballbar.csv", dtype=str)
     bad.loc[4, "angle_deg"] = "x"
