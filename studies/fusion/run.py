@@ -25,6 +25,7 @@ the number of unidentifiable parameters and chi2/dof.  Run ``python studies/fusi
 project README) or ``--smoke`` (one seed).  Writes results.csv and tables.md next to this
 file (or to ``--out``).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -136,10 +137,17 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="one seed")
     ap.add_argument("--seeds", type=int, default=3, help="number of seeds (default 3)")
-    ap.add_argument("--out", type=Path, default=None,
-                    help="output folder (default: this folder; --smoke: a temporary folder)")
-    ap.add_argument("--update-readme", action="store_true",
-                    help="copy the table into this study's README and the project README")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder (default: this folder; --smoke: a temporary folder)",
+    )
+    ap.add_argument(
+        "--update-readme",
+        action="store_true",
+        help="copy the table into this study's README and the project README",
+    )
     a = ap.parse_args(argv)
     from readme_tables import markdown, output_folder, update_readme, write_tables
 
@@ -148,16 +156,31 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     res = pd.DataFrame([r for s in seeds for r in one(s)])
     out.mkdir(parents=True, exist_ok=True)
     res.to_csv(out / "results.csv", index=False)
-    cols = ["readings", "field_error_um", "field_u_um", "line_error_um", "line_u_um",
-            "unidentifiable", "chi2_per_dof"]
+    cols = [
+        "readings",
+        "field_error_um",
+        "field_u_um",
+        "line_error_um",
+        "line_u_um",
+        "unidentifiable",
+        "chi2_per_dof",
+    ]
     mean = res.groupby("combination", sort=False)[cols].mean().reset_index()
     mean["readings"] = mean["readings"].round().astype(int)
     mean["unidentifiable"] = mean["unidentifiable"].round().astype(int)
     table = markdown(
         mean.to_dict(orient="records"),
         ["combination", *cols],
-        ["combination (5 set-ups)", "readings", "field error (um)", "field u (um)",
-         "line error (um)", "line u (um)", "unidentifiable", "chi2/dof"],
+        [
+            "combination (5 set-ups)",
+            "readings",
+            "field error (um)",
+            "field u (um)",
+            "line error (um)",
+            "line u (um)",
+            "unidentifiable",
+            "chi2/dof",
+        ],
     )
     write_tables(out, {"fusion_gain": table})
     if a.update_readme and not a.smoke:
