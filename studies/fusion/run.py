@@ -42,7 +42,6 @@ sys.path.insert(0, str(HERE.parent))
 
 import fusion_sim as fs  # noqa: E402  (the independent simulators live with the tests)
 import indep_sim as ind  # noqa: E402
-
 from volcal.analysis.identify import field_jacobian, identify  # noqa: E402
 from volcal.measurement.tables import DataWarning  # noqa: E402
 
