@@ -319,3 +319,18 @@ def test_cli_simulates_and_identifies_several_instruments(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "bad.csv" in err and "row 6" in err and "angle_deg" in err, err
     assert not (tmp_path / "r2").exists()
+
+
+def test_one_table_through_the_combined_instrument_is_the_plain_identification(noisy):
+    """The combined instrument adds nothing of its own: a tracker table alone through it
+    reaches the plain identification's minimum and covariance."""
+    _, _, d = noisy
+    plain = identify(MODEL, d["tracker"], degree=3)
+    joined = identify(MODEL, [d["tracker"]], degree=3)
+    assert abs(joined.conditions["chi2_per_dof"] / plain.conditions["chi2_per_dof"] - 1) < 1e-6
+    np.testing.assert_allclose(joined.theta, plain.theta, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        np.nan_to_num(joined.cov_theta), np.nan_to_num(plain.cov_theta), rtol=1e-5, atol=1e-16
+    )
+    fit = joined.instruments.iloc[0]
+    assert abs(fit["chi2_per_dof"] - plain.conditions["chi2_per_dof"]) < 1e-6

@@ -39,6 +39,7 @@ from volcal.measurement.budget import Budget, load_budget
 from volcal.measurement.instruments import CombinedInstrument, Instrument, get_instrument
 from volcal.measurement.tables import DataWarning, Measurements, load_measurements
 from volcal.model.machine import Machine
+from volcal.model.spec import MachineSpec
 
 log = logging.getLogger(__name__)
 
@@ -116,15 +117,19 @@ class JoinedData:
 
 
 def join_datasets(
-    machine: Machine,
+    model: Machine | str | Path | MachineSpec,
     datasets: Sequence[DataSet],
     budget: str | Path | Budget = "paper002",
-) -> JoinedData:
-    """Read and validate every table with its instrument, weight its readings, and join
-    them (see the module docstring).  Station ids must differ between tables."""
+) -> tuple[Machine, JoinedData]:
+    """Read and validate every table with its instrument (before the model is built: a
+    bad table is reported at once), weight its readings, and join them (see the module
+    docstring).  Station ids must differ between tables.  Returns (the machine, the
+    joined data)."""
     from volcal.analysis.identify import reading_sigma
+    from volcal.base.progress import stage as report_stage
+    from volcal.model.spec import resolve_model
 
-    spec = machine.spec
+    spec = model.spec if isinstance(model, Machine) else resolve_model(model)
     default_budget = budget if isinstance(budget, Budget) else load_budget(budget)
     parts: list[Instrument] = []
     kinds: list[tuple[str, int]] = []
@@ -133,7 +138,8 @@ def join_datasets(
     owner: dict[str, str] = {}
     seen_points: set[str] = set()
     neutral: list[tuple[float, ...]] = []
-    for i, ds in enumerate(datasets):
+    loaded = []
+    for ds in datasets:
         ins = get_instrument(ds.instrument)
         table = ins.read_table(ds.source, spec)
         with warnings.catch_warnings():
@@ -157,6 +163,13 @@ def join_datasets(
                     column="station",
                 )
             owner[sid] = ds.label
+        loaded.append((ds, ins, meas))
+    if isinstance(model, Machine):
+        machine = model
+    else:
+        with report_stage("building the model"):
+            machine = Machine.from_model(spec)
+    for i, (ds, ins, meas) in enumerate(loaded):
         if ins not in parts:
             parts.append(ins)
         k = parts.index(ins)
@@ -212,7 +225,7 @@ def join_datasets(
         held=tuple(sorted(held.items())),
         neutral=tuple(neutral),
     )
-    return JoinedData(
+    return machine, JoinedData(
         meas,
         combined,
         np.concatenate(groups),
@@ -291,7 +304,6 @@ def identify_datasets(
 
     from volcal.analysis.identify import _identify
     from volcal.base.progress import stage as report_stage
-    from volcal.model.spec import resolve_model
 
     for key in ("stations", "columns"):
         if options.get(key) is not None:
@@ -316,13 +328,7 @@ def identify_datasets(
         raise InputError("robust rejection is not available with several tables", source="robust")
     t_start = time.perf_counter()
     datasets = as_datasets(data, instrument)
-    machine = model if isinstance(model, Machine) else None
-    if machine is None:
-        spec = resolve_model(model)
-        with report_stage("building the model"):
-            machine = Machine.from_model(spec)
-    with report_stage(f"reading {len(datasets)} tables"):
-        joined = join_datasets(machine, datasets, budget)
+    machine, joined = join_datasets(model, datasets, budget)
     factor = np.ones(len(datasets))
     iterations = 0
     while True:

@@ -886,7 +886,7 @@ def _identify(
     memory available now; ``float("inf")``: no check.
 
     Several instruments' tables (issue 32): ``data`` a list of tables, ``(instrument,
-    table[, budget])`` tuples or :class:`volcal.analysis.fusion.DataSet`; one problem, one
+    table[, budget[, name]])`` tuples or :class:`volcal.analysis.fusion.DataSet`; one problem, one
     datum, one covariance, chi2/dof per table in ``result.instruments``;
     ``variance_components``: each table's budget scale factor estimated (Helmert), see
     :func:`volcal.analysis.fusion.identify_datasets`.
