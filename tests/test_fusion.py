@@ -217,7 +217,9 @@ def test_tracker_interferometer_and_both_on_the_independent_truth(noisy):
         ("tracker",),
         ("interferometer",),
         ("tracker", "interferometer"),
+        ("ballbar",),
         ("tracker", "ballbar"),
+        ("interferometer", "ballbar"),
         ("tracker", "interferometer", "ballbar"),
     ],
 )
