@@ -29,7 +29,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -40,6 +40,9 @@ from volcal.measurement.instruments import CombinedInstrument, Instrument, get_i
 from volcal.measurement.tables import DataWarning, Measurements, load_measurements
 from volcal.model.machine import Machine
 from volcal.model.spec import MachineSpec
+
+if TYPE_CHECKING:
+    from volcal.analysis.identify import IdentificationResult
 
 log = logging.getLogger(__name__)
 
@@ -235,7 +238,14 @@ def join_datasets(
     )
 
 
-def instrument_fit(result, joined: JoinedData) -> pd.DataFrame:
+def _solved(result: IdentificationResult):
+    """(identifier, solver state) of a result that was just solved (both are kept then)."""
+    if result.identifier is None or result.state is None:
+        raise ValueError("the result carries no identifier or solver state (a loaded result?)")
+    return result.identifier, result.state
+
+
+def instrument_fit(result: IdentificationResult, joined: JoinedData) -> pd.DataFrame:
     """Per data set: readings, degrees of freedom (sum of the redundancy numbers of its
     readings that were not rejected), chi2/dof, its 99.9 % interval and the verdict
     (``fits``, ``too large``: the data scatter more than its budget or the model misses
@@ -244,7 +254,7 @@ def instrument_fit(result, joined: JoinedData) -> pd.DataFrame:
 
     from volcal.analysis.covariance import constrained_covariance
 
-    ider, state = result.identifier, result.state
+    ider, state = _solved(result)
     pr = ider.problem
     m = joined.meas
     p = pr.pack_data(m.q_internal, m.tool, m.length, state.weights)
@@ -282,7 +292,7 @@ def instrument_fit(result, joined: JoinedData) -> pd.DataFrame:
 
 
 def identify_datasets(
-    model,
+    model: Machine | str | Path | MachineSpec,
     data: Sequence[Any],
     *,
     instrument: str | Instrument | None = None,
@@ -290,7 +300,7 @@ def identify_datasets(
     budget: str | Path | Budget = "paper002",
     max_vce_iterations: int = 20,
     **options: Any,
-):
+) -> IdentificationResult:
     """Identify from several instruments' tables as one problem (module docstring).
 
     data: see :func:`as_datasets`; instrument: the instrument of bare tables;
@@ -339,6 +349,14 @@ def identify_datasets(
         if not variance_components:
             break
         s2 = fit["chi2_per_dof"].to_numpy(float)
+        poor = fit.loc[~(fit["dof"] > 1.0), "data"].tolist()
+        if poor:
+            raise InputError(
+                f"{', '.join(map(str, poor))}: too few redundant readings (degrees of "
+                "freedom <= 1) to estimate a variance component; identify without "
+                "--variance-components or measure more",
+                source="variance components",
+            )
         iterations += 1
         factor = factor * np.sqrt(s2)
         log.info("variance components, round %d: scale factors %s", iterations, factor)
@@ -390,7 +408,7 @@ def _stations_by_instrument(st: pd.DataFrame, ins: CombinedInstrument) -> pd.Dat
     return st.drop(columns=[c for c in (INDEX, f"u_{INDEX}") if c in st.columns])
 
 
-def contributions(result, joined: JoinedData) -> pd.DataFrame:
+def contributions(result: IdentificationResult, joined: JoinedData) -> pd.DataFrame:
     """What each table contributes, at the solution and with the datum in force: the
     error parameters it determines alone (``determined_alone``, and by name those it
     leaves undetermined, ``undetermined_alone``), and the field uncertainty with the
@@ -401,7 +419,7 @@ def contributions(result, joined: JoinedData) -> pd.DataFrame:
     from volcal.analysis.covariance import constrained_covariance
     from volcal.analysis.identify import field_jacobian
 
-    ider, state = result.identifier, result.state
+    ider, state = _solved(result)
     pr = ider.problem
     m = joined.meas
     nt = pr.n_theta
