@@ -69,7 +69,8 @@ class Ballbar(Instrument):
             A = np.column_stack([2 * uv, np.ones(len(uv))])
             sol, *_ = np.linalg.lstsq(A, (uv**2).sum(axis=1), rcond=None)
             centre = c0 + sol[:2] @ E
-            rad = np.linalg.norm(P - centre, axis=1)
+            # the reading at radius 0 is each point's distance from the centre
+            rad, _ = self.evaluate(P, np.tile(np.r_[centre, 0.0], (len(P), 1)))
             if not np.all(np.isfinite(rad)) or rad.min() < 1e-3:
                 raise SolverError(f"ballbar set-up {sid}: its nominal points are not on a circle")
             out[k, :3] = centre
