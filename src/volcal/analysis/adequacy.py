@@ -698,12 +698,10 @@ def assess_residuals(
             u = list(units) if units is not None else [""] * len(pos.columns)
         tl, t_names = None, None
         if tools is not None:
-            t_names, tl = np.unique(np.asarray(tools).astype(str), return_inverse=True)
-            tl = tl[keep][inl]
+            uniq, codes = np.unique(np.asarray(tools).astype(str), return_inverse=True)
+            tl, t_names = codes[keep][inl], [str(v) for v in uniq]
         tm = np.asarray(time, float)[keep][inl] if time is not None else None
-        structure = _structure(
-            z[inl], st[inl], pos, u, tl, tm, list(st_names), None if tl is None else list(t_names)
-        )
+        structure = _structure(z[inl], st[inl], pos, u, tl, tm, list(st_names), t_names)
     significant = [s for s in structure if s.significant]
 
     warnings: list[str] = []
