@@ -497,11 +497,27 @@ def write_table(table: pd.DataFrame, path: str | Path) -> None:
     to the same number, as pandas writes them; NaN as an empty field) and the lines are
     joined without Python code per row.  Tables with other column types, or text that
     would need quoting, are written by pandas."""
-    texts: list[list[str]] | None = []
     names = [str(c) for c in table.columns]
-    if len(table) == 0 or any(ch in n for n in names for ch in _CSV_SPECIAL):
-        texts = None
-    for c in table.columns if texts is not None else ():
+    texts = _column_texts(table)
+    if texts is None or any(ch in n for n in names for ch in _CSV_SPECIAL):
+        table.to_csv(path, index=False)
+        return
+    import os
+
+    nl = os.linesep  # pandas' line terminator
+    body = nl.join(map(",".join, zip(*texts)))
+    with open(path, "w", encoding="utf-8", newline="") as fh:
+        fh.write(",".join(names) + nl + body + nl)
+
+
+def _column_texts(table: pd.DataFrame) -> list[list[str]] | None:
+    """Every column of ``table`` as the texts pandas' to_csv writes for it, or None when
+    a column is of another type or holds text that would need quoting (see
+    :func:`write_table`)."""
+    if len(table) == 0 or not table.columns.is_unique:
+        return None
+    texts: list[list[str]] = []
+    for c in table.columns:
         col = table[c]
         dt = col.dtype
         if isinstance(dt, np.dtype) and dt == np.float64:
@@ -516,22 +532,12 @@ def write_table(table: pd.DataFrame, path: str | Path) -> None:
         elif pd.api.types.infer_dtype(col, skipna=True) == "string":
             filled = col.astype(object).where(col.notna(), "")
             if filled.str.contains(_CSV_QUOTED, regex=True).any():
-                texts = None
-                break
+                return None
             t = filled.tolist()
         else:
-            texts = None
-            break
+            return None
         texts.append(t)
-    if texts is None:
-        table.to_csv(path, index=False)
-        return
-    import os
-
-    nl = os.linesep  # pandas' line terminator
-    body = nl.join(map(",".join, zip(*texts)))
-    with open(path, "w", encoding="utf-8", newline="") as fh:
-        fh.write(",".join(names) + nl + body + nl)
+    return texts
 
 
 def _json_safe(obj: Any) -> Any:
