@@ -1,5 +1,5 @@
-"""Tests of volcal.analysis.multilaser (paper 001's three-laser instrument) and of the
-paper-001 study.
+"""Tests of studies/paper001/hpti.py (paper 001's three-laser instrument: the study's
+simulator and solvers, on volcal's MultiLaserInstrument) and of the paper-001 study.
 
 Units: mm, rad; point errors in um.  The study is run in smoke mode (a few trials).
 """
@@ -16,18 +16,19 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from volcal.analysis import multilaser as ml
+from volcal.base.threads import blas_threads
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "paper001"
+sys.path.insert(0, str(STUDY))
+import hpti as ml  # noqa: E402
 
 
 @pytest.fixture(autouse=True, scope="module")
 def _one_blas_thread():
     """Small SVDs: a multi-threaded BLAS on a busy machine is slow.  Restored afterwards."""
-    before = ml.limit_blas_threads(1)
-    yield
-    ml.limit_blas_threads(before)
+    with blas_threads(1):
+        yield
 
 
 @pytest.fixture(scope="module")

@@ -5,8 +5,9 @@ Monte Carlo of section 5 of Aguado et al. 2021 (IOP Conf. Ser. Mater. Sci. Eng. 
 vibration f(t) of eq. (2), and the multilateration strategies of Table 1 (sphere
 intersection, points-only, two-phase, joint) at initial accuracies 100 / 95 / 90 %, plus
 our variants, and a sweep of the joint strategy over the damping and the variable scaling
-that choose its answer.  Everything is configured in config.toml; the model and the solvers
-are in :mod:`volcal.analysis.multilaser`.
+that choose its answer.  Everything is configured in config.toml; the simulator, the noise
+model and the solvers are in hpti.py (this folder), the trials run through volcal's
+seeded-chunk runner (:func:`volcal.analysis.uncertainty.parallel.run_chunks`).
 
     python studies/paper001/run.py [--smoke] [--trials N] [--workers K] [--out DIR]
                                    [--config FILE] [--scenarios NAME ...]
@@ -53,16 +54,16 @@ import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import tomllib  # noqa: E402
-from concurrent.futures import ProcessPoolExecutor, as_completed  # noqa: E402
-from multiprocessing import get_context  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from volcal.analysis import multilaser as ml  # noqa: E402
+from volcal.analysis.uncertainty.parallel import run_chunks  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE))
+import hpti  # noqa: E402
 import readme_tables as rt  # noqa: E402
 
 # histogram bins of the point errors (um) for the plots; zeros go to the first bin
@@ -79,13 +80,15 @@ def _chunks(n: int, size: int) -> list[list[int]]:
 
 
 def run_scenario(cfg: dict, scenario: str, trials, workers: int = 1, *,
-                 progress: bool = True, runner: ml.StudyRunner | None = None) -> dict:
+                 progress: bool = True, runner: hpti.StudyRunner | None = None) -> dict:
     """Run the trials ``trials`` (a count: 0..trials-1, or a sequence of indices) of one
     scenario; returns stacked arrays in that order.
 
-    workers = 1 runs in this process (on ``runner`` if given); more use a
-    ProcessPoolExecutor (spawn) whose initializer builds one
-    :class:`volcal.analysis.multilaser.StudyRunner` (one IPOPT build) per worker."""
+    workers = 1 runs in this process (on ``runner`` if given); more run the trials in
+    chunks on local worker processes through
+    :func:`volcal.analysis.uncertainty.parallel.run_chunks`, each worker building one
+    :class:`hpti.StudyRunner` (one IPOPT build) for its first chunk.  Trial k's data come
+    from its own seed (:func:`hpti.trial_rng`), whoever runs it."""
     from tqdm import tqdm
 
     idx = list(range(trials)) if isinstance(trials, (int, np.integer)) else list(trials)
@@ -94,23 +97,20 @@ def run_scenario(cfg: dict, scenario: str, trials, workers: int = 1, *,
     bar = tqdm(total=len(idx), desc=scenario, unit="trial", disable=not progress,
                file=sys.stderr, dynamic_ncols=True)
     if workers <= 1:
-        runner = runner or ml.StudyRunner(cfg, scenario)
+        runner = runner or hpti.StudyRunner(cfg, scenario)
         labels = runner.case_labels()
         for k in idx:
             results[pos[k]] = runner.trial(k)
             bar.update(1)
     else:
-        labels = [c.label for c in ml.cases_from_config(cfg)]
+        labels = [c.label for c in hpti.cases_from_config(cfg)]
         size = max(1, min(25, len(idx) // (workers * 8) or 1))
-        with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
-                                 initializer=ml._worker_init,
-                                 initargs=(cfg, scenario)) as pool:
-            futs = [pool.submit(ml._worker_trials, idx[i:i + size])
-                    for i in range(0, len(idx), size)]
-            for f in as_completed(futs):
-                for r in f.result():
-                    results[pos[r["index"]]] = r
-                    bar.update(1)
+        chunks = [idx[i:i + size] for i in range(0, len(idx), size)]
+        kernel = hpti.TrialKernel(cfg, scenario)
+        for _, part in run_chunks(kernel, chunks, workers=workers):
+            for r in part:
+                results[pos[r["index"]]] = r
+                bar.update(1)
     bar.close()
     out = {key: np.stack([r[key] for r in results]) for key in
            ("errors_um", "success", "iterations", "geometry_mm")}
@@ -212,18 +212,18 @@ class ScenarioJob:
     def __init__(self, cfg: dict, scenario: str, workers: int = 1):
         self.cfg, self.scenario, self.workers = cfg, scenario, workers
         self.name = scenario
-        self.cases = ml.cases_from_config(cfg)
+        self.cases = hpti.cases_from_config(cfg)
         self.labels = [c.label for c in self.cases]
         self._runner = None
 
     @property
-    def runner(self) -> ml.StudyRunner:
+    def runner(self) -> hpti.StudyRunner:
         if self._runner is None:
-            self._runner = ml.StudyRunner(self.cfg, self.scenario)
+            self._runner = hpti.StudyRunner(self.cfg, self.scenario)
         return self._runner
 
     def truth_geometry(self):
-        return ml.experiment_from_config(self.cfg, self.scenario).instrument.geometry
+        return hpti.experiment_from_config(self.cfg, self.scenario).instrument.geometry
 
     def fingerprint(self) -> str:
         keep = {k: self.cfg.get(k) for k in ("mesh", "instrument", "case")}
@@ -258,19 +258,19 @@ class DampingJob:
                         "groups": list(sw.get("groups", ["points", "frame", "geometry"])),
                         "scaling": s} for s in self.scalings]
         self.sub = sub
-        self.cases = ml.cases_from_config(sub)
+        self.cases = hpti.cases_from_config(sub)
         self.keys = [(c, d) for c in self.cases for d in self.dampings]
         self.labels = [f"{c.scaling} | {d:g} | {100 * c.accuracy:g}" for c, d in self.keys]
         self._runner = None
 
     @property
-    def runner(self) -> ml.StudyRunner:
+    def runner(self) -> hpti.StudyRunner:
         if self._runner is None:
-            self._runner = ml.StudyRunner(self.sub, self.scenario)
+            self._runner = hpti.StudyRunner(self.sub, self.scenario)
         return self._runner
 
     def truth_geometry(self):
-        return ml.experiment_from_config(self.cfg, self.scenario).instrument.geometry
+        return hpti.experiment_from_config(self.cfg, self.scenario).instrument.geometry
 
     def fingerprint(self) -> str:
         keep = {k: self.cfg.get(k) for k in ("mesh", "instrument", "damping_sweep")}
@@ -553,7 +553,7 @@ def plot_errors(path: Path, hist: np.ndarray, cases: list, scenario: str, trials
 
 
 def jacobian_rows(cfg: dict, scenario: str) -> list[dict]:
-    runner = ml.StudyRunner(cfg, scenario)
+    runner = hpti.StudyRunner(cfg, scenario)
     rows = []
     for case, rep in runner.jacobian_reports():
         d = rep.as_dict()

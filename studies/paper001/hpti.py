@@ -1,4 +1,11 @@
-"""Paper 001's simultaneous three-laser telescopic instrument (HPTI): model, simulator, solvers.
+"""Paper 001's simultaneous three-laser telescopic instrument (HPTI): the study's simulator,
+noise model, solvers and trial runner.
+
+Study code (it moved here from ``volcal.analysis.multilaser``): the library's instrument is
+:class:`volcal.measurement.instruments.multilaser.MultiLaserInstrument`, whose CasADi reading
+the estimator below evaluates; the study's own NLP (points as unknowns, the Levenberg-damped
+solve of the rank-deficient joint problem, the variable scalings its tables compare) is not
+a volcal problem, see studies/paper001/README.md.
 
 Aguado, Brosed, Acero, Aguilar, Santolaria, Pueo, "Influence of high precision telescopic
 instrument characterization on multilateration points accuracy", IOP Conf. Ser. Mater. Sci.
@@ -116,6 +123,7 @@ import casadi as ca
 import numpy as np
 
 from volcal.analysis import analyse_jacobian
+from volcal.base.threads import set_blas_threads
 from volcal.measurement.budget import PAPER001_DRIFT, DriftModel
 from volcal.measurement.instruments.multilaser import FRAME_NAMES, MultiLaserInstrument
 from volcal.measurement.multilateration import multilaterate
@@ -143,7 +151,7 @@ __all__ = [
     "Estimate",
     "trial_rng",
     "StudyRunner",
-    "limit_blas_threads",
+    "TrialKernel",
     "Case",
     "cases_from_config",
     "experiment_from_config",
@@ -955,28 +963,7 @@ class HPTIEstimator:
 
 
 # --------------------------------------------------------------------------------------
-# BLAS threads
-
-
-def limit_blas_threads(n: int | dict = 1) -> dict:
-    """Limit BLAS to ``n`` threads (or restore a state returned by an earlier call); returns
-    the previous state.  See :mod:`volcal.base.threads` for why."""
-    from threadpoolctl import threadpool_info, threadpool_limits
-
-    before = {
-        i["filepath"]: i["num_threads"] for i in threadpool_info() if i.get("user_api") == "blas"
-    }
-    if isinstance(n, dict):
-        for path, k in n.items():
-            threadpool_limits(limits={path: k})
-    else:
-        threadpool_limits(limits=int(n), user_api="blas")
-    return before
-
-
-# --------------------------------------------------------------------------------------
-# Monte Carlo study (used by studies/paper001/run.py; importable so that worker processes
-# find it)
+# Monte Carlo study (used by run.py; importable so that worker processes find it)
 
 
 def trial_rng(seed: int, index: int) -> np.random.Generator:
@@ -1111,6 +1098,8 @@ class StudyRunner:
     :attr:`cases`."""
 
     def __init__(self, cfg: dict, scenario: str | None = None, *, threads_one: bool = True):
+        """threads_one: limit BLAS to one thread for the rest of the process (small SVDs;
+        several processes share the cores)."""
         st = cfg.get("study", {})
         self.cfg = cfg
         self.scenario = scenario
@@ -1125,7 +1114,7 @@ class StudyRunner:
         self.scale_instrument = applies == "points+instrument"
         self.cases = cases_from_config(cfg)
         if threads_one:
-            limit_blas_threads(1)
+            set_blas_threads(1)
         self.estimator = HPTIEstimator(self.experiment.n_points)
         # weights 1 / nominal reading uncertainty (uniform: they scale the objective, which
         # matters only to the damping of rank-deficient steps)
@@ -1200,15 +1189,25 @@ class StudyRunner:
         return out
 
 
-_RUNNER: StudyRunner | None = None
+class TrialKernel:
+    """The trials of one scenario as a kernel of
+    :func:`volcal.analysis.uncertainty.parallel.run_chunks` (a chunk is a list of trial
+    indices): the :class:`StudyRunner` (one IPOPT build) is made on first use in each
+    process and never pickled, so a worker builds its own."""
 
+    def __init__(self, cfg: dict, scenario: str | None = None) -> None:
+        self.cfg, self.scenario = cfg, scenario
+        self._runner: StudyRunner | None = None
 
-def _worker_init(cfg: dict, scenario: str | None) -> None:
-    """Process-pool initializer: build the study runner (and its solver) once per worker."""
-    global _RUNNER
-    _RUNNER = StudyRunner(cfg, scenario)
+    def __getstate__(self) -> dict:
+        return {"cfg": self.cfg, "scenario": self.scenario, "_runner": None}
 
+    @property
+    def runner(self) -> StudyRunner:
+        if self._runner is None:
+            self._runner = StudyRunner(self.cfg, self.scenario)
+        return self._runner
 
-def _worker_trials(indices: Sequence[int]) -> list[dict]:
-    assert _RUNNER is not None, "worker not initialised"
-    return [_RUNNER.trial(k) for k in indices]
+    def run_chunk(self, indices: Sequence[int]) -> list[dict]:
+        """:meth:`StudyRunner.trial` of every index."""
+        return [self.runner.trial(k) for k in indices]
