@@ -196,3 +196,28 @@ def test_study_is_deterministic_across_worker_counts():
     two = run.run_scenario(cfg, "eq3", 4, 2, progress=False)
     for key in ("errors_um", "success", "iterations", "geometry_mm"):
         np.testing.assert_array_equal(one[key], two[key])
+
+
+def test_core_identifier_gives_the_studys_well_posed_strategies(estimator):
+    """Paper 001's points-only and two-phase through volcal's core (identify's Identifier
+    with the MultiLaserInstrument, the points as the unknowns of the one problem): the
+    truth from noise-free data, and the study's own solver's answer on a noisy trial."""
+    core = ml.CoreEstimator(60)
+    clean = noise_free()
+    e = core.estimate(clean, "points-only", 0.95)
+    assert e.success
+    assert np.max(e.errors_um(clean)) < 1e-4  # um: the true points from a 5 % wrong start
+    cfg = _load_run().load_config()
+    runner = ml.StudyRunner(cfg, "eq3")
+    data = runner.simulate(0)
+    w = 1.0 / runner.sigma
+    for case in runner.cases:
+        if (case.strategy, case.accuracy) not in (("points-only", 0.95), ("two-phase", 0.95)):
+            continue
+        ref = runner.estimate(data, case)
+        got = core.estimate(data, case.strategy, case.accuracy, weights=w, phase1=case.phase1)
+        assert got.success, (case.label, got.status)
+        np.testing.assert_allclose(got.errors_um(data), ref.errors_um(data), rtol=0, atol=1e-5)
+        np.testing.assert_allclose(got.instrument.vector, ref.instrument.vector, atol=1e-8)
+    with pytest.raises(ValueError, match="not run through the core"):
+        core.estimate(data, "joint")

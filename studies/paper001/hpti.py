@@ -147,6 +147,8 @@ __all__ = [
     "section5_experiment",
     "simulate",
     "HPTIEstimator",
+    "CoreEstimator",
+    "point_cloud_spec",
     "JacobianReport",
     "Estimate",
     "trial_rng",
@@ -959,6 +961,158 @@ class HPTIEstimator:
             iters,
             time.perf_counter() - t0,
             reports,
+        )
+
+
+# --------------------------------------------------------------------------------------
+# the same estimation through volcal's core (identify's one problem and solvers)
+
+
+def point_cloud_spec(n_points: int) -> Any:
+    """A volcal machine whose error parameters are the deviations of ``n_points`` points
+    from their nominal positions (mm), so that free points are the unknowns of volcal's one
+    identification problem.
+
+    One linear axis ``P`` whose position is the point's index, with the translational
+    error motions EXP, EYP, EZP as tables with a knot at every index (piecewise linear:
+    at an index exactly the knot's value) and no other error; the nominal point enters as
+    the tool offset (mm) of its readings, so the tool point of pose k is
+    ``(k, 0, 0) + tool offset + (EXP, EYP, EZP)@k = nominal_k + deviation_k``.  The
+    structural point of the core (errors zero, where gauge and datum are decided) is then
+    the nominal point cloud."""
+    from volcal.model.spec import AxisSpec, ErrorForm, MachineSpec
+
+    n = int(n_points)
+    knots = tuple(float(k) for k in range(n))
+    axis = AxisSpec(
+        "P",
+        "linear",
+        "+x",
+        "tool",
+        (0.0, float(n - 1)),
+        errors=("EXP", "EYP", "EZP"),
+        location="none",
+        basis=ErrorForm("table", knots=knots),
+    )
+    return MachineSpec(f"pointcloud{n}", (axis,), "free points (paper 001)", tool_errors="none")
+
+
+class CoreEstimator:
+    """The well-posed strategies of :class:`HPTIEstimator` (points-only, two-phase) through
+    volcal's core: :class:`volcal.analysis.identify.Identifier` with the
+    :class:`MultiLaserInstrument` on the point cloud of :func:`point_cloud_spec`, the
+    strategies as :class:`volcal.problem.strategies.PhasedStrategy` objects run by
+    ``Identifier.run`` (IPOPT, then the core's Gauss-Newton polish).
+
+    Variables: the points' deviations from nominal (``errors``), the lasers' origins and
+    offsets (``stations``; the ICRS convention holds 6 of the 9 coordinates) and the frame
+    (``frame``).  The joint strategy is not offered: the core holds one variable per null
+    direction, while the study's joint leaves the 3 (or 6) null directions besides the
+    gauge to a Levenberg-damped solve whose metric selects the answer (README)."""
+
+    def __init__(self, n_points: int) -> None:
+        from volcal.analysis.identify import Identifier
+        from volcal.model.errors import ErrorModel
+        from volcal.model.machine import Machine
+        from volcal.problem.residuals import Layout
+
+        N = self.n_points = int(n_points)
+        spec = point_cloud_spec(N)
+        layout = Layout(np.tile(np.arange(3), N), 3, LASERS, np.repeat(np.arange(N), 3))
+        self.identifier = Identifier(
+            Machine.from_model(spec),
+            ErrorModel(spec, datum="none"),
+            layout,
+            instrument=MultiLaserInstrument(),
+        )
+        pr = self.identifier.problem
+        self._q = np.repeat(np.arange(N, dtype=float), 3)[:, None]
+        names = pr.names
+        self._geometry = [names.index(n) for n in ("laser2.x_mm", "laser3.x_mm", "laser3.y_mm")]
+        self._offsets = [names.index(f"{lz}.offset_mm") for lz in LASERS]
+        # the ICRS convention (the instrument's own held station parameters)
+        self._icrs = self.identifier.station_fixed(np.zeros(3, bool))
+
+    def data(self, data: HPTIData, weights: np.ndarray) -> np.ndarray:
+        """The problem's data vector p: pose index, nominal point as tool offset, readings
+        (mm) and weights 1/sigma (1/mm), laser 1..3 per point."""
+        N = self.n_points
+        tool = np.repeat(data.points_nominal - np.c_[np.arange(N), np.zeros((N, 2))], 3, axis=0)
+        w = np.broadcast_to(np.asarray(weights, float), (N, 3)).ravel()
+        return self.identifier.problem.pack_data(self._q, tool, data.lengths.ravel(), w)
+
+    def start(self, points_machine: np.ndarray, data: HPTIData, inst: HPTI) -> np.ndarray:
+        """x (physical units) from points (machine frame, mm) and an instrument state."""
+        dev = np.asarray(points_machine, float) - data.points_nominal
+        g, o = inst.geometry, inst.offsets
+        st = np.array([[0, 0, 0, o[0]], [g[0], 0, 0, o[1]], [g[1], g[2], 0, o[2]]], float)
+        return self.identifier.problem.pack_x(dev.T.ravel(), st, np.asarray(inst.frame, float))
+
+    def unpack(self, x: np.ndarray, data: HPTIData) -> tuple[np.ndarray, HPTI]:
+        """(points, machine frame mm; instrument state) from x."""
+        theta, st, frame = self.identifier.problem.unpack_x(x)
+        points = data.points_nominal + theta.reshape(3, -1).T
+        return points, HPTI((st[1, 0], st[2, 0], st[2, 1]), tuple(st[:, 3]), tuple(frame))
+
+    def estimate(
+        self,
+        data: HPTIData,
+        strategy: str,
+        accuracy: float = 1.0,
+        *,
+        scale_instrument: bool = False,
+        weights: np.ndarray | float = 1.0,
+        phase1: Sequence[str] = ("frame", "geometry", "offsets"),
+    ) -> Estimate:
+        """As :meth:`HPTIEstimator.estimate` for ``"points-only"`` and ``"two-phase"`` (all
+        calibration points), same start values (points a * nominal, x1 x2 y2 analytic,
+        characterised offsets, frame identity)."""
+        from volcal.problem.strategies import POINTS_ONLY, Phase, PhasedStrategy
+
+        if strategy not in ("points-only", "two-phase"):
+            raise ValueError(
+                f"strategy {strategy!r} is not run through the core here; "
+                "expected 'points-only' or 'two-phase'"
+            )
+        bad = sorted(set(phase1) - {"frame", "geometry", "offsets"})
+        if bad:
+            raise ValueError(f"phase1: unknown group(s) {bad}; expected frame, geometry, offsets")
+        a = float(accuracy)
+        geom, off = data.geometry_analytic, np.asarray(data.offsets_characterised, float)
+        if scale_instrument and strategy == "two-phase":
+            geom, off = a * geom, a * off
+        x0 = self.start(a * data.points_nominal, data, HPTI(tuple(geom), tuple(off)))
+        held = self._icrs.copy()
+        if strategy == "points-only":
+            strat = POINTS_ONLY
+        else:
+            # phase 1: the instrument groups of ``phase1`` on the points held at their start
+            # values (not zeroed, as the study's); phase 2: the points alone
+            if "geometry" not in phase1:
+                held[self._geometry] = True
+            if "offsets" not in phase1:
+                held[self._offsets] = True
+            hold1 = {"errors"} | ({"frame"} if "frame" not in phase1 else set())
+            strat = PhasedStrategy(
+                "paper001 two-phase",
+                "the instrument on the start points, then the points",
+                (
+                    Phase(hold=frozenset(hold1), datum=False, pivots=False),
+                    Phase(hold=frozenset({"stations", "frame"})),
+                ),
+            )
+        t0 = time.perf_counter()
+        x, outs, _, _ = self.identifier.run(strat, x0, self.data(data, weights), user_fixed=held)
+        PM, inst = self.unpack(x, data)
+        return Estimate(
+            strategy,
+            inst.to_instrument(PM),
+            PM,
+            inst,
+            all(o.success for o in outs),
+            [o.status for o in outs],
+            sum(o.iterations for o in outs),
+            time.perf_counter() - t0,
         )
 
 

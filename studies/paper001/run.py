@@ -607,6 +607,45 @@ def noise_alternatives(cfg: dict, args) -> int:
     return 0
 
 
+def core_check(cfg: dict, trials: int, scenarios: list[str]) -> str:
+    """The well-posed NLP cases (points-only, two-phase) of the first ``trials`` trials of
+    every scenario, solved by the study's estimator and by volcal's core
+    (:class:`hpti.CoreEstimator`): the largest difference of the point errors and of
+    x1 x2 y2 (um), and the seconds each spent (one process, this machine's load)."""
+    rows = []
+    for sc in scenarios:
+        runner = hpti.StudyRunner(cfg, sc)
+        core = hpti.CoreEstimator(runner.experiment.n_points)
+        w = 1.0 / runner.sigma
+        cases = [c for c in runner.cases if c.strategy in ("points-only", "two-phase")]
+        acc = {c.label: [0.0, 0.0, 0.0, 0.0] for c in cases}
+        for k in range(trials):
+            data = runner.simulate(k)
+            for c in cases:
+                t0 = time.perf_counter()
+                ref = runner.estimate(data, c)
+                t1 = time.perf_counter()
+                got = core.estimate(data, c.strategy, c.accuracy,
+                                    scale_instrument=runner.scale_instrument, weights=w,
+                                    phase1=c.phase1)
+                t2 = time.perf_counter()
+                a = acc[c.label]
+                a[0] = max(a[0], float(np.max(np.abs(got.errors_um(data)
+                                                      - ref.errors_um(data)))))
+                a[1] = max(a[1], 1e3 * float(np.max(np.abs(
+                    np.subtract(got.instrument.geometry, ref.instrument.geometry)))))
+                a[2] += t1 - t0
+                a[3] += t2 - t1
+        rows += [{"scenario": sc, "case": lab, "trials": trials,
+                  "point": f"{a[0]:.2g}", "geometry": f"{a[1]:.2g}",
+                  "study_s": f"{a[2]:.2f}", "core_s": f"{a[3]:.2f}"}
+                 for lab, a in acc.items()]
+    return rt.markdown(rows, ["scenario", "case", "trials", "point", "geometry", "study_s",
+                              "core_s"],
+                       ["scenario", "case", "trials", "max |point error diff| um",
+                        "max |x1 x2 y2 diff| um", "study s", "core s"])
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--smoke", action="store_true", help="a handful of trials (config "
@@ -634,8 +673,19 @@ def main(argv: list[str] | None = None) -> int:
                     help="only the sphere intersection, on scenario `paper` (one f for the "
                          "three lasers) and `paper_per_laser` (own phases per laser); "
                          "--trials of each (default 1000)")
+    ap.add_argument("--core-check", type=int, default=None, metavar="N",
+                    help="print how far volcal's core (identify's problem and solvers) "
+                         "agrees with the study's estimator on the points-only and two-phase "
+                         "cases of trials 0..N-1; compute nothing else")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
+    if args.core_check is not None:
+        if args.core_check < 1:
+            ap.error("--core-check: expected a number of trials >= 1")
+        cfg = load_config(args.config)
+        names = args.scenarios or list(cfg.get("study", {}).get("scenarios", ["paper"]))
+        print(core_check(cfg, args.core_check, names))
+        return 0
     if args.fixed_from is not None:
         tab = fixed_from_csv(args.fixed_from, load_config(args.config))
         print(tab)
