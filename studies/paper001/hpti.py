@@ -998,17 +998,22 @@ def point_cloud_spec(n_points: int) -> Any:
 
 
 class CoreEstimator:
-    """The well-posed strategies of :class:`HPTIEstimator` (points-only, two-phase) through
-    volcal's core: :class:`volcal.analysis.identify.Identifier` with the
-    :class:`MultiLaserInstrument` on the point cloud of :func:`point_cloud_spec`, the
-    strategies as :class:`volcal.problem.strategies.PhasedStrategy` objects run by
-    ``Identifier.run`` (IPOPT, then the core's Gauss-Newton polish).
+    """The NLP strategies of :class:`HPTIEstimator` through volcal's core: the one problem
+    of :class:`volcal.analysis.identify.Identifier` with the :class:`MultiLaserInstrument`
+    on the point cloud of :func:`point_cloud_spec`.
 
     Variables: the points' deviations from nominal (``errors``), the lasers' origins and
     offsets (``stations``; the ICRS convention holds 6 of the 9 coordinates) and the frame
-    (``frame``).  The joint strategy is not offered: the core holds one variable per null
-    direction, while the study's joint leaves the 3 (or 6) null directions besides the
-    gauge to a Levenberg-damped solve whose metric selects the answer (README)."""
+    (``frame``).  points-only and two-phase are :class:`volcal.problem.strategies.PhasedStrategy`
+    objects run by ``Identifier.run`` (IPOPT, then the core's Gauss-Newton polish).  joint:
+    the gauge (null directions over the points and the frame, the stations held) is found
+    by ``Identifier.analyse`` and held on its pivots (the frame); the null directions that
+    remain (x1 x2 y2, and the offsets when free, trade against the points) are left to the
+    core's fixed-metric Levenberg solve
+    (:meth:`volcal.solve.gauss_newton.GaussNewtonSolver.solve_levenberg`) with the study's
+    damping: ``damping_rel`` times the mean diagonal of J^T J over the free variables in
+    the scaling ``scaling`` (``"units"``: 1 um / 1 urad; ``"jacobian"``: unit Jacobian
+    columns at the start)."""
 
     def __init__(self, n_points: int) -> None:
         from volcal.analysis.identify import Identifier
@@ -1032,6 +1037,9 @@ class CoreEstimator:
         self._offsets = [names.index(f"{lz}.offset_mm") for lz in LASERS]
         # the ICRS convention (the instrument's own held station parameters)
         self._icrs = self.identifier.station_fixed(np.zeros(3, bool))
+        # joint: (held mask with the gauge pivots, rank deficient after them) per free set;
+        # decided once, at the structural point (nominal points), as the study does
+        self._joint_cache: dict[tuple, tuple[np.ndarray, bool]] = {}
 
     def data(self, data: HPTIData, weights: np.ndarray) -> np.ndarray:
         """The problem's data vector p: pose index, nominal point as tool offset, readings
@@ -1063,25 +1071,85 @@ class CoreEstimator:
         scale_instrument: bool = False,
         weights: np.ndarray | float = 1.0,
         phase1: Sequence[str] = ("frame", "geometry", "offsets"),
+        joint_groups: Sequence[str] = ("points", "frame", "geometry", "offsets"),
+        scaling: str = "units",
+        damping_rel: float = 1e-5,
     ) -> Estimate:
-        """As :meth:`HPTIEstimator.estimate` for ``"points-only"`` and ``"two-phase"`` (all
-        calibration points), same start values (points a * nominal, x1 x2 y2 analytic,
-        characterised offsets, frame identity)."""
-        from volcal.problem.strategies import POINTS_ONLY, Phase, PhasedStrategy
-
-        if strategy not in ("points-only", "two-phase"):
+        """As :meth:`HPTIEstimator.estimate` for ``"points-only"``, ``"two-phase"`` (all
+        calibration points) and ``"joint"``, from the same start values (points
+        a * nominal, x1 x2 y2 analytic, characterised offsets, frame identity)."""
+        if strategy not in ("points-only", "two-phase", "joint"):
             raise ValueError(
                 f"strategy {strategy!r} is not run through the core here; "
-                "expected 'points-only' or 'two-phase'"
+                "expected 'points-only', 'two-phase' or 'joint'"
             )
-        bad = sorted(set(phase1) - {"frame", "geometry", "offsets"})
-        if bad:
-            raise ValueError(f"phase1: unknown group(s) {bad}; expected frame, geometry, offsets")
+        for key, groups, allowed in (
+            ("phase1", phase1, GROUPS[1:]),
+            ("joint_groups", joint_groups, GROUPS),
+        ):
+            bad = sorted(set(groups) - set(allowed))
+            if bad:
+                raise ValueError(f"{key}: unknown group(s) {bad}; expected {allowed}")
+        if scaling not in ("units", "jacobian"):
+            raise ValueError(f"scaling must be 'units' or 'jacobian', got {scaling!r}")
         a = float(accuracy)
         geom, off = data.geometry_analytic, np.asarray(data.offsets_characterised, float)
-        if scale_instrument and strategy == "two-phase":
+        if scale_instrument and strategy != "points-only":
             geom, off = a * geom, a * off
         x0 = self.start(a * data.points_nominal, data, HPTI(tuple(geom), tuple(off)))
+        p = self.data(data, weights)
+        t0 = time.perf_counter()
+        if strategy == "joint":
+            x, outs = self._joint(x0, p, tuple(joint_groups), scaling, float(damping_rel))
+        else:
+            x, outs = self._phased(strategy, x0, p, phase1)
+        PM, inst = self.unpack(x, data)
+        return Estimate(
+            strategy,
+            inst.to_instrument(PM),
+            PM,
+            inst,
+            all(o.success for o in outs),
+            [o.status for o in outs],
+            sum(o.iterations for o in outs),
+            time.perf_counter() - t0,
+        )
+
+    def _joint(self, x0, p, groups: tuple[str, ...], scaling: str, damping_rel: float):
+        """The joint step: gauge held on its pivots, the rest by the core's fixed-metric
+        Levenberg solve (see the class docstring)."""
+        idf = self.identifier
+        key = (groups, scaling)
+        if key not in self._joint_cache:
+            held = self._icrs.copy()
+            if "points" not in groups:
+                held |= idf.is_theta
+            if "frame" not in groups:
+                held |= idf.is_frame
+            if "geometry" not in groups:
+                held[self._geometry] = True
+            if "offsets" not in groups:
+                held[self._offsets] = True
+            gauge = idf.analyse(x0, p, held | idf.is_station)
+            fixed = held.copy()
+            fixed[list(gauge.pivots)] = True
+            deficient = len(idf.analyse(x0, p, fixed).pivots) > 0
+            self._joint_cache[key] = (fixed, deficient)
+        fixed, deficient = self._joint_cache[key]
+        free = ~fixed
+        _, J = idf.jacobian(x0, p)  # whitened, wrt the scaled variables (1 um, 1 urad)
+        norms = np.linalg.norm(J, axis=0)
+        # the solver's metric: scaled variable z = u * c (u in 1 um / 1 urad), c = 1 or the
+        # column norms at the start; damping mu I in z is mu c^2 in u
+        c = np.where(norms > 0, norms, 1.0) if scaling == "jacobian" else np.ones_like(norms)
+        mu = damping_rel * float(np.mean((norms[free] / c[free]) ** 2)) if deficient else 0.0
+        out = idf.gauss_newton.solve_levenberg(x0, p, mu * c**2, fixed=fixed, max_iter=200)
+        return out.x, [out]
+
+    def _phased(self, strategy: str, x0, p, phase1: Sequence[str]):
+        """points-only and two-phase as core strategies run by ``Identifier.run``."""
+        from volcal.problem.strategies import POINTS_ONLY, Phase, PhasedStrategy
+
         held = self._icrs.copy()
         if strategy == "points-only":
             strat = POINTS_ONLY
@@ -1101,19 +1169,8 @@ class CoreEstimator:
                     Phase(hold=frozenset({"stations", "frame"})),
                 ),
             )
-        t0 = time.perf_counter()
-        x, outs, _, _ = self.identifier.run(strat, x0, self.data(data, weights), user_fixed=held)
-        PM, inst = self.unpack(x, data)
-        return Estimate(
-            strategy,
-            inst.to_instrument(PM),
-            PM,
-            inst,
-            all(o.success for o in outs),
-            [o.status for o in outs],
-            sum(o.iterations for o in outs),
-            time.perf_counter() - t0,
-        )
+        x, outs, _, _ = self.identifier.run(strat, x0, p, user_fixed=held)
+        return x, outs
 
 
 # --------------------------------------------------------------------------------------

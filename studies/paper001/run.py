@@ -607,43 +607,57 @@ def noise_alternatives(cfg: dict, args) -> int:
     return 0
 
 
+def _core_rows(runner: hpti.StudyRunner, keys: list, trials: int, scenario: str) -> list[dict]:
+    """:func:`core_check` for the (case, damping_rel) pairs ``keys`` of one runner."""
+    core = hpti.CoreEstimator(runner.experiment.n_points)
+    w = 1.0 / runner.sigma
+    acc = {k: [0.0, 0.0, 0.0, 0.0] for k in range(len(keys))}
+    for t in range(trials):
+        data = runner.simulate(t)
+        for k, (c, d) in enumerate(keys):
+            a = 1.0 if c.accuracy is None else c.accuracy
+            t0 = time.perf_counter()
+            ref = runner.estimator.estimate(
+                data, c.strategy, a, scale_instrument=runner.scale_instrument,
+                weights=np.full((data.n_points, 3), w), phase1=c.phase1,
+                joint_groups=c.groups, scaling=c.scaling, damping_rel=d,
+                cache_key=(c.name, c.accuracy))
+            t1 = time.perf_counter()
+            got = core.estimate(data, c.strategy, a, scale_instrument=runner.scale_instrument,
+                                weights=w, phase1=c.phase1, joint_groups=c.groups,
+                                scaling=c.scaling, damping_rel=d)
+            t2 = time.perf_counter()
+            r = acc[k]
+            r[0] = max(r[0], float(np.max(np.abs(got.errors_um(data) - ref.errors_um(data)))))
+            r[1] = max(r[1], 1e3 * float(np.max(np.abs(
+                np.subtract(got.instrument.geometry, ref.instrument.geometry)))))
+            r[2] += t1 - t0
+            r[3] += t2 - t1
+    return [{"scenario": scenario,
+             "case": c.label if len({d for _, d in keys}) == 1 else f"{c.label}, damping {d:g}",
+             "trials": trials, "point": f"{r[0]:.2g}", "geometry": f"{r[1]:.2g}",
+             "study_s": f"{r[2]:.2f}", "core_s": f"{r[3]:.2f}"}
+            for (c, d), r in zip(keys, acc.values())]
+
+
 def core_check(cfg: dict, trials: int, scenarios: list[str]) -> str:
-    """The well-posed NLP cases (points-only, two-phase) of the first ``trials`` trials of
-    every scenario, solved by the study's estimator and by volcal's core
-    (:class:`hpti.CoreEstimator`): the largest difference of the point errors and of
-    x1 x2 y2 (um), and the seconds each spent (one process, this machine's load)."""
+    """Every NLP case (points-only, two-phase, joint) of the first ``trials`` trials of
+    every scenario, and the damping sweep on its scenario, solved by the study's estimator
+    and by volcal's core (:class:`hpti.CoreEstimator`): a markdown table of the largest
+    difference of the point errors and of x1 x2 y2 (um), and the seconds each spent (one
+    process; the ratio is the point, the machine's load sets the seconds)."""
     rows = []
     for sc in scenarios:
         runner = hpti.StudyRunner(cfg, sc)
-        core = hpti.CoreEstimator(runner.experiment.n_points)
-        w = 1.0 / runner.sigma
-        cases = [c for c in runner.cases if c.strategy in ("points-only", "two-phase")]
-        acc = {c.label: [0.0, 0.0, 0.0, 0.0] for c in cases}
-        for k in range(trials):
-            data = runner.simulate(k)
-            for c in cases:
-                t0 = time.perf_counter()
-                ref = runner.estimate(data, c)
-                t1 = time.perf_counter()
-                got = core.estimate(data, c.strategy, c.accuracy,
-                                    scale_instrument=runner.scale_instrument, weights=w,
-                                    phase1=c.phase1)
-                t2 = time.perf_counter()
-                a = acc[c.label]
-                a[0] = max(a[0], float(np.max(np.abs(got.errors_um(data)
-                                                      - ref.errors_um(data)))))
-                a[1] = max(a[1], 1e3 * float(np.max(np.abs(
-                    np.subtract(got.instrument.geometry, ref.instrument.geometry)))))
-                a[2] += t1 - t0
-                a[3] += t2 - t1
-        rows += [{"scenario": sc, "case": lab, "trials": trials,
-                  "point": f"{a[0]:.2g}", "geometry": f"{a[1]:.2g}",
-                  "study_s": f"{a[2]:.2f}", "core_s": f"{a[3]:.2f}"}
-                 for lab, a in acc.items()]
+        keys = [(c, 1e-5) for c in runner.cases if c.strategy != "sphere"]
+        rows += _core_rows(runner, keys, trials, sc)
+    if cfg.get("damping_sweep"):
+        sweep = DampingJob(cfg)
+        rows += _core_rows(sweep.runner, sweep.keys, trials, f"{sweep.scenario} (sweep)")
     return rt.markdown(rows, ["scenario", "case", "trials", "point", "geometry", "study_s",
                               "core_s"],
-                       ["scenario", "case", "trials", "max |point error diff| um",
-                        "max |x1 x2 y2 diff| um", "study s", "core s"])
+                       ["scenario", "case", "trials", "max abs point error diff um",
+                        "max abs x1 x2 y2 diff um", "study s", "core s"])
 
 
 def main(argv: list[str] | None = None) -> int:
