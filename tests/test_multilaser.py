@@ -233,3 +233,16 @@ def test_core_identifier_gives_the_studys_strategies(estimator):
         core.identifier.gauss_newton.solve_levenberg(np.zeros(3), np.zeros(3), np.ones(2))
     with pytest.raises(ValueError, match="not run through the core"):
         core.estimate(data, "sphere")
+
+
+def test_core_check_prints_the_agreement():
+    run = _load_run()
+    cfg = run.load_config()
+    cfg["case"] = [c for c in cfg["case"] if c["name"] == "two-phase"]
+    cfg["study"]["initial_accuracy_percent"] = [95]
+    del cfg["damping_sweep"]
+    rows = run.core_check(cfg, 1, ["paper"]).splitlines()
+    assert "max abs point error diff um" in rows[0] and len(rows) == 3
+    cells = [c.strip() for c in rows[2].strip("|").split("|")]
+    assert cells[:3] == ["paper", "two-phase @ 95 %", "1"]
+    assert float(cells[3]) < 1e-5 and float(cells[4]) < 1e-5  # um
