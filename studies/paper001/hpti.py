@@ -1041,7 +1041,7 @@ class CoreEstimator:
         # decided once, at the structural point (nominal points), as the study does
         self._joint_cache: dict[tuple, tuple[np.ndarray, bool]] = {}
 
-    def data(self, data: HPTIData, weights: np.ndarray) -> np.ndarray:
+    def data(self, data: HPTIData, weights: np.ndarray | float) -> np.ndarray:
         """The problem's data vector p: pose index, nominal point as tool offset, readings
         (mm) and weights 1/sigma (1/mm), laser 1..3 per point."""
         N = self.n_points
