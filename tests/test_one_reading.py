@@ -25,9 +25,6 @@ REMAINING = {
     # paper 002's linear and Gauss-Newton multilateration, vectorised over thousands of
     # small problems (start values of the tracker's stations, the classic pipeline)
     "measurement/multilateration.py",
-    # paper 001's own pipeline; moving it onto measurement/instruments/multilaser.py
-    # through identify is the open part of issue 30
-    "analysis/multilaser.py",
 }
 
 
