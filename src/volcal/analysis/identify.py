@@ -137,6 +137,10 @@ class IdentificationResult:
     #: parameters the imposed datum conditions alone set to zero (a convention, not a
     #: measurement: u = 0); None: none known
     imposed: np.ndarray | None = field(default=None, repr=False)
+    #: several instruments' tables (:mod:`volcal.analysis.fusion`): one row per table
+    #: with its readings, degrees of freedom, chi2/dof and verdict (and its variance
+    #: component when estimated); None for a single table
+    instruments: pd.DataFrame | None = None
 
     def __getstate__(self):
         d = dict(self.__dict__)
@@ -851,6 +855,7 @@ def _identify(
     solver: str = "ipopt",
     columns: Mapping[str, str] | str | None = None,
     max_memory_gb: float | None = None,
+    variance_components: bool = False,
 ) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
@@ -879,7 +884,18 @@ def _identify(
     estimated peak (:func:`volcal.base.memory.estimate_peak_bytes`, readings x unknowns)
     exceeds it is refused with :class:`InputError` before the solve.  None (default): the
     memory available now; ``float("inf")``: no check.
+
+    Several instruments' tables (issue 32): ``data`` a list of tables, ``(instrument,
+    table[, budget[, name]])`` tuples or :class:`volcal.analysis.fusion.DataSet`; one problem, one
+    datum, one covariance, chi2/dof per table in ``result.instruments``;
+    ``variance_components``: each table's budget scale factor estimated (Helmert), see
+    :func:`volcal.analysis.fusion.identify_datasets`.
     """
+    if isinstance(data, (list, tuple)) or variance_components:
+        opts = {k: v for k, v in locals().items() if k not in ("model", "data")}
+        from volcal.analysis.fusion import identify_datasets
+
+        return identify_datasets(model, data if isinstance(data, (list, tuple)) else [data], **opts)
     if degree == "auto":  # every other argument goes to each candidate fit
         opts = {
             k: v
