@@ -269,24 +269,25 @@ class PlanEvaluator:
         # the map lays the (1, 3) and (1, n_ps) row Jacobians side by side
         dp, ds = ca.reshape(dp, 3, N), ca.reshape(ds, ins.n_station_params, N)
         # A = J[:, free] Z without forming J: the theta columns of a row are
-        # w (dp_x G_x + dp_y G_y + dp_z G_z), so A's theta part is
-        # sum_c diag(w dp_c) (G_c Z_theta) with G_c Z_theta fixed (numeric); every free
-        # station parameter adds w d(reading)/d(station) times its row of Z.
+        # w (dp_x G_x + dp_y G_y + dp_z G_z) and a free station parameter j of the row's
+        # station adds w ds_j times its row of Z, so A = sum_b diag(w v_b) H_b over the
+        # 3 + n_ps rows v_b of (dp; ds), with every H_b (N, r) fixed (numeric): G_c
+        # Z_theta, and for ds_j the Z row of parameter j of each reading's station.  One
+        # term per instrument derivative (not per station and parameter): the fewest
+        # N x r operations, whose adjoints dominate the gradient's cost.
         ZZ = np.zeros((pr.n_x, fz.Z.shape[1]))
         ZZ[fz.free] = fz.Z
         r = ZZ.shape[1]
-        A: ca.MX = ca.MX(N, r)
-        for c in range(3):
-            GZ = G[:, c, :] @ ZZ[:nt]  # (N, r)
-            A = A + ca.repmat(w * dp[c, :].T, 1, r) * ca.DM(GZ)
         nps = ins.n_station_params
-        for k in range(K):
-            for j in range(nps):
-                i = nt + nps * k + j
-                if not np.any(ZZ[i]):
-                    continue  # held
-                col = w * ds[j, :].T * ca.DM((st == k).astype(float)) * pr.scale[i]
-                A = A + ca.mtimes(col, ca.DM(ZZ[i][None, :]))
+        H = [G[:, c, :] @ ZZ[:nt] for c in range(3)]
+        for j in range(nps):
+            i = nt + nps * st + j  # parameter j of each reading's station
+            H.append(ZZ[i] * pr.scale[i][:, None])
+        V = ca.vertcat(dp, ds) * ca.repmat(w.T, 3 + nps, 1)  # (3 + n_ps, N)
+        A: ca.MX = ca.MX(N, r)
+        for b, Hb in enumerate(H):
+            if np.any(Hb):  # all zero: held parameters, or no error parameter moves it
+                A = A + ca.repmat(V[b, :].T, 1, r) * ca.DM(Hb)
         M = dense_mtimes(A.T, A)
         if criterion == "I":
             # trace(B M^-1 B^T) = trace(M^-1 B^T B): an r x r right-hand side

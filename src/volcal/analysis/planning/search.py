@@ -344,19 +344,29 @@ def gradient_placement(
     pp = ca.MX.sym("w", f_sym.size1_in(1))
     f0 = float(scorer.score(initial if initial is not None else sampler.draw(rng, K), selected))
     fscale = 1.0 / max(f0 * f0, 1e-12)
-    g, lbg, ubg = [], [], []
     cos_h = np.cos(np.radians(cons.reflector.half_angle_deg))
+    # the reading constraints of each station: (expression, lower, upper, kind) with one
+    # row per point; kind "distance" rows may be dropped where the station's region
+    # cannot break them (_reading_rows)
+    rows_of: list[list[tuple[ca.MX, np.ndarray, np.ndarray, str]]] = []
     for k in range(K):
         sk = s[3 * k : 3 * k + 3]
         D = ca.repmat(sk.T, len(P), 1) - ca.DM(P)  # beams, point -> station
         d2 = ca.sum2(D * D)
+        mine = []
         if cons.min_distance_mm > 0 or np.isfinite(cons.max_range_mm):
             # in metres: constraint values of order one (IPOPT's scaling is gradient based
             # and a squared range of 3.6e7 mm^2 stalls it)
-            g.append(ca.sqrt(d2) / 1000.0)
-            # small margins inside every limit: IPOPT may end a hair outside (1e-8 scale)
-            lbg.append(np.full(len(P), cons.min_distance_mm / 1000.0 + 1e-6))
-            ubg.append(np.full(len(P), cons.max_range_mm / 1000.0 - 1e-6))
+            mine.append(
+                (
+                    ca.sqrt(d2) / 1000.0,
+                    # small margins inside every limit: IPOPT may end a hair outside (1e-8
+                    # scale)
+                    np.full(len(P), cons.min_distance_mm / 1000.0 + 1e-6),
+                    np.full(len(P), cons.max_range_mm / 1000.0 - 1e-6),
+                    "distance",
+                )
+            )
         if cons.reflector.limited:
             ax: ca.MX | ca.DM
             if cons.reflector.axis is not None:
@@ -364,10 +374,15 @@ def gradient_placement(
             else:
                 a = sk - ca.DM(sampler.centre)
                 ax = ca.repmat((a / ca.norm_2(a)).T, len(P), 1)
-            g.append(ca.sum2(D * ax) / ca.sqrt(d2) - cos_h - 1e-7)
-            lbg.append(np.zeros(len(P)))
-            ubg.append(np.full(len(P), np.inf))
-    g_base = ca.vertcat(*g) if g else ca.MX(0, 1)
+            mine.append(
+                (
+                    ca.sum2(D * ax) / ca.sqrt(d2) - cos_h - 1e-7,
+                    np.zeros(len(P)),
+                    np.full(len(P), np.inf),
+                    "angle" if cons.reflector.axis is not None else "aimed",
+                )
+            )
+        rows_of.append(mine)
     results, history, n_eval = [], [], 0
     state = _load(checkpoint, "gradient", key)
     done_starts: list[np.ndarray] = []
@@ -387,8 +402,9 @@ def gradient_placement(
         # per assignment of stations to regions, built once and reused by later starts
         regions = tuple(_region_of(sampler, S0[k]) for k in range(K)) if cons.regions else ()
         if regions not in solvers:
+            g, lbg, ubg = _reading_rows(rows_of, cons, regions, P, sampler.centre)
             solvers[regions] = _placement_solver(
-                s, pp, fscale * f_sym(s, pp), g_base, lbg, ubg, cons, regions, max_iter
+                s, pp, fscale * f_sym(s, pp), g, lbg, ubg, cons, regions, max_iter
             )
         solver, lb_all, ub_all = solvers[regions]
         sol = solver(x0=S0.ravel(), p=ev.weights(S0, selected), lbg=lb_all, ubg=ub_all)
@@ -423,6 +439,53 @@ def gradient_placement(
         time.perf_counter() - t0,
         notes,
     )
+
+
+def _reading_rows(
+    rows_of: list[list[tuple[Any, np.ndarray, np.ndarray, str]]],
+    cons: Constraints,
+    regions: tuple[int, ...],
+    P: np.ndarray,
+    centre: np.ndarray,
+) -> tuple[Any, list[np.ndarray], list[np.ndarray]]:
+    """The reading constraints of every station for one assignment of stations to
+    regions (indices into ``cons.regions``; () when there are none), without those no
+    position in the station's region can break: a minimum distance below the nearest
+    position, a range above the farthest (1 mm to spare), and the acceptance angle of a
+    reflector re-aimed at every set-up (its axis from the workspace ``centre`` to the
+    station) at a point p whose beam cannot turn that far: in the triangle station,
+    centre, p the angle at the station is below arcsin(|p - centre| / |station -
+    centre|) when |p - centre| is the shorter side (0.5 deg to spare).  The region's
+    own constraints imply it, so the feasible set is the same, and IPOPT's cost per
+    iteration grows with the number of constraints (its back-solves dominate once the
+    criterion is cheap).  The plan is checked against every constraint afterwards."""
+    g, lbg, ubg = [], [], []
+    for k, mine in enumerate(rows_of):
+        lo_box = hi_box = None
+        if regions:
+            c = cons.regions[regions[k]].corners()
+            lo_box, hi_box = c.min(0) - 1.0, c.max(0) + 1.0  # mm, with room to spare
+        for expr, lb, ub, kind in mine:
+            lb, ub = lb.copy(), ub.copy()
+            if kind == "distance" and lo_box is not None:
+                # nearest: to the region's bounding box; farthest: a corner (convex)
+                near = np.linalg.norm(P - np.clip(P, lo_box, hi_box), axis=1) / 1000.0
+                far = np.max(np.linalg.norm(P[:, None, :] - c[None], axis=2), axis=1) + 1.0
+                lb[near > lb + 1e-3] = -np.inf
+                ub[far / 1000.0 < ub] = np.inf
+            elif kind == "aimed" and lo_box is not None:
+                d_c = np.linalg.norm(centre - np.clip(centre, lo_box, hi_box))
+                ratio = np.linalg.norm(P - centre, axis=1) / max(d_c, 1e-9)
+                turn = np.degrees(np.arcsin(np.minimum(ratio, 1.0)))
+                lb[(ratio < 1.0) & (turn < cons.reflector.half_angle_deg - 0.5)] = -np.inf
+            keep = np.isfinite(lb) | np.isfinite(ub)
+            if keep.all():
+                g.append(expr)
+            elif keep.any():
+                g.append(expr[np.flatnonzero(keep).tolist()])
+            lbg.append(lb[keep])
+            ubg.append(ub[keep])
+    return (ca.vertcat(*g) if g else ca.MX(0, 1)), lbg, ubg
 
 
 def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter):
