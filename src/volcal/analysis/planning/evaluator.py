@@ -231,8 +231,29 @@ class PlanEvaluator:
         self, criterion: str = "I", selected: np.ndarray | None = None
     ) -> ca.Function:
         """``f(s, w) -> criterion^2`` as a CasADi Function of the station coordinates s
-        (3K, mm) and the weights w of the selected readings (1/mm), for gradient-based
-        placement.
+        (3K, mm) and the weights w of the selected readings (1/mm) (see
+        :meth:`_criterion_graph`)."""
+        return self.criterion_functions(criterion, selected)[0]
+
+    def criterion_functions(
+        self, criterion: str = "I", selected: np.ndarray | None = None
+    ) -> tuple[ca.Function, ca.Function]:
+        """:meth:`symbolic_criterion` and ``(s, w) -> (criterion^2, its gradient wrt s
+        (3K,), per mm)`` from one graph.  The gradient is written out (see
+        :meth:`_criterion_graph`) for IPOPT's ``grad_f``: it equals AD of the first (a
+        test checks it) at about half the cost."""
+        s, w, f, g = self._criterion_graph(criterion, selected)
+        return (
+            ca.Function("plan_criterion", [s, w], [f], ["s", "w"], ["f"]),
+            ca.Function("plan_criterion_grad", [s, w], [f, g], ["s", "w"], ["f", "grad_s"]),
+        )
+
+    def _criterion_graph(
+        self, criterion: str = "I", selected: np.ndarray | None = None
+    ) -> tuple[ca.MX, ca.MX, ca.MX, ca.MX]:
+        """(s, w, f, df/ds): the criterion^2 f as a CasADi expression of the station
+        coordinates s (3K, mm) and the weights w of the selected readings (1/mm), for
+        gradient-based placement, and its gradient wrt s.
 
         Only the stations move, so only the instrument's derivatives change: each row of
         the Jacobian is w d(reading)/d(point) G(pose) for the error parameters and
@@ -284,24 +305,39 @@ class PlanEvaluator:
             i = nt + nps * st + j  # parameter j of each reading's station
             H.append(ZZ[i] * pr.scale[i][:, None])
         V = ca.vertcat(dp, ds) * ca.repmat(w.T, 3 + nps, 1)  # (3 + n_ps, N)
+        used = [b for b, Hb in enumerate(H) if np.any(Hb)]  # all zero: held, or unmoved
         A: ca.MX = ca.MX(N, r)
-        for b, Hb in enumerate(H):
-            if np.any(Hb):  # all zero: held parameters, or no error parameter moves it
-                A = A + ca.repmat(V[b, :].T, 1, r) * ca.DM(Hb)
+        for b in used:
+            A = A + ca.repmat(V[b, :].T, 1, r) * ca.DM(H[b])
         M = dense_mtimes(A.T, A)
-        if criterion == "I":
-            # trace(B M^-1 B^T) = trace(M^-1 B^T B): an r x r right-hand side
-            W = self._B.T @ self._B
-            f = ca.trace(ca.solve(M, ca.DM(W))) / self.n_eval
-        elif criterion == "A":
-            Zt = fz.Z[self._theta_rows]
-            f = ca.trace(ca.solve(M, ca.DM(Zt.T @ Zt))) / max(len(self._theta_rows), 1)
+        # f and the r x r matrix Q with df = -<A Q, dA> (times 2): I and A are
+        # trace(M^-1 W) / n, so Q = M^-1 W M^-1 / n; D is det(M)^(-1/r), Q = f M^-1 / r
+        if criterion in ("I", "A"):
+            if criterion == "I":
+                # trace(B M^-1 B^T) = trace(M^-1 B^T B): an r x r right-hand side
+                W, n = self._B.T @ self._B, self.n_eval
+            else:
+                Zt = fz.Z[self._theta_rows]
+                W, n = Zt.T @ Zt, max(len(self._theta_rows), 1)
+            X = ca.solve(M, ca.DM(W))
+            f = ca.trace(X) / n
+            Q = ca.solve(M, X.T) / n
         elif criterion == "D":
             f = ca.exp(-ca.log(ca.det(M)) / M.shape[0])
+            Q = f * ca.inv(M) / M.shape[0]
         else:
             raise ValueError(f"criterion {criterion!r} has no smooth form; use I, A or D")
+        # the gradient written out rather than left to reverse AD: df/dA = -2 A Q, then
+        # df/dv_b per reading = row sums of df/dA * H_b, and the instrument's small
+        # derivative map takes it to s.  Two products of N x r by r x r (M and A Q) through
+        # the dense kernel, where reverse AD of A^T A takes two more through CasADi's
+        # reference loops: about half the cost of an iteration.
+        GA = -2.0 * dense_mtimes(A, Q)
+        dV = ca.MX(3 + nps, N)
+        for b in used:
+            dV[b, :] = ca.sum2(GA * ca.DM(H[b])).T
         self._sym_rows = rows
-        return ca.Function("plan_criterion", [s, w], [f], ["s", "w"], ["f"])
+        return s, w, f, ca.jtimes(V, s, dV, True)
 
     def weights(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
         """1/sigma (1/mm) of the selected readings (the ``w`` of :meth:`symbolic_criterion`)."""

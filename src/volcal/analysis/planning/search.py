@@ -335,7 +335,7 @@ def gradient_placement(
         "criterion": criterion,
         "problem": fingerprint,
     }
-    f_sym = ev.symbolic_criterion(criterion, selected)
+    f_sym, fg_sym = ev.criterion_functions(criterion, selected)
     sel = np.ones(len(ev.poses), bool) if selected is None else np.asarray(selected, bool)
     use = sel[ev.pose_of] & (ev.station_of == 0)  # the points of one station's readings
     P = ev.points[use]
@@ -403,8 +403,10 @@ def gradient_placement(
         regions = tuple(_region_of(sampler, S0[k]) for k in range(K)) if cons.regions else ()
         if regions not in solvers:
             g, lbg, ubg = _reading_rows(rows_of, cons, regions, P, sampler.centre)
+            fv, gv = fg_sym(s, pp)
+            grad_f = ca.Function("grad_f", [s, pp], [fscale * fv, fscale * gv])
             solvers[regions] = _placement_solver(
-                s, pp, fscale * f_sym(s, pp), g, lbg, ubg, cons, regions, max_iter
+                s, pp, fscale * f_sym(s, pp), g, lbg, ubg, cons, regions, max_iter, grad_f
             )
         solver, lb_all, ub_all = solvers[regions]
         sol = solver(x0=S0.ravel(), p=ev.weights(S0, selected), lbg=lb_all, ubg=ub_all)
@@ -488,10 +490,11 @@ def _reading_rows(
     return (ca.vertcat(*g) if g else ca.MX(0, 1)), lbg, ubg
 
 
-def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter):
-    """IPOPT on the station coordinates ``s`` with weights ``pp``: objective f, the smooth
-    reading constraints g_base and the half-spaces of each station's region ``regions``
-    (indices into ``cons.regions``).  Returns (solver, lbg, ubg)."""
+def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter, grad_f):
+    """IPOPT on the station coordinates ``s`` with weights ``pp``: objective f (its value
+    and gradient from the Function ``grad_f(s, pp)``, written out rather than reverse
+    AD), the smooth reading constraints g_base and the half-spaces of each station's
+    region ``regions`` (indices into ``cons.regions``).  Returns (solver, lbg, ubg)."""
     K = s.shape[0] // 3
     gg, lb, ub = [g_base], list(lbg), list(ubg)
     if regions:
@@ -519,6 +522,7 @@ def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter):
             "ipopt.acceptable_tol": 1e-4,
             "ipopt.sb": "yes",
             "ipopt.bound_relax_factor": 0.0,
+            "grad_f": grad_f,
         },
     )
     cat = np.concatenate
