@@ -382,6 +382,7 @@ class Scorer:
         self.free: np.ndarray = np.zeros(0, int)
         self.Z: np.ndarray = np.zeros((0, 0))
         self.B: np.ndarray = np.zeros((0, 0))
+        self.B_r: np.ndarray = np.zeros((0, 0))
         self.theta_rows: np.ndarray = np.zeros(0, int)
         self._call: NumpyCall | None = None
 
@@ -391,6 +392,9 @@ class Scorer:
         """The free variables, the basis of the directions the datum leaves, the scaled
         volumetric map B (3 n_eval, r) and the rows of Z that are error parameters."""
         self.free, self.Z, self.B, self.theta_rows = free, Z, B, theta_rows
+        # the I-criterion needs only B^T B = R^T R: ||L^-1 B^T||_F = ||L^-1 R^T||_F with R
+        # (at most r x r) from a QR of B, a right-hand side of r columns, not 3 n_eval
+        self.B_r = sla.qr(B, mode="r", check_finite=False)[0][: B.shape[1]] if B.size else B
 
     def _frozen(self) -> None:
         if not len(self.free):
@@ -475,7 +479,7 @@ class Scorer:
             return float("inf")
         d = np.diag(L)
         if criterion == "I":
-            X = sla.solve_triangular(L, self.B.T, lower=True)
+            X = sla.solve_triangular(L, self.B_r.T, lower=True)
             return float(np.sqrt(np.sum(X * X) / self.n_eval))
         if criterion == "A":
             X = sla.solve_triangular(L, self.Z[self.theta_rows].T, lower=True)

@@ -13,10 +13,12 @@ so feasibility is checked (and repaired) station by station.
   Dask, :func:`volcal.analysis.uncertainty.parallel.run_chunks`); the search saves a
   checkpoint after every generation and resumes from it.
 * :func:`gradient_placement`: IPOPT on the station coordinates with exact derivatives of the
-  criterion (CasADi through the problem's Jacobian), the regions, distance, range and
-  acceptance-angle constraints written as smooth inequalities, from several feasible
-  starts; line of sight is checked on each result (a start whose optimum a beam of which
-  is blocked is discarded).  Checkpointed after every start.
+  criterion (CasADi through the problem's Jacobian; the gradient written out, see
+  :meth:`~volcal.analysis.planning.evaluator.PlanEvaluator.criterion_functions`), the
+  regions, distance, range and acceptance-angle constraints written as smooth
+  inequalities (those the station's region cannot break left out: the region implies
+  them), from several feasible starts; line of sight is checked on each result (a start
+  whose optimum a beam of which is blocked is discarded).  Checkpointed after every start.
 * :func:`exchange_poses`: a Fedorov-type exchange of poses between the plan and a candidate
   grid for the I-criterion, with rank-K updates of the information matrix.
 
@@ -532,6 +534,53 @@ def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter, grad_
 # ---- pose exchange ---------------------------------------------------------------------
 
 
+def _exchange_effects(
+    A: np.ndarray,
+    blocks: list[np.ndarray],
+    stacked: np.ndarray | None,
+    Minv: np.ndarray,
+    MWM: np.ndarray,
+    sel: np.ndarray,
+    allowed: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(gain, loss) of the trace(W M^-1) criterion per candidate pose: what adding an
+    unselected allowed pose takes off, tr((I + V)^-1 U), and what removing a selected one
+    adds, tr((I - V)^-1 U), with V = A_c M^-1 A_c^T and U = A_c M^-1 W M^-1 A_c^T of the
+    pose's rows A_c; -inf / inf where a pose cannot be added / removed."""
+    gain = np.full(len(sel), -np.inf)
+    loss = np.full(len(sel), np.inf)
+    if stacked is not None:
+        AM = stacked @ Minv  # (n, k, r)
+        At = np.swapaxes(stacked, 1, 2)
+        V, U = AM @ At, (stacked @ MWM) @ At  # (n, k, k)
+        eye = np.eye(V.shape[1])
+        sign = np.where(sel, -1.0, 1.0)[:, None, None]
+        use = sel | allowed
+        try:
+            X = np.linalg.solve(eye + sign[use] * V[use], U[use])
+        except np.linalg.LinAlgError:  # a singular one: pose by pose below
+            pass
+        else:
+            tr = np.trace(X, axis1=1, axis2=2)
+            idx = np.flatnonzero(use)
+            loss[idx[sel[use]]] = tr[sel[use]]
+            gain[idx[~sel[use]]] = tr[~sel[use]]
+            return gain, loss
+    for c, rows in enumerate(blocks):
+        Ac = A[rows]
+        V = Ac @ Minv @ Ac.T
+        U = Ac @ MWM @ Ac.T
+        k = len(rows)
+        if sel[c]:
+            try:  # removing: trace increases by tr((I - V)^-1 U)
+                loss[c] = np.trace(np.linalg.solve(np.eye(k) - V, U))
+            except np.linalg.LinAlgError:
+                loss[c] = np.inf
+        elif allowed[c]:
+            gain[c] = np.trace(np.linalg.solve(np.eye(k) + V, U))
+    return gain, loss
+
+
 def exchange_poses(
     scorer: Scorer,
     stations: np.ndarray,
@@ -552,6 +601,9 @@ def exchange_poses(
     A = J[:, scorer.free] @ scorer.Z  # (N, r) every reading of every candidate
     pose = scorer.pose_of
     blocks = [np.flatnonzero(pose == c) for c in range(len(sel))]
+    # every candidate has the same readings (each station, each tool offset): one stack
+    # (n_candidates, k, r) scored at once instead of a Python loop over candidates
+    stacked = A[np.array(blocks)] if len({len(b) for b in blocks}) == 1 else None
     M = A[sel[pose]].T @ A[sel[pose]]
     best = scorer.value(M)
     swaps = 0
@@ -560,20 +612,7 @@ def exchange_poses(
     for _ in range(max_exchanges):
         Minv = np.linalg.inv(M)
         MWM = Minv @ W @ Minv
-        gain = np.full(len(sel), -np.inf)
-        loss = np.full(len(sel), np.inf)
-        for c, rows in enumerate(blocks):
-            Ac = A[rows]
-            V = Ac @ Minv @ Ac.T
-            U = Ac @ MWM @ Ac.T
-            k = len(rows)
-            if sel[c]:
-                try:  # removing: trace increases by tr((I - V)^-1 U)
-                    loss[c] = np.trace(np.linalg.solve(np.eye(k) - V, U))
-                except np.linalg.LinAlgError:
-                    loss[c] = np.inf
-            elif allowed[c]:
-                gain[c] = np.trace(np.linalg.solve(np.eye(k) + V, U))
+        gain, loss = _exchange_effects(A, blocks, stacked, Minv, MWM, sel, allowed)
         improved = False
         for add in np.argsort(-gain)[:5]:
             if not np.isfinite(gain[add]):
