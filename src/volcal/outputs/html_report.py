@@ -92,15 +92,15 @@ _PLOT_CAPTIONS = {
 # formatting
 
 
-def _g(v: Any, digits: int = 4) -> str:
-    """A number with ``digits`` significant digits; empty for None / NaN / inf."""
+def _g(v: Any, digits: int = 4, missing: str = "") -> str:
+    """A number with ``digits`` significant digits; ``missing`` for None / NaN / inf."""
     if v is None or isinstance(v, bool):
-        return "" if v is None else ("yes" if v else "no")
+        return missing if v is None else ("yes" if v else "no")
     try:
         x = float(v)
     except (TypeError, ValueError):
         return str(v)
-    return format(x, f".{digits}g") if math.isfinite(x) else ""
+    return format(x, f".{digits}g") if math.isfinite(x) else missing
 
 
 def _unit(u: Any) -> str:
@@ -500,6 +500,27 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
         ],
         "adequacy": verdict,
         "notes": [str(n) for n in meta.get("notes") or []],
+        # several instruments' tables: each one's check (volcal.analysis.fusion)
+        "instruments": [
+            {
+                "data": str(r.get("data", "")),
+                "instrument": str(r.get("instrument", "")),
+                "n_readings": r.get("n_readings"),
+                "dof": _g(r.get("dof"), 4),
+                "chi2_per_dof": _g(r.get("chi2_per_dof"), 4),
+                "interval": f"[{_g(r.get('chi2_low'), 4)}, {_g(r.get('chi2_high'), 4)}]",
+                "verdict": str(r.get("verdict", "")),
+                "scale": (
+                    f"{_g(r['scale_factor'], 3)} ± {_g(r.get('u_scale_factor'), 2)} "
+                    f"(95 %: {_g(r.get('scale_low_95'), 3)} .. {_g(r.get('scale_high_95'), 3)})"
+                    if r.get("scale_factor") is not None
+                    else ""
+                ),
+                "determined_alone": r.get("determined_alone"),
+                "field_u": _g(r.get("field_u_cumulative_um"), 3),
+            }
+            for r in meta.get("instruments") or []
+        ],
     }
 
 
@@ -593,7 +614,11 @@ def _error_motions(
     """The error-motion section: peak-to-peak per motion (error_motions.csv, or computed
     from the saved result for a folder written before it existed) and the motions at
     positions along each axis (rows of component_errors.csv)."""
-    from volcal.outputs.results import error_motion_table, error_motions_at_positions
+    from volcal.outputs.results import (
+        error_motion_table,
+        error_motions_at_positions,
+        positions_text,
+    )
 
     if motions is None:
         motions = error_motion_table(res.error_model, res.theta, res.cov_theta, res.identifiable)
@@ -623,6 +648,7 @@ def _error_motions(
         tables.append(
             {
                 "axis": axis,
+                "where": positions_text(t),
                 "head": [head(pos).replace("position", f"{axis} position")]
                 + [head(c) for c in cols],
                 "rows": [
@@ -903,10 +929,14 @@ def write_report(
         out = out.with_suffix(".pdf")
     if out.is_dir():
         raise InputError("expected a file name, got a folder", source=str(out))
-    if out.resolve() in _protected([Path(result_dir), compensation_dir, compare_dir]):
+    # the folders the report reads, as find_comparison resolves them (a compare folder
+    # given as the result reports its reference/ result; a reference/ result reads the
+    # compare folder around it) as well as the ones given
+    found = find_comparison(Path(result_dir), None if compare_dir is None else Path(compare_dir))
+    if out.resolve() in _protected([Path(result_dir), compensation_dir, compare_dir, *found]):
         raise InputError(
-            "the report would overwrite a file of the result or compensation folder; "
-            "choose another name",
+            "the report would overwrite a file of the result, comparison or compensation "
+            "folder; choose another name",
             source=str(out),
         )
     browser = None
