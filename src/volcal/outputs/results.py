@@ -33,7 +33,7 @@ file                       content
 ``report.md``              the human-readable report (links the plots)
 ``result.json``            everything :func:`load_result` needs to predict (no pickle)
 ``order_selection.csv``    only with ``--degree auto``: every candidate order per axis and
-                           its criterion value (:mod:`volcal.analysis.order_selection`)
+                           its criterion value (:mod:`volcal.workflow.orders`)
 ``component_errors.png``   the component error motions with +-2 u bands
 ``volumetric_map.png``     2-D slice maps of the volumetric error (|d| in colour, in-plane
                            arrows): XY at several heights, and per rotary axis at several
@@ -1270,7 +1270,7 @@ def _error_motion_lines(
 
 def _write_order_selection(result: IdentificationResult, folder: Path) -> None:
     """``order_selection.csv`` when the orders were chosen from the data (``--degree
-    auto``, :mod:`volcal.analysis.order_selection`)."""
+    auto``, :mod:`volcal.workflow.orders`)."""
     table = getattr(result, "order_selection", None)
     if table is not None:
         table.to_csv(folder / "order_selection.csv", index=False)

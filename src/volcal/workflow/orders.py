@@ -6,7 +6,7 @@ segments) gets the order that minimises an information criterion, found by a gre
 coordinate search: starting from the declared orders (default 3), one axis at a time tries
 every candidate order with the other axes held, keeps the best, and the sweeps over the
 axes repeat until none changes (at most ``max_sweeps``).  Every candidate is a full
-identification through the public :func:`volcal.analysis.identify.identify` with an explicit
+identification through :func:`volcal.workflow.identify` with an explicit
 ``error_model``; fits are cached by their orders.
 
 Criteria (smaller is better):
@@ -136,7 +136,7 @@ def select_orders(
 ):
     """Identify with per-axis orders chosen by ``criterion`` (module docstring).
 
-    model, data, stations: as :func:`volcal.analysis.identify.identify`; criterion: ``"bic"`` or
+    model, data, stations: as :func:`volcal.workflow.identify`; criterion: ``"bic"`` or
     ``"cv"``; folds: K of the cross-validation; candidates: {kind: orders} replacing those
     of :data:`CANDIDATES`; error_model / forms / datum: the starting error model (kinds and
     starting orders; default Legendre degree 3, Fourier 3 on full-turn rotary axes, plus
@@ -146,12 +146,7 @@ def select_orders(
     :class:`~volcal.analysis.identify.IdentificationResult` of the chosen orders with
     ``order_selection`` (DataFrame) set and a note.
     """
-    from volcal.analysis.identify import (
-        build_error_model,
-        identify,
-        initial_stations,
-        reading_sigma,
-    )
+    from volcal.analysis.identify import build_error_model, initial_stations, reading_sigma
     from volcal.measurement.budget import Budget, load_budget
     from volcal.measurement.tables import Measurements, load_measurements, load_stations
     from volcal.model.machine import Machine
@@ -225,7 +220,9 @@ def select_orders(
     bar = counting.__enter__()
 
     def fit(em: ErrorModel, m):
-        return identify(machine, m, st_table, error_model=em, **identify_options)
+        from volcal.workflow.single import fit as fit_one  # classic or the single fit
+
+        return fit_one(machine, m, st_table, error_model=em, **identify_options)
 
     def score(orders_: Mapping[str, int]) -> dict[str, Any]:
         key = tuple(orders_[a] for a in orders)
