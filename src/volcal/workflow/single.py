@@ -65,14 +65,16 @@ def _classic(model, data, stations, **options: Any) -> IdentificationResult:
             f"the classic pipeline calibrates tracker stations; it does not "
             f"apply to the {prep.ins.name} instrument"
         )
+    strat = prep.strat
+    assert isinstance(strat, ClassicPipeline)  # fit() sent only the classic strategy here
     return classic_pipeline(
         prep.machine,
         prep.error_model,
         prep.meas,
         prep.st0,
         prep.sigma,
-        station_method=prep.strat.station_method,
-        point_method=prep.strat.point_method,
+        station_method=strat.station_method,
+        point_method=strat.point_method,
         t_start=t_start,
         sigma_source=prep.sigma_source,
         notes=prep.notes,
