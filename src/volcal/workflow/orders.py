@@ -5,9 +5,13 @@ whose component error motions have an order (Legendre degree, Fourier harmonics,
 segments) gets the order that minimises an information criterion, found by a greedy
 coordinate search: starting from the declared orders (default 3), one axis at a time tries
 every candidate order with the other axes held, keeps the best, and the sweeps over the
-axes repeat until none changes (at most ``max_sweeps``).  Every candidate is a full
-identification through :func:`volcal.workflow.identify` with an explicit
-``error_model``; fits are cached by their orders.
+axes repeat until none changes (at most ``max_sweeps``); fits are cached by their orders.
+With ``bic``, the joint strategy and nested bases (Legendre, Fourier) every candidate is
+fitted on one problem built for the largest orders (:mod:`volcal.analysis.nested`: the
+same chi2 and rank as its own identification, without covariance or tables) and only the
+chosen model is identified in full; otherwise (B-splines, ``cv``, other strategies,
+``robust``) every candidate is a full identification (:func:`volcal.workflow.single.fit`)
+with an explicit ``error_model``.
 
 Criteria (smaller is better):
 
