@@ -99,11 +99,18 @@ class NestedFits:
         error parameters (by name), every station and global unknown.  Raises
         InputError when ``em`` is not nested in the largest model."""
         pr = self.identifier.problem
-        names = list(self.identifier.error_model.param_names)
+        big = self.identifier.error_model
+        names = list(big.param_names)
         missing = [n for n in em.param_names if n not in names]
-        if missing or em.datum != self.identifier.error_model.datum:
+        # only Legendre and Fourier orders nest (B-spline knots move with the segments)
+        other = [
+            s.name
+            for s, f, g in zip(em.errors, em.forms, big.forms)
+            if f != g and not (f.kind == g.kind and f.kind in ("poly", "fourier"))
+        ]
+        if missing or other or em.datum != big.datum or len(em.errors) != len(big.errors):
             raise InputError(
-                f"error model not nested in the largest one ({', '.join(missing[:4])})"
+                f"error model not nested in the largest one ({', '.join((missing + other)[:4])})"
             )
         keep = np.ones(pr.n_x, bool)
         keep[: pr.n_theta] = np.isin(names, list(em.param_names))
