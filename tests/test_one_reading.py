@@ -31,6 +31,15 @@ REMAINING = {
 }
 
 
+#: instrument modules whose reading is not a distance (the finder sees none in them)
+NOT_A_DISTANCE = {
+    # a projection on the beam: v . P - offset
+    "measurement/instruments/interferometer.py",
+    # selects its parts' readings, written in their own modules
+    "measurement/instruments/combined.py",
+}
+
+
 def _name(call: ast.Call) -> str:
     f = call.func
     return f.attr if isinstance(f, ast.Attribute) else (f.id if isinstance(f, ast.Name) else "")
@@ -126,7 +135,10 @@ def test_each_instrument_writes_its_reading_once_and_nothing_else_does():
         if p.name not in ("__init__.py", "base.py")
     ]
     for rel in instruments:
-        assert len(found.get(rel, [])) == 1, f"{rel}: reading written at lines {found.get(rel)}"
+        expected = 0 if rel in NOT_A_DISTANCE else 1
+        assert len(found.get(rel, [])) == expected, (
+            f"{rel}: reading written at lines {found.get(rel)}"
+        )
     elsewhere = {rel: lines for rel, lines in found.items() if rel not in instruments}
     assert set(elsewhere) <= REMAINING, (
         "a reading is written outside its instrument (evaluate the instrument's reading "

@@ -137,6 +137,10 @@ class IdentificationResult:
     #: parameters the imposed datum conditions alone set to zero (a convention, not a
     #: measurement: u = 0); None: none known
     imposed: np.ndarray | None = field(default=None, repr=False)
+    #: several instruments' tables (:mod:`volcal.analysis.fusion`): one row per table
+    #: with its readings, degrees of freedom, chi2/dof and verdict (and its variance
+    #: component when estimated); None for a single table
+    instruments: pd.DataFrame | None = None
 
     def __getstate__(self):
         d = dict(self.__dict__)
@@ -851,6 +855,7 @@ def _identify(
     solver: str = "ipopt",
     columns: Mapping[str, str] | str | None = None,
     max_memory_gb: float | None = None,
+    variance_components: bool = False,
 ) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
@@ -879,17 +884,28 @@ def _identify(
     estimated peak (:func:`volcal.base.memory.estimate_peak_bytes`, readings x unknowns)
     exceeds it is refused with :class:`InputError` before the solve.  None (default): the
     memory available now; ``float("inf")``: no check.
+
+    Several instruments' tables (issue 32; ``data`` a list, ``variance_components``) are
+    joined by :func:`volcal.workflow.identify` (``volcal.identify``) through
+    :func:`volcal.analysis.fusion.identify_datasets`, which calls this fit.
     """
-    if degree == "auto" or isinstance(
-        get_strategy(strategy, station_method=station_method, point_method=point_method),
-        ClassicPipeline,
+    several = isinstance(data, (list, tuple)) or variance_components
+    if (
+        several
+        or degree == "auto"
+        or isinstance(
+            get_strategy(strategy, station_method=station_method, point_method=point_method),
+            ClassicPipeline,
+        )
     ):
-        # orchestration, not a single fit: volcal.workflow chooses the orders or runs the
-        # classic pipeline and calls this fit; analysis does not import upward
+        # orchestration, not a single fit: volcal.workflow joins several tables, chooses
+        # the orders or runs the classic pipeline, and calls this fit; analysis does not
+        # import upward
         raise InputError(
-            "degree='auto' and the classic strategy are run by volcal.identify "
-            "(volcal.workflow.identify), not by the single fit of volcal.analysis.identify",
-            source="degree" if degree == "auto" else "strategy",
+            "several tables, variance components, degree='auto' and the classic strategy "
+            "are run by volcal.identify (volcal.workflow.identify), not by the single fit "
+            "of volcal.analysis.identify",
+            source="data" if several else ("degree" if degree == "auto" else "strategy"),
         )
     t_start = time.perf_counter()
     from volcal.base.progress import reset_timings

@@ -101,6 +101,8 @@ SIMULATION_FILES = (
     "true_volumetric.csv",
     "simulation.json",
 )
+#: Files :func:`save_simulation` writes only when asked (other instruments' readings).
+OPTIONAL_SIMULATION_FILES = ("interferometer.csv", "ballbar.csv")
 
 #: Headline sizes (low, high) of drawn error motions, internal units (mm, rad); see
 #: :func:`draw_true_parameters`.
@@ -676,11 +678,19 @@ def simulate(
 # files
 
 
-def save_simulation(sim: Simulation, out_dir: str | Path, *, force: bool | None = None) -> Path:
+def save_simulation(
+    sim: Simulation,
+    out_dir: str | Path,
+    *,
+    force: bool | None = None,
+    tables: dict[str, pd.DataFrame] | None = None,
+) -> Path:
     """Write a simulation to ``out_dir``: ``measurements.csv`` (the measurement table),
     ``stations.csv`` (true stations: ``station, x_mm, y_mm, z_mm, dead_length_mm``),
     ``true_parameters.csv`` (``name, value, unit`` in um / urad), ``true_volumetric.csv``
-    and ``simulation.json`` (seed, model, budget, noise settings, volcal version).
+    and ``simulation.json`` (seed, model, budget, noise settings, volcal version); and
+    ``tables`` ({file name in OPTIONAL_SIMULATION_FILES: table}, other instruments' readings of the
+    same machine, :mod:`volcal.measurement.simulate_instruments`).
 
     Everything is written into a temporary folder next to ``out_dir`` and renamed into
     place, so ``out_dir`` is never half-written.  An existing ``out_dir`` is replaced only
@@ -696,6 +706,8 @@ def save_simulation(sim: Simulation, out_dir: str | Path, *, force: bool | None 
         )
         sim.parameters.to_csv(tmp / "true_parameters.csv", index=False)
         sim.volumetric.to_csv(tmp / "true_volumetric.csv", index=False)
+        for name, table in (tables or {}).items():
+            table.to_csv(tmp / name, index=False)
         meta = {
             "volcal_version": __version__,
             "model": sim.model,
@@ -712,7 +724,13 @@ def save_simulation(sim: Simulation, out_dir: str | Path, *, force: bool | None 
         }
         (tmp / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
 
-    return write_folder(out_dir, SIMULATION_FILES, "a simulation", writer, force=force)
+    return write_folder(
+        out_dir,
+        SIMULATION_FILES + OPTIONAL_SIMULATION_FILES,
+        "a simulation",
+        writer,
+        force=force,
+    )
 
 
 # --------------------------------------------------------------------------------------

@@ -851,6 +851,40 @@ def load_instrument_stations(
     return df
 
 
+def read_columns(
+    source: str | Path | pd.DataFrame,
+    columns: Sequence[tuple[str, bool, str]],
+    *,
+    what: str,
+    name: str | None = None,
+) -> tuple[dict[str, np.ndarray], np.ndarray, str]:
+    """Read an instrument's own table (CSV path or DataFrame; never modified) with the
+    rules of the measurement table: ``columns`` lists ``(name, required, kind)`` with kind
+    ``"id"`` (text), ``"float"`` (a number in every row) or ``"optfloat"`` (blank allowed,
+    NaN); the unit is the name's suffix.  Unknown, doubled or missing columns and bad
+    cells raise :class:`InputError` naming the source, row and column.  Returns ({name:
+    values} of the columns present, spreadsheet row of every row, source label)."""
+    raw = _read_raw(source, name, what)
+    problems = _Problems(raw.name)
+    schema = [
+        _Col(n, (), req, kind, n.rsplit("_", 1)[-1] if "_" in n else "") for n, req, kind in columns
+    ]
+    pos = _resolve_columns(raw, schema, problems)
+    out: dict[str, np.ndarray] = {}
+    for c in schema:
+        if c.canonical not in pos:
+            continue
+        col = raw.body[pos[c.canonical]]
+        if c.kind == "id":
+            out[c.canonical] = _parse_ids(col, raw.rows, c.canonical, problems)
+        else:
+            out[c.canonical] = _parse_float(
+                col, raw.rows, c.canonical, c.unit, c.kind == "optfloat", problems
+            )
+    problems.raise_if_any()
+    return out, raw.rows, raw.name
+
+
 # --------------------------------------------------------------------------------------
 # measurements
 

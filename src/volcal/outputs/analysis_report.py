@@ -1068,6 +1068,14 @@ def result_inputs(path) -> dict[str, Any]:
 
     res = load_result(path)
     folder = Path(res.path)
+    if res.meta.get("instruments"):
+        raise InputError(
+            "this result identifies several instruments' tables as one problem ("
+            + ", ".join(str(r.get("data")) for r in res.meta["instruments"])
+            + "); redoing it from the result folder is not supported yet: analyse or "
+            "simulate from the tables themselves",
+            source=str(folder),
+        )
     f = folder / "residuals.csv"
     if not f.is_file():
         raise InputError(

@@ -489,6 +489,27 @@ def _identification(res: LoadedResult) -> dict[str, Any]:
         ],
         "adequacy": verdict,
         "notes": [str(n) for n in meta.get("notes") or []],
+        # several instruments' tables: each one's check (volcal.analysis.fusion)
+        "instruments": [
+            {
+                "data": str(r.get("data", "")),
+                "instrument": str(r.get("instrument", "")),
+                "n_readings": r.get("n_readings"),
+                "dof": _g(r.get("dof"), 4),
+                "chi2_per_dof": _g(r.get("chi2_per_dof"), 4),
+                "interval": f"[{_g(r.get('chi2_low'), 4)}, {_g(r.get('chi2_high'), 4)}]",
+                "verdict": str(r.get("verdict", "")),
+                "scale": (
+                    f"{_g(r['scale_factor'], 3)} ± {_g(r.get('u_scale_factor'), 2)} "
+                    f"(95 %: {_g(r.get('scale_low_95'), 3)} .. {_g(r.get('scale_high_95'), 3)})"
+                    if r.get("scale_factor") is not None
+                    else ""
+                ),
+                "determined_alone": r.get("determined_alone"),
+                "field_u": _g(r.get("field_u_cumulative_um"), 3),
+            }
+            for r in meta.get("instruments") or []
+        ],
     }
 
 

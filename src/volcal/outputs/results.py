@@ -32,6 +32,10 @@ file                       content
                            u_dz_um`` and ``norm_um``
 ``report.md``              the human-readable report (links the plots)
 ``result.json``            everything :func:`load_result` needs to predict (no pickle)
+``instruments.csv``        only with several tables (:mod:`volcal.analysis.fusion`): per
+                           table its instrument, readings, degrees of freedom, chi2/dof,
+                           its 99.9 % interval, verdict and (``--variance-components``)
+                           the budget's scale factor with its uncertainty
 ``order_selection.csv``    only with ``--degree auto``: every candidate order per axis and
                            its criterion value (:mod:`volcal.workflow.orders`)
 ``component_errors.png``   the component error motions with +-2 u bands
@@ -581,6 +585,8 @@ def _result_document(
         # the axes the volumetric grid (and so max_volumetric_um) spans, tool offset (0, 0, 0) mm
         "max_volumetric_axes": _grid_axes(spec, grid),
         "adequacy": assess(result).to_dict(),
+        # several instruments' tables: each one's chi2/dof, verdict (and variance component)
+        "instruments": _instrument_records(result),
         "unidentifiable": list(np.asarray(em.param_names)[~np.asarray(result.identifiable)]),
         "null_space": (list(ident.unidentifiable_combinations) if ident is not None else []),
         "gauge": (list(ident.gauge_combinations) if ident is not None else []),
@@ -907,6 +913,8 @@ def _report(
     add(_md_table(pd.DataFrame(rows, columns=["quantity", "value"])))
     add("")
     add(_adequacy_section(adequacy, plots))
+    if getattr(result, "instruments", None) is not None:
+        add(_instruments_section(result.instruments))
 
     add("## Model")
     add("")
@@ -1316,6 +1324,57 @@ def _sentence(text: str) -> str:
     return (text[:1].upper() + text[1:]).rstrip(".") + "."
 
 
+def _instrument_records(result) -> list[dict[str, Any]] | None:
+    """Each table's row of ``result.instruments`` (None for a single table)."""
+    table = getattr(result, "instruments", None)
+    return None if table is None else table.to_dict(orient="records")
+
+
+def _instruments_section(table: pd.DataFrame) -> str:
+    """Report text: the adequacy check of every instrument's table (and its variance
+    component when estimated), see :mod:`volcal.analysis.fusion`."""
+    lines = ["## Instruments", ""]
+    lines.append(
+        "One problem over every table; each table's chi2/dof is the sum of its squared "
+        "normalised residuals over its share of the degrees of freedom (the sum of its "
+        "readings' redundancy numbers), checked against its own 99.9 % interval."
+    )
+    lines.append("")
+    cols = ["data", "instrument", "n_readings", "dof", "chi2_per_dof", "chi2_low", "chi2_high"]
+    cols += ["verdict", "sigma_source"]
+    extra = ["scale_factor", "u_scale_factor", "scale_low_95", "scale_high_95"]
+    extra += ["determined_alone", "field_u_cumulative_um"]
+    cols += [c for c in extra if c in table.columns]
+    t = table[cols].copy()
+    for c in ("dof", "chi2_per_dof", "chi2_low", "chi2_high", *extra):
+        if c in t.columns and c != "determined_alone":
+            t[c] = t[c].map(lambda v: f"{v:.4g}")
+    lines.append(_md_table(t))
+    if "undetermined_alone" in table.columns:
+        lines.append("")
+        lines.append(
+            "determined_alone: the error parameters each table determines by itself (with "
+            "the datum in force); field_u_cumulative_um: the RMS standard uncertainty of "
+            "the volumetric error over the measured poses with the tables up to that row "
+            "(empty while some parameter is undetermined). Left undetermined by each table "
+            "alone:"
+        )
+        lines.append("")
+        for _, row in table.iterrows():
+            lines.append(
+                f"- {row['data']} ({row['instrument']}): {row['undetermined_alone'] or 'none'}"
+            )
+    if "scale_factor" in table.columns:
+        lines.append("")
+        lines.append(
+            "Variance components (Helmert): each table's standard uncertainties were scaled "
+            "by its scale_factor (u: its standard uncertainty; 95 % interval from chi2 with "
+            "the table's degrees of freedom)."
+        )
+    lines.append("")
+    return "\n".join(lines)
+
+
 def _adequacy_section(ad, plots: bool) -> str:
     """Report text: the model adequacy test (see :mod:`volcal.analysis.adequacy`)."""
     lo, hi = ad.interval
@@ -1494,6 +1553,9 @@ def save_result(
             result.parameters().to_csv(tmp / "parameters.csv", index=False)
             result.stations.to_csv(tmp / "stations.csv", index=False)
             result.residuals.to_csv(tmp / "residuals.csv", index=False)
+            by_instrument = getattr(result, "instruments", None)
+            if by_instrument is not None:
+                by_instrument.to_csv(tmp / "instruments.csv", index=False)
             _write_order_selection(result, tmp)
             if result.state is not None:
                 _save_state(result.state, tmp / "solver_state.npz")

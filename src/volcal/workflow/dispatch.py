@@ -1,8 +1,10 @@
 """``volcal.identify``: which strategy and which orders, then the fit.
 
-``degree="auto"``: the orders of the error bases chosen from the data
-(:func:`volcal.workflow.orders.select_orders`); otherwise one identification with the
-given orders (:func:`volcal.workflow.single.fit`: the classic pipeline or the single fit).
+Several instruments' tables (a list as ``data``, or variance components): one problem
+through :func:`volcal.analysis.fusion.identify_datasets`; ``degree="auto"``: the orders of
+the error bases chosen from the data (:func:`volcal.workflow.orders.select_orders`);
+otherwise one identification with the given orders (:func:`volcal.workflow.single.fit`:
+the classic pipeline or the single fit).
 """
 
 from __future__ import annotations
@@ -43,11 +45,30 @@ def identify(
     degree: Legendre degree / Fourier harmonics of the component error motions, or
     ``"auto"``: per-axis orders chosen by ``order_criterion`` (``"bic"`` or ``"cv"`` with
     ``cv_folds`` folds; :mod:`volcal.workflow.orders`; ``progress``: a bar of its candidate
-    fits on stderr, a single identification has none).
+    fits on stderr, a single identification has none).  data: also several instruments'
+    tables (a list of tables, ``(instrument, table[, budget[, name]])`` tuples or
+    :class:`volcal.analysis.fusion.DataSet`), one problem with chi2/dof per table in
+    ``result.instruments``; ``variance_components=True``: each table's budget scale factor
+    estimated (Helmert), see :func:`volcal.analysis.fusion.identify_datasets`.
     """
     from volcal.base.threads import blas_threads
 
     with blas_threads(1):
+        several = isinstance(data, (list, tuple))
+        if several or options.get("variance_components"):
+            from volcal.analysis.fusion import identify_datasets
+
+            return identify_datasets(
+                model,
+                data if several else [data],
+                stations=stations,
+                strategy=strategy,
+                degree=degree,
+                order_criterion=order_criterion,
+                cv_folds=cv_folds,
+                progress=progress,
+                **options,
+            )
         if degree == "auto":  # every other argument goes to each candidate fit
             from volcal.workflow.orders import select_orders
 

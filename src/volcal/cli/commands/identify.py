@@ -51,10 +51,19 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--data",
         required=True,
-        type=Path,
-        metavar="D.csv",
+        action=_AppendData,
+        metavar="[INSTRUMENT=]D.csv",
         help="measurement table (station, point, axis columns in mm/deg, "
-        "optional tool_x/y/z, length in mm, optional time, sigma)",
+        "optional tool_x/y/z, length in mm, optional time, sigma); repeat for several "
+        "instruments' tables identified as one problem, each prefixed with its "
+        "instrument unless it is --instrument's: --data tracker.csv --data "
+        "interferometer=lines.csv --data ballbar=circles.csv (formats: docs/instruments.md)",
+    )
+    p.add_argument(
+        "--variance-components",
+        action="store_true",
+        help="estimate each table's budget scale factor (Helmert variance components) and "
+        "weight by it; reported with its uncertainty in instruments.csv and the report",
     )
     p.add_argument(
         "--columns",
@@ -203,6 +212,28 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+class _AppendData(argparse.Action):
+    """``--data`` given several times: a list.  Given on the command line it replaces a
+    project file's ``data`` (as every flag overrides the file)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        given = getattr(namespace, "_data_given", False)
+        current = getattr(namespace, self.dest, None)
+        items = list(current) if given and isinstance(current, list) else []
+        items.append(str(values))
+        setattr(namespace, self.dest, items)
+        namespace._data_given = True
+
+
+def _data_sets(args: argparse.Namespace) -> list:
+    """The --data tables as :class:`volcal.analysis.fusion.DataSet` (a project file's
+    single ``data`` too)."""
+    from volcal.analysis.fusion import parse_data_argument
+
+    data = args.data if isinstance(args.data, list) else [args.data]
+    return [parse_data_argument(str(d), args.instrument) for d in data]
+
+
 def _inside(path: Path, folder: Path) -> bool:
     try:
         path.resolve().relative_to(folder.resolve())
@@ -226,6 +257,12 @@ def _read_inputs(args: argparse.Namespace):
     )
     from volcal.model.spec import resolve_model
 
+    sets = _data_sets(args)
+    args.data_sets = sets
+    if len(sets) > 1 or sets[0].instrument != args.instrument or args.variance_components:
+        args.data = None  # several tables: read by identify, each with its instrument
+        return None, None, 0.0
+    args.data = Path(sets[0].source)
     spec = resolve_model(args.model)
     ins = get_instrument(args.instrument)
     stations = None
@@ -301,7 +338,7 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
     # fail before the solve: the output must be writable without touching any input
     out = check_out_dir(args.out)
     for name, path in (
-        ("--data", args.data),
+        *(("--data", Path(d.source)) for d in args.data_sets),
         ("--stations", args.stations),
         ("--budget", Path(args.budget)),
         ("--model", Path(args.model)),
@@ -313,8 +350,13 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
                 source=name,
             )
 
-    log.info("identifying: model %s, data %s, strategy %s", args.model, args.data, args.strategy)
+    data_name = ", ".join(str(d.source) for d in args.data_sets)
+    log.info("identifying: model %s, data %s, strategy %s", args.model, data_name, args.strategy)
     meas, stations, read_s = inputs
+    several = {}
+    if meas is None:  # several tables (volcal.analysis.fusion)
+        meas = [(d.instrument, d.source) for d in args.data_sets]
+        several = {"variance_components": args.variance_components}
     res = identify(
         args.model,
         meas,
@@ -338,6 +380,7 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
         instrument=args.instrument,
         columns=args.columns,
         max_memory_gb=args.max_memory_gb,
+        **several,
     )
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
     from volcal.base.progress import record
@@ -365,11 +408,13 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
         "stations": str(args.stations) if args.stations else None,
         "project_file": getattr(args, "project_file", None),
         "columns": args.columns,
+        "data": [f"{d.instrument}={d.source}" for d in args.data_sets],
+        "variance_components": args.variance_components,
     }
     path = save_result(
         res,
         out,
-        data_name=str(args.data),
+        data_name=data_name,
         plots=not args.no_plots,
         options=options,
         plotter=plotter,
@@ -391,6 +436,18 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
             f"{res.conditions.get('chi2_per_dof', float('nan')):.3g})"
         )
         print("  model adequacy           " + adequacy.summary)
+        if res.instruments is not None:
+            for _, row in res.instruments.iterrows():
+                scale = (
+                    f", budget x{row['scale_factor']:.3g} (95 %: {row['scale_low_95']:.3g}"
+                    f"..{row['scale_high_95']:.3g})"
+                    if "scale_factor" in row
+                    else ""
+                )
+                print(
+                    f"    {row['instrument']:<14} {row['n_readings']} readings, chi2/dof "
+                    f"{row['chi2_per_dof']:.3g} ({row['verdict']}){scale}"
+                )
         axes = meta.get("max_volumetric_axes") or []
         fixed = [a for a in spec.axis_names if a not in axes]
         print(

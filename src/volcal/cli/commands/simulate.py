@@ -7,7 +7,8 @@ Examples::
         --tools "0,0,-100;50,0,-100;0,50,-100" --budget paper002 --seed 7 --out sim_bc/
 
 Writes measurements.csv, stations.csv (the true stations), true_parameters.csv (um /
-urad), true_volumetric.csv and simulation.json to ``--out`` (see
+urad), true_volumetric.csv and simulation.json to ``--out`` (and with ``--instruments
+interferometer,ballbar`` interferometer.csv and ballbar.csv of the same true machine) (see
 :func:`volcal.measurement.simulate.save_simulation`).
 """
 
@@ -110,6 +111,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--drift", action="store_true", help="add the budget's drift model")
     p.add_argument(
+        "--instruments",
+        metavar="NAME,...",
+        help="also write other instruments' readings of the same true machine: "
+        "interferometer (interferometer.csv: a line along every linear axis through the "
+        "middle of the travel, 0.1 um) and/or ballbar (ballbar.csv: a circle in every "
+        "plane of two linear axes, 0.5 um); first tool offset; see docs/instruments.md",
+    )
+    p.add_argument(
         "--seed",
         type=int,
         required=True,
@@ -186,6 +195,13 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"expected a degree >= 0, got {args.degree}", source="--degree")
     # parse cheap options first: a typo fails before any model is built
     tools = parse_tools(args.tools) if args.tools is not None else None
+    extra = [w.strip() for w in (args.instruments or "").split(",") if w.strip()]
+    bad = [w for w in extra if w not in ("interferometer", "ballbar")]
+    if bad:
+        raise InputError(
+            f"unknown instrument(s) {', '.join(bad)}; expected interferometer and/or ballbar",
+            source="--instruments",
+        )
     # no --plan: the default plan, or a grid when only --grid is given
     plan_kind = args.plan or ("grid" if args.grid is not None else "default")
     if plan_kind in ("default", "grid", "lines", "diagonals"):
@@ -197,11 +213,11 @@ def run(args: argparse.Namespace) -> int:
 
     # the output folder before any model is built
     from volcal.base.folders import check_out_dir
-    from volcal.measurement.simulate import SIMULATION_FILES
+    from volcal.measurement.simulate import OPTIONAL_SIMULATION_FILES, SIMULATION_FILES
 
     check_out_dir(
         args.out,
-        SIMULATION_FILES,
+        SIMULATION_FILES + OPTIONAL_SIMULATION_FILES,
         "a simulation",
         inputs=[
             getattr(args, k, None)
@@ -307,7 +323,24 @@ def run(args: argparse.Namespace) -> int:
         noise=not args.no_noise,
         drift=args.drift,
     )
-    out = save_simulation(sim, args.out)
+    tables = {}
+    if extra:
+        from volcal.measurement import simulate_instruments as si
+
+        # the same true machine, its own random numbers (the tracker's data stay as
+        # without --instruments)
+        g = np.random.default_rng(np.random.SeedSequence(args.seed, spawn_key=(32,)))
+        t0 = np.atleast_2d(tools)[0]
+        tool = (float(t0[0]), float(t0[1]), float(t0[2]))
+        if "interferometer" in extra:
+            tables["interferometer.csv"] = si.interferometer_table(
+                machine, em, theta, g, tool=tool, noise=not args.no_noise
+            )
+        if "ballbar" in extra:
+            tables["ballbar.csv"] = si.ballbar_table(
+                machine, em, theta, g, tool=tool, noise=not args.no_noise
+            )
+    out = save_simulation(sim, args.out, tables=tables)
     if not getattr(args, "quiet", False):
         print(
             f"simulated {len(sim.measurements)} readings ({len(sim.stations)} stations x "
@@ -315,5 +348,7 @@ def run(args: argparse.Namespace) -> int:
             f"{sim.seed}, noise {'off' if not sim.noise else '+'.join(sim.noise)}; max true "
             f"volumetric error {sim.max_volumetric_um:.1f} um"
         )
+        for name, t in tables.items():
+            print(f"  and {len(t)} {name[:-4]} readings ({name})")
         print(f"wrote {out}")
     return 0

@@ -1,13 +1,18 @@
 """Observation models behind one interface (:class:`Instrument`), and their registry.
 
 ``get_instrument("tracker")`` (the default, sequential multilateration) or
-``"multilaser"`` (paper 001's head); :func:`register` adds one (a class in one file).
+``"multilaser"`` (paper 001's head), ``"interferometer"`` (a laser interferometer along
+lines), ``"ballbar"`` (circles); :class:`CombinedInstrument` puts several in one problem;
+:func:`register` adds one (a class in one file).
 """
 
 from __future__ import annotations
 
 from volcal.base.exceptions import InputError
+from volcal.measurement.instruments.ballbar import Ballbar
 from volcal.measurement.instruments.base import Instrument
+from volcal.measurement.instruments.combined import CombinedInstrument
+from volcal.measurement.instruments.interferometer import LaserInterferometer
 from volcal.measurement.instruments.multilaser import MultiLaserInstrument
 from volcal.measurement.instruments.tracker import SequentialMultilateration
 
@@ -15,6 +20,9 @@ __all__ = [
     "Instrument",
     "SequentialMultilateration",
     "MultiLaserInstrument",
+    "LaserInterferometer",
+    "Ballbar",
+    "CombinedInstrument",
     "register",
     "get_instrument",
     "instruments",
@@ -23,6 +31,8 @@ __all__ = [
 _REGISTRY: dict[str, type[Instrument]] = {
     "tracker": SequentialMultilateration,
     "multilaser": MultiLaserInstrument,
+    "interferometer": LaserInterferometer,
+    "ballbar": Ballbar,
 }
 
 

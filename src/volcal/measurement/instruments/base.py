@@ -24,9 +24,11 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from functools import cached_property, lru_cache
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
+import pandas as pd
 
 from volcal.model.numpy_call import NumpyCall
 
@@ -152,6 +154,20 @@ class Instrument(ABC):
         """Station parameters this instrument's own convention holds at their start value
         (none by default)."""
         return ()
+
+    def held_from_points(
+        self, station_ids: list[str], station_index: np.ndarray, points: np.ndarray
+    ) -> dict[str, tuple[str, ...]]:
+        """Station parameters the geometry of a station's nominal points (N, 3) mm leaves
+        undetermined and that are therefore held too, {station id: names} (e.g. the
+        ballbar's centre coordinate normal to its circle); none by default."""
+        return {}
+
+    def read_table(self, source: str | Path | pd.DataFrame, spec) -> str | Path | pd.DataFrame:
+        """The instrument's own table as volcal's measurement table (a DataFrame whose
+        rows are the source's rows, in order, so that row numbers in messages stay the
+        source's).  By default the source is that table already."""
+        return source
 
     def start_note(self) -> str:
         """One line for the result's notes: where the station start values came from."""

@@ -1,0 +1,130 @@
+"""Interferometer lines and ballbar circles simulated on the same true machine as
+:func:`volcal.measurement.simulate.simulate`, written in the instruments' own table formats
+(:mod:`volcal.measurement.instruments.interferometer`, ``.ballbar``).
+
+Actual tool points from the exact model (``Machine.evaluate(..., exact=True)``) with the
+error motions at the commanded poses; readings from the instrument's reading function
+at set-up parameters drawn from the seed: an interferometer beam misaligned by up to
+50 urad and a dead-path offset, a ballbar's table ball up to 20 um off the nominal centre
+and a bar length up to 5 um off the nominal radius.  Noise: normal with the standard
+uncertainty written in ``sigma_um`` (``noise=False``: exact readings, the same column).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from volcal.measurement.instruments import Ballbar, LaserInterferometer
+from volcal.model.errors import ErrorModel
+from volcal.model.machine import Machine
+
+#: standard uncertainty of an interferometer reading (um)
+INTERFEROMETER_SIGMA_UM = 0.1
+#: standard uncertainty of a ballbar reading (um)
+BALLBAR_SIGMA_UM = 0.5
+
+
+def _middle(machine: Machine) -> np.ndarray:
+    """Axis positions (file units: mm, deg) at the middle of every travel."""
+    return np.array([0.5 * (a.travel[0] + a.travel[1]) for a in machine.spec.axes])
+
+
+def _columns(machine: Machine, prefix: str = "") -> list[str]:
+    return [f"{prefix}{a.name}_{'deg' if a.is_rotary else 'mm'}" for a in machine.spec.axes]
+
+
+def _actual_points(machine, em, theta, q_file, tool) -> tuple[np.ndarray, np.ndarray]:
+    """(nominal, actual) tool points (N, 3) mm at poses in file units."""
+    from volcal.measurement.simulate import _error_values
+
+    q = machine.axis_to_internal(np.asarray(q_file, float))
+    t = np.tile(np.asarray(tool, float), (len(q), 1))
+    P, _, _ = machine.evaluate(q, t, _error_values(em, q, theta), exact=True)
+    return machine.nominal_points(q, t), np.asarray(P, float)
+
+
+def interferometer_table(
+    machine: Machine,
+    em: ErrorModel,
+    theta: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    n_targets: int = 11,
+    tool: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    noise: bool = True,
+) -> pd.DataFrame:
+    """One line along every linear axis through the middle of the travel (``n_targets``
+    targets over the axis' travel), as the interferometer's CSV."""
+    ins = LaserInterferometer()
+    mid = _middle(machine)
+    frames = []
+    for j, a in enumerate(machine.spec.axes):
+        if a.is_rotary:
+            continue
+        q = np.tile(mid, (n_targets, 1))
+        q[:, j] = np.linspace(a.travel[0], a.travel[1], n_targets)
+        P0, P = _actual_points(machine, em, theta, q, tool)
+        u = (P0[-1] - P0[0]) / np.linalg.norm(P0[-1] - P0[0])
+        st = np.r_[u, rng.uniform(-50e-6, 50e-6, 2), rng.uniform(-100.0, 100.0)]
+        m, _ = ins.evaluate(P, np.tile(st, (n_targets, 1)))
+        sigma = INTERFEROMETER_SIGMA_UM * 1e-3
+        if noise:
+            m = m + rng.normal(0.0, sigma, n_targets)
+        df = pd.DataFrame({"setup": f"{a.name}-line", "point": [f"t{i}" for i in range(n_targets)]})
+        for c, v in zip(_columns(machine), q.T):
+            df[c] = v
+        for c, v in zip("xyz", tool):
+            df[f"tool_{c}_mm"] = v
+        df["displacement_mm"] = m
+        df["sigma_um"] = INTERFEROMETER_SIGMA_UM
+        frames.append(df)
+    return pd.concat(frames, ignore_index=True)
+
+
+def ballbar_table(
+    machine: Machine,
+    em: ErrorModel,
+    theta: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    n_angles: int = 36,
+    tool: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    noise: bool = True,
+) -> pd.DataFrame:
+    """One circle in every plane of two linear axes (XY, YZ, ZX order of the model),
+    centred in the travel, radius 40 % of the smaller half-travel, as the ballbar's CSV."""
+    ins = Ballbar()
+    mid = _middle(machine)
+    lin = [j for j, a in enumerate(machine.spec.axes) if not a.is_rotary]
+    pairs = [(lin[i], lin[(i + 1) % len(lin)]) for i in range(len(lin))] if len(lin) > 2 else []
+    if len(lin) == 2:
+        pairs = [(lin[0], lin[1])]
+    ang = np.arange(n_angles) * 360.0 / n_angles
+    frames = []
+    axes = machine.spec.axes
+    for j1, j2 in pairs:
+        half = min(np.ptp(axes[j1].travel), np.ptp(axes[j2].travel)) / 2
+        radius = round(0.8 * half, -1) or 0.8 * half
+        q = np.tile(mid, (n_angles, 1))
+        q[:, j1] += radius * np.cos(np.deg2rad(ang))
+        q[:, j2] += radius * np.sin(np.deg2rad(ang))
+        _, P = _actual_points(machine, em, theta, q, tool)
+        C = _actual_points(machine, em, np.zeros_like(theta), mid[None], tool)[0][0]
+        st = np.r_[C + rng.uniform(-0.02, 0.02, 3), radius + rng.uniform(-5e-3, 5e-3)]
+        m, _ = ins.evaluate(P, np.tile(st, (n_angles, 1)))
+        if noise:
+            m = m + rng.normal(0.0, BALLBAR_SIGMA_UM * 1e-3, n_angles)
+        plane = axes[j1].name + axes[j2].name
+        df = pd.DataFrame({"setup": f"{plane}-circle", "point": [f"a{i}" for i in range(n_angles)]})
+        df["plane"] = plane
+        for c, v in zip(_columns(machine, "centre_"), mid):
+            df[c] = v
+        df["radius_mm"] = radius
+        df["angle_deg"] = ang
+        for c, v in zip("xyz", tool):
+            df[f"tool_{c}_mm"] = v
+        df["deviation_um"] = m * 1e3
+        df["sigma_um"] = BALLBAR_SIGMA_UM
+        frames.append(df)
+    return pd.concat(frames, ignore_index=True)
