@@ -9,6 +9,7 @@ the classic pipeline or the single fit).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,7 @@ __all__ = ["identify"]
 
 def identify(
     model: str | Path | MachineSpec | Machine,
-    data: str | Path | pd.DataFrame | Measurements,
+    data: str | Path | pd.DataFrame | Measurements | Sequence[Any],
     stations: str | Path | pd.DataFrame | None = None,
     *,
     strategy: str = "joint",
@@ -54,13 +55,13 @@ def identify(
     from volcal.base.threads import blas_threads
 
     with blas_threads(1):
-        several = isinstance(data, (list, tuple))
-        if several or options.get("variance_components"):
+        if isinstance(data, (list, tuple)) or options.get("variance_components"):
             from volcal.analysis.fusion import identify_datasets
 
+            tables: Sequence[Any] = data if isinstance(data, (list, tuple)) else [data]
             return identify_datasets(
                 model,
-                data if several else [data],
+                tables,
                 stations=stations,
                 strategy=strategy,
                 degree=degree,
