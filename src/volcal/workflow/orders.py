@@ -378,7 +378,8 @@ def select_orders(
     if nested is not None:
         how = (
             f"{len(cache)} candidate fits on one problem of the largest orders "
-            f"({nested.gradients} gradients, {nested.grams} Gram matrices), then the chosen "
+            f"({nested.gradients} gradients, {nested.grams} Gram "
+            f"{'matrix' if nested.grams == 1 else 'matrices'}), then the chosen "
             "model identified in full"
         )
     what = "BIC (chi2 + k ln N)" if criterion == "bic" else f"{k_folds}-fold cross-validation"
