@@ -286,3 +286,30 @@ def test_the_volumetric_summary_of_a_5_axis_model_covers_rotary_poses():
     old = volumetric_grid_table(machine, em, theta, rotary=False)
     assert old["C"].nunique() == 1 and old["norm_um"].max() == pytest.approx(ref_max,
                                                                               rel=0.05)
+
+
+def test_one_biased_tool_offset_among_fifteen_is_named():
+    """Fifteen tool offsets (more than the position bins of an axis), one of which reads
+    0.6 sigma long at every station: the structure against the tool offset groups every
+    offset on its own and names that one; without the bias nothing is flagged."""
+    from volcal.analysis.adequacy import assess_residuals
+
+    rng = np.random.default_rng(12)
+    keys = [f"0,{10 * k},{-50 - 5 * k}" for k in range(15)]
+    n_per = 60
+    tools = np.repeat(np.arange(15), 4 * n_per)
+    stations = np.tile(np.repeat(np.arange(4), n_per), 15)
+    z = rng.standard_normal(len(tools))
+    names = np.array(keys, dtype=object)[tools]
+    calm = assess_residuals(z, stations=stations, tools=names)
+    s0 = next(s for s in calm.structure if s.kind == "tool_offset")
+    assert s0.n_bins == 15 and not s0.significant and s0.group == ""
+    assert calm.verdict == "fits"
+    z = z + 0.6 * (tools == 9)  # the offset (0, 90, -95) mm is wrong
+    ad = assess_residuals(z, stations=stations, tools=names)
+    s = next(s for s in ad.structure if s.kind == "tool_offset")
+    assert s.significant and s.n_bins == 15
+    assert s.group.startswith("(0, 90, -95) mm")
+    assert ad.verdict == "does_not_fit" and ad.cause == "tool_offset"
+    assert "most of all at tool offset (0, 90, -95) mm" in ad.causes[0].text
+    assert "(0, 90, -95) mm" in ad.causes[0].short

@@ -167,7 +167,15 @@ def test_report_embeds_the_comparison(example_run, tmp_path):
         assert "data:image/png;base64," in text
     # a folder that is not a comparison is refused, naming it
     from volcal.base.exceptions import InputError
-    from volcal.outputs.html_report import html_report
+    from volcal.outputs.html_report import html_report, write_report
+
+    # never a file of a folder the report reads, also where find_comparison found it
+    for given, target in ((out, out / "reference" / "result.json"),
+                          (out / "reference", out / "compare.json")):
+        before = target.read_bytes()
+        with pytest.raises(InputError, match="would overwrite"):
+            write_report(given, target, plots=False)
+        assert target.read_bytes() == before
 
     with pytest.raises(InputError, match="volcal compare"):
         html_report(out / "reference", compare_dir=tmp_path)
@@ -295,3 +303,36 @@ def test_a_failed_strategy_is_reported_and_the_others_compared(monkeypatch, tmp_
     assert (out / "field_differences.png").is_file()
     back = pd.read_csv(out / "comparison.csv").set_index("strategy")
     assert not back.loc["two-phase", "success"]
+
+
+def test_trials_draw_every_repeat_of_a_reading():
+    """Data that measure every reading twice: each trial simulates both, with their own
+    noise (their differences scatter as sqrt(2) times the reading's standard
+    uncertainty), not one reading standing for both."""
+    from volcal.measurement.budget import load_budget
+    from volcal.measurement.simulate import example
+    from volcal.measurement.tables import load_measurements, load_stations
+    from volcal.workflow.comparison import TrialKernel
+
+    ex = example("mcv754")
+    sim = ex.simulate()
+    spec = ex.machine.spec
+    again = sim.measurements.iloc[::3].copy()
+    again["point"] = again["point"] + "r"  # repeats carry their own point ids
+    data = pd.concat([sim.measurements, again], ignore_index=True)
+    meas = load_measurements(data, spec, stations=load_stations(sim.stations))
+    kernel = TrialKernel.from_data(
+        ex.machine, ex.error_model, load_budget(ex.budget), meas, None,
+        load_stations(sim.stations), ex.theta_true, ["joint"],
+        np.zeros((1, len(spec.axes))), np.zeros((1, 3)), np.ones(1, bool), seed=3,
+    )
+    got = kernel.simulated(0)
+    key = ["station", *spec.axis_names, "tool_x", "tool_y", "tool_z"]
+    assert len(got) == len(data)
+    want = data.groupby(key).size().sort_index()
+    assert got.groupby(key).size().sort_index().equals(want)
+    pairs = got[got.duplicated(key, keep=False)].sort_values(key)
+    a, b = pairs.iloc[0::2], pairs.iloc[1::2]
+    z = (a["length"].to_numpy() - b["length"].to_numpy()) / (np.sqrt(2) * a["sigma"].to_numpy())
+    assert len(z) == len(sim.measurements.iloc[::3])
+    assert 0.85 < np.std(z) < 1.15, np.std(z)

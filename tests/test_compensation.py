@@ -147,7 +147,7 @@ def _turn(pos: np.ndarray, rotary: bool) -> bool:
 
 
 def read_isg(folder: Path):
-    """(geometry, truth) from volcomp.lis and its ISG CSV files."""
+    """(geometry, truth, N0) from volcomp.lis and its ISG CSV files."""
     lis = {}
     for line in (folder / "volcomp.lis").read_text().splitlines():
         line = line.split("#", 1)[0].strip()
@@ -185,7 +185,8 @@ def read_isg(folder: Path):
             motions[name] = (lambda x, pos=pos, v=v, rot=rot: _interp(
                 pos, v, np.rad2deg(x) if rot else x, _turn(pos, rot)))
     constants = {"E" + n: v for n, v in consts.items() if re.fullmatch(r"[XYZABC]0[XYZABC]", n)}
-    return ind.Geometry("isg", tuple(axes)), ind.Truth(motions, constants)
+    n0 = np.array([consts["N0X"], consts["N0Y"], consts["N0Z"]])
+    return ind.Geometry("isg", tuple(axes)), ind.Truth(motions, constants), n0
 
 
 def read_generic_tables(folder: Path, geom: ind.Geometry) -> ind.Truth:
@@ -340,12 +341,25 @@ def grid_value(nodes, values, x: np.ndarray, periodic) -> np.ndarray:
 
 def _isg_trip(res, tmp_path, n=500, **kw):
     comp = compensate(res, "isg", tmp_path / "isg", tools=TOOLS, **kw)
-    geom, truth = read_isg(tmp_path / "isg")
+    geom, truth, n0 = read_isg(tmp_path / "isg")
     assert [a.name for a in geom.axes] == res.machine.axis_names
 
     def applied(qf, t, dp):
         return dp - ind.true_error_um(geom, truth, geom.to_internal(qf), t)
-    ratio, r, per = round_trip(res, poses(res.machine, n), TOOLS, applied)
+    qf = poses(res.machine, n)
+    ratio, r, per = round_trip(res, qf, TOOLS, applied)
+
+    def applied_by_control(qf, t, dp):
+        # TF5280 knows the tool length along N0 only (tests/test_compensation_vendors.py)
+        known = n0 * (np.asarray(t, float) @ n0) / (n0 @ n0)
+        return dp - ind.true_error_um(geom, truth, geom.to_internal(qf), known)
+    _, _, per_control = round_trip(res, qf, TOOLS, applied_by_control)
+    # the reader agrees with what volcal reports at every tool offset: interpolation level
+    # along N0, the lateral part of the angular errors across it
+    for row in comp.per_tool.itertuples():
+        mine = per_control[(row.tool_x_mm, row.tool_y_mm, row.tool_z_mm)]
+        assert abs(mine - row.residual_rms_um) <= 0.1 * row.residual_rms_um + 0.02, (
+            row, mine)
     return comp, ratio, r
 
 
@@ -445,28 +459,96 @@ def _siemens_trip(res, tmp_path, n, tools=TOOLS, **kw):
     return comp, out
 
 
+def additive_floor(res, n: int = 1000, deg: int = 8, seed: int = 11) -> float:
+    """The least RMS / uncorrected RMS that ANY one-axis-per-table compensation can reach
+    at tool offset (0, 0, 0): a plain least-squares fit over n poses of the model's error
+    by axis corrections that are sums of functions of one axis each (every axis into each
+    linear axis; a rotary axis only its own position), Legendre polynomials of degree
+    ``deg`` (Fourier on a full turn).  The axis Jacobian is a finite difference of the
+    independent chain (tests/indep_sim.py).  What stays above it are the lever-arm
+    products and couplings, which 1-D tables cannot carry."""
+    from numpy.polynomial import legendre
+
+    geom = model_geometry(res)
+    axes = res.machine.spec.axes
+    qf = poses(res.machine, n, seed)
+    tool = np.zeros(3)
+    dp = model_error_um(res, qf, tool)
+    base = nominal_um(geom, qf, tool)
+    M = []
+    for j in range(len(axes)):
+        qq = qf.copy()
+        qq[:, j] += 1e-3
+        M.append((nominal_um(geom, qq, tool) - base) / 1e-3)  # um per mm / deg
+    M = np.stack(M, axis=2)
+    B = []
+    for j, a in enumerate(axes):
+        lo, hi = a.travel
+        if a.is_rotary and hi - lo >= 360.0 - 1e-9:
+            t = np.deg2rad(qf[:, j])
+            B.append(np.column_stack([np.ones(n)] + [f(k * t) for k in range(1, deg + 1)
+                                                     for f in (np.cos, np.sin)]))
+        else:
+            B.append(legendre.legvander(2 * (qf[:, j] - lo) / (hi - lo) - 1, deg))
+    cols = [M[:, :, o, None] * B[j][:, None, :]
+            for o, ao in enumerate(axes) for j in range(len(axes))
+            if not ao.is_rotary or j == o]
+    A = np.concatenate(cols, axis=2).reshape(3 * n, -1)
+    x = np.linalg.lstsq(A, -dp.ravel(), rcond=None)[0]
+    return rms((dp.ravel() + A @ x).reshape(n, 3)) / rms(dp)
+
+
 def test_siemens_round_trip(mcv, trunnion, tmp_path):
-    comp, out = _siemens_trip(mcv, tmp_path / "3", 400)
-    r0, u0 = out[(0.0, 0.0, 0.0)]
-    ratio = np.sqrt(np.mean([v[0] ** 2 for v in out.values()])) / \
-        np.sqrt(np.mean([v[1] ** 2 for v in out.values()]))
-    FIGURES["siemens mcv754"] = (f"{100 * ratio:.2f} % over the 4 tool offsets; "
-                                 f"{100 * r0 / u0:.3f} % at the tables' tool offset")
-    # at the tables' tool offset the lever-arm products remain (no table multiplication);
-    # the reader agrees with the figure volcal reports
-    assert r0 / u0 < 0.1
-    assert abs(ratio - comp.ratio) < 0.1 * comp.ratio
+    """At the tables' tool offset the 1-D tables leave what no sum of one-axis functions
+    can carry (the lever-arm products: table multiplication is not used, see
+    volcal.outputs.compensation.siemens).  The bounds of 0.5 % (3 axes) and 25 % (5 axes)
+    held while the exporter wrote products; without them the independent additive floor
+    is about 5.8 % and 34 % (figures printed), so the check is now: the reader's residual
+    is that floor, within 15 %."""
+    for res, n, name in ((mcv, 400, "mcv754"), (trunnion, 300, "trunnion_ac")):
+        comp, out = _siemens_trip(res, tmp_path / name, n)
+        r0, u0 = out[(0.0, 0.0, 0.0)]
+        ratio = np.sqrt(np.mean([v[0] ** 2 for v in out.values()])) / \
+            np.sqrt(np.mean([v[1] ** 2 for v in out.values()]))
+        floor = additive_floor(res)
+        FIGURES[f"siemens {name}"] = (
+            f"{100 * ratio:.2f} % over the 4 tool offsets; {100 * r0 / u0:.3f} % at the "
+            f"tables' tool offset (best sum of one-axis functions: {100 * floor:.3f} %)")
+        assert 0.95 * floor <= r0 / u0 <= 1.15 * floor, FIGURES[f"siemens {name}"]
+        # the reader agrees with the figure volcal reports
+        assert abs(ratio - comp.ratio) < 0.1 * comp.ratio
     with pytest.raises(InputError, match="--sign"):
         compensate(mcv, "siemens", None, sign="error")
-    # 5 axes: couplings of the rotary axes remain
-    comp5, out5 = _siemens_trip(trunnion, tmp_path / "5", 300)
-    ratio5 = np.sqrt(np.mean([v[0] ** 2 for v in out5.values()])) / \
-        np.sqrt(np.mean([v[1] ** 2 for v in out5.values()]))
-    r05, u05 = out5[(0.0, 0.0, 0.0)]
-    FIGURES["siemens trunnion_ac"] = (f"{100 * ratio5:.2f} % over the 4 tool offsets; "
-                                      f"{100 * r05 / u05:.2f} % at the tables' tool offset")
-    assert r05 / u05 < 0.8
-    assert abs(ratio5 - comp5.ratio) < 0.1 * comp5.ratio
+
+
+def _cec_tables(folder: Path) -> dict[int, int]:
+    """{table: number of points} of NC_CEC.INI, read independently."""
+    cec, _, _ = read_siemens(folder)
+    assert "MULT_BY_TABLE" not in (folder / "NC_CEC.INI").read_text()
+    return {t: len(tab["values"]) for t, tab in cec.items()}
+
+
+def test_siemens_828d_default_limits(mcv, trunnion, tmp_path):
+    """SINUMERIK 828D, Function Manual Extended Functions 03/2013 (6FC5397-1BP40-3BA1),
+    K3 4.4.4.3: "It is not necessary to define the number of interpolation points for
+    SINUMERIK 828D, because when enabling the "sag compensation, multi-dimensional"
+    option, immediately eight tables each with 200 interpolation points per table for the
+    compensation are available. This cannot be extended!"  The default --target 828d
+    limits are those: 8 CEC tables of at most 200 points (the points limit at its default
+    needs a tolerance of about 1 nm on these models, 8 s of fitting: left to
+    test_limits_name_themselves with --max-points)."""
+    # the 5-axis model at the default tolerance needs more tables than that: the 840D
+    # files (no such limit) have them, and the 828D export refuses, naming the limit
+    big = _cec_tables(compensate(trunnion, "siemens", tmp_path / "840", tools=TOOLS[:1]).path)
+    assert len(big) > 8
+    with pytest.raises(LimitError, match=r"CEC tables needed: \d+, more than the limit of 8 "
+                                         r"\(SINUMERIK 828D"):
+        compensate(trunnion, "siemens", tmp_path / "828", tools=TOOLS[:1], target="828d")
+    assert not (tmp_path / "828").exists()
+    # the false-alarm side: a model that fits is written, within both limits
+    ok = _cec_tables(compensate(mcv, "siemens", tmp_path / "ok", tools=TOOLS[:1],
+                                target="828d").path)
+    assert 0 < len(ok) <= 8 and max(ok.values()) <= 200
 
 
 def test_heidenhain_round_trip(mcv, trunnion, tmp_path):
@@ -637,3 +719,63 @@ def test_figures_summary():
     """Prints the round-trip figures (run with -s to see them)."""
     for k, v in FIGURES.items():
         print(f"{k}: residual {v}")
+
+
+def test_rigid_split_ignores_rows_that_do_not_apply():
+    """Rows where a format does not apply (NaN) take no part in the rigid motion nor in
+    its centre: a known motion about the centre of the finite rows is recovered exactly
+    and the reported centre is theirs."""
+    from volcal.outputs.compensation import rigid_split
+
+    rng = np.random.default_rng(4)
+    p = rng.uniform(-300, 300, (60, 3))
+    p[40:] += 5000.0  # far away, and not applicable
+    c = p[:40].mean(axis=0)
+    t, w = np.array([1e-3, -2e-3, 0.5e-3]), np.array([2e-6, -1e-6, 3e-6])
+    r = t + np.cross(w, p - c) + 1e-4 * np.sin(p)  # plus a non-rigid part
+    r[40:] = np.nan
+    rest, t_fit, w_fit, centre = rigid_split(r, p)
+    assert np.allclose(centre, c)
+    assert np.all(np.isnan(rest[40:]))
+    # the non-rigid part is what is left, modulo its own (small) rigid component
+    ref = np.linalg.lstsq(
+        np.hstack([np.tile(np.eye(3), (40, 1)), -np.vstack(
+            [np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+             for v in p[:40] - c])]),
+        r[:40].ravel(), rcond=None)[0]
+    assert np.allclose(t_fit, ref[:3], atol=1e-12) and np.allclose(w_fit, ref[3:], atol=1e-15)
+    assert np.allclose(t_fit, t, atol=2e-4) and np.allclose(w_fit, w, atol=1e-6)
+
+
+def test_generic_file_names_are_what_render_writes(mcv, tmp_path):
+    """A report-only run lists the files without rendering them: the same names as the
+    files written."""
+    listed = compensate(mcv, "generic", None, tools=TOOLS[:2], tolerance_um=2.0).files
+    written = compensate(mcv, "generic", tmp_path / "g", tools=TOOLS[:2], tolerance_um=2.0)
+    assert listed == written.files
+    on_disk = sorted(p.name for p in (tmp_path / "g").iterdir())
+    assert sorted(set(on_disk) - {"compensation.json", "compensation.md", "manifest.json"}) \
+        == listed
+
+
+def test_generic_grid_hints_count_the_refined_nodes(mcv, monkeypatch):
+    """When the curvature estimate is short (here: 16 times too small, so the refinement
+    must add nodes), the limit message and the automatic choice count the nodes with
+    the factor the refinement measured, not the bare estimate: the default's stated
+    count is really more than the limit (the bare estimate, 512 nodes, is below it), and
+    the message proposes a larger tolerance (the bare estimate at 0.1 um fits, so it
+    proposed none)."""
+    import volcal.outputs.compensation.generic as generic
+
+    est = generic.curvature_nd
+    monkeypatch.setattr(generic, "curvature_nd", lambda *a, **k: est(*a, **k) / 16.0)
+    limit = 1209
+    with pytest.raises(LimitError, match=r"more than the limit of 1209") as err:
+        compensate(mcv, "generic", None, tools=TOOLS[:1], tolerance_um=0.1, max_points=limit)
+    hint = re.search(r"--tolerance ([\d.]+) fits", str(err.value))
+    assert hint and float(hint.group(1)) > 0.1, str(err.value)
+    auto = compensate(mcv, "generic", None, tools=TOOLS[:1], max_points=limit)
+    note = next(n for n in auto.notes if "chosen automatically" in n)
+    stated = int(re.search(r"would need ([\d,]+) nodes", note).group(1).replace(",", ""))
+    assert stated > limit, note
+    assert auto.tables[-1]["points"] <= limit

@@ -1,6 +1,6 @@
 """Error bases (volcal.model.errors): Fourier for rotary axes, cubic B-splines, their declaration in
 model files, the API and the command line, the result round trip, and ``degree="auto"``
-(volcal.analysis.order_selection) on simulated data."""
+(volcal.workflow.orders) on simulated data."""
 from __future__ import annotations
 
 import warnings

@@ -512,8 +512,13 @@ def test_the_memory_estimate_covers_a_measured_peak(sim, tmp_path):
     unknowns = len(doc["param_names"]) + 4 * len(doc["stations"]) + 6
     est = memory.estimate_peak_bytes(doc["n_readings"], unknowns)
     peak = int(kib) * 1024
-    # not optimistic (a refusal must not come late), and not wildly pessimistic
-    assert 0.5 * est < peak < 1.25 * est, (peak, est)
+    # On this small table (3,000 readings, 111 unknowns) the estimate is mostly its base
+    # (the interpreter, CasADi, the model: 140 MB of the 168 MB) and the peak measured
+    # here was 170 MB (1.3 % over).  The base varies by a few MB between library builds
+    # and allocators; 5 % over is that, more would be an optimistic estimate (a refusal
+    # coming late).  Below: 15 % pessimistic at most (the factors fit the benchmark's
+    # tables of 12,288 to 139,968 readings within 4 %, benchmarks/results/memory.txt).
+    assert 0.85 * est < peak < 1.05 * est, (peak, est)
 
 
 def test_available_memory_is_read_from_the_system():
@@ -704,7 +709,7 @@ def test_property_plan_setting_loader(tmp_path, data):
         msg = str(exc)
         assert str(f) in msg, msg
         # the key, or (when the key went missing or broke its table) the table holding it
-        assert key.strip("[]") in msg or any(p in msg for p in parents) or "model" in msg, (
+        assert key.strip("[]") in msg or any(p in msg for p in parents), (
             key,
             parents,
             msg,
@@ -743,7 +748,8 @@ def test_property_project_file_loader(tmp_path, data):
     )
     table = {k: data.draw(_values) for k in keys}
     doc = {command: table}
-    extra = data.draw(st.sampled_from(["", "idenitfy", "plan", "mc"]))
+    # another table beside the command's (the command's own would replace it)
+    extra = data.draw(st.sampled_from([e for e in ("", "idenitfy", "plan", "mc") if e != command]))
     if extra:
         doc[extra] = data.draw(st.just({"seed": 1}) | _scalars)
     f = tmp_path / "volcal.toml"
@@ -755,7 +761,13 @@ def test_property_project_file_loader(tmp_path, data):
         event("refused")
         msg = str(exc)
         assert msg.startswith(f"{f}: "), msg
-        assert any(f"[{c}]" in msg or f"'{c}'" in msg for c in doc), msg
+        # the culprit by name: the extra table, or the command's table and its key
+        names_extra = bool(extra) and (f"[{extra}]" in msg or f"'{extra}'" in msg)
+        names_key = (f"[{command}]" in msg or f"'{command}'" in msg) and any(
+            f"'{k}'" in msg or f"--{k}" in msg or f" {k} " in msg or f"{k}:" in msg
+            for k in keys
+        )
+        assert names_extra or names_key, (msg, keys, extra)
         return
     event("accepted")
     # accepted: every value is what the option would make of its text

@@ -25,9 +25,6 @@ REMAINING = {
     # paper 002's linear and Gauss-Newton multilateration, vectorised over thousands of
     # small problems (start values of the tracker's stations, the classic pipeline)
     "measurement/multilateration.py",
-    # paper 001's own pipeline; moving it onto measurement/instruments/multilaser.py
-    # through identify is the open part of issue 30
-    "analysis/multilaser.py",
 }
 
 
@@ -144,3 +141,37 @@ def test_each_instrument_writes_its_reading_once_and_nothing_else_does():
         "a reading is written outside its instrument (evaluate the instrument's reading "
         f"Function instead): {elsewhere}"
     )
+
+
+def test_each_instruments_reading_is_the_length_numpy_computes():
+    """The one reading Function of each instrument, evaluated on random points, stations
+    and frames, against the length written here with numpy and scipy (tracker: the
+    station moved by the small frame motion t + w x Q; multilaser: R = Rz Ry Rx, scipy's
+    extrinsic x-y-z Euler angles), and its gradient against the unit beam vector."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from volcal.measurement.instruments import get_instrument
+
+    rng = np.random.default_rng(30)
+    n = 50
+    P = rng.uniform(-500, 500, (n, 3))
+    S = np.column_stack([rng.uniform(-2000, 2000, (n, 3)), rng.uniform(-1, 1, n)])
+    g = np.r_[rng.uniform(-2, 2, 3), rng.uniform(-1e-3, 1e-3, 3)]
+
+    tracker = get_instrument("tracker")
+    v, d = tracker.evaluate(P, S, g)
+    Q = S[:, :3] + g[:3] + np.cross(g[3:], S[:, :3])
+    D = P - Q
+    L = np.linalg.norm(D, axis=1)
+    assert np.allclose(v, L - S[:, 3], rtol=0, atol=1e-9)
+    assert np.allclose(d, D / L[:, None], rtol=0, atol=1e-12)
+
+    laser = get_instrument("multilaser")
+    g = np.r_[rng.uniform(-50, 50, 3), rng.uniform(-0.3, 0.3, 3)]
+    v, d = laser.evaluate(P, S, g)
+    R = Rotation.from_euler("xyz", g[3:]).as_matrix()
+    D = P @ R.T + g[:3] - S[:, :3]
+    L = np.linalg.norm(D, axis=1)
+    assert np.allclose(v, L - S[:, 3], rtol=0, atol=1e-9)
+    assert np.allclose(d, (D / L[:, None]) @ R, rtol=0, atol=1e-12)

@@ -130,7 +130,9 @@ def test_report_tables_agree_with_component_errors_csv(demo_result):
         head = rows[0]
         assert head[0] == f"{axis} position (mm)" and len(rows) == 12  # 11 positions
         names = [re.match(r"(\w+) \((µm|µrad)\)", h).group(1) for h in head[1:]]
-        md_block = md.split(f"Axis {axis}:")[1].split("\n\n")[1].splitlines()
+        md_block = md.split(f"Axis {axis}, ")[1].split("\n\n")[1].splitlines()
+        assert md.split(f"Axis {axis}, ")[1].split(":", 1)[0].endswith(
+            "(a tenth of the travel)")  # 41 rows, every fourth
         assert len(md_block) == 2 + 11
         for row, md_row in zip(rows[1:], md_block[2:]):
             hit = sub[np.isclose(sub["position_mm"], float(row[0]))]

@@ -540,3 +540,29 @@ def test_plots_drawn_by_the_plotting_processes_equal_those_drawn_here(case, tmp_
     assert len(pngs) == 5 and pngs == sorted(p.name for p in there.glob("*.png"))
     for name in pngs:
         assert (here / name).read_bytes() == (there / name).read_bytes(), name
+
+
+def test_printed_positions_are_described_from_their_grid():
+    """The printed error-motion tables say where their rows are from the rows
+    themselves: a tenth of the travel for the 41-row table (every fourth row), a quarter
+    for a 5-row table, and not evenly spaced for 25 rows (24 steps do not split into
+    ten); the peak-to-peak table and the component table come from one sweep."""
+    machine = Machine.from_model("xfyz")
+    em = ErrorModel(machine.spec, default=ErrorForm("poly", 2))
+    theta = draw_true_parameters(machine, em, np.random.default_rng(8), 30.0)
+    texts = {}
+    for n in (41, 5, 25):
+        comp = results.component_error_table(em, theta, n=n)
+        tables = dict(results.error_motions_at_positions(comp))
+        texts[n] = {a: results.positions_text(t) for a, t in tables.items()}
+    for a in machine.spec.axes:
+        lo, hi = a.travel
+        assert texts[41][a.name] == f"every {(hi - lo) / 10:g} mm (a tenth of the travel)"
+        assert texts[5][a.name] == f"every {(hi - lo) / 4:g} mm (a quarter of the travel)"
+        assert texts[25][a.name].startswith("at the positions listed (not evenly spaced")
+    # the peak-to-peak values on the 41 positions are the component table's extremes
+    comp = results.component_error_table(em, theta, n=41)
+    pp = results.error_motion_table(em, theta, n=41)
+    for r in pp.itertuples():
+        col = comp.loc[comp["axis"] == r.axis, f"{r.error_motion}_{r.unit}"]
+        assert r.peak_to_peak_in_unit == pytest.approx(col.max() - col.min(), abs=1e-9)

@@ -5,8 +5,9 @@ Monte Carlo of section 5 of Aguado et al. 2021 (IOP Conf. Ser. Mater. Sci. Eng. 
 vibration f(t) of eq. (2), and the multilateration strategies of Table 1 (sphere
 intersection, points-only, two-phase, joint) at initial accuracies 100 / 95 / 90 %, plus
 our variants, and a sweep of the joint strategy over the damping and the variable scaling
-that choose its answer.  Everything is configured in config.toml; the model and the solvers
-are in :mod:`volcal.analysis.multilaser`.
+that choose its answer.  Everything is configured in config.toml; the simulator, the noise
+model and the solvers are in hpti.py (this folder), the trials run through volcal's
+seeded-chunk runner (:func:`volcal.analysis.uncertainty.parallel.run_chunks`).
 
     python studies/paper001/run.py [--smoke] [--trials N] [--workers K] [--out DIR]
                                    [--config FILE] [--scenarios NAME ...]
@@ -53,16 +54,16 @@ import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import tomllib  # noqa: E402
-from concurrent.futures import ProcessPoolExecutor, as_completed  # noqa: E402
-from multiprocessing import get_context  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from volcal.analysis import multilaser as ml  # noqa: E402
+from volcal.analysis.uncertainty.parallel import run_chunks  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE))
+import hpti  # noqa: E402
 import readme_tables as rt  # noqa: E402
 
 # histogram bins of the point errors (um) for the plots; zeros go to the first bin
@@ -79,13 +80,15 @@ def _chunks(n: int, size: int) -> list[list[int]]:
 
 
 def run_scenario(cfg: dict, scenario: str, trials, workers: int = 1, *,
-                 progress: bool = True, runner: ml.StudyRunner | None = None) -> dict:
+                 progress: bool = True, runner: hpti.StudyRunner | None = None) -> dict:
     """Run the trials ``trials`` (a count: 0..trials-1, or a sequence of indices) of one
     scenario; returns stacked arrays in that order.
 
-    workers = 1 runs in this process (on ``runner`` if given); more use a
-    ProcessPoolExecutor (spawn) whose initializer builds one
-    :class:`volcal.analysis.multilaser.StudyRunner` (one IPOPT build) per worker."""
+    workers = 1 runs in this process (on ``runner`` if given); more run the trials in
+    chunks on local worker processes through
+    :func:`volcal.analysis.uncertainty.parallel.run_chunks`, each worker building one
+    :class:`hpti.StudyRunner` (one IPOPT build) for its first chunk.  Trial k's data come
+    from its own seed (:func:`hpti.trial_rng`), whoever runs it."""
     from tqdm import tqdm
 
     idx = list(range(trials)) if isinstance(trials, (int, np.integer)) else list(trials)
@@ -94,23 +97,20 @@ def run_scenario(cfg: dict, scenario: str, trials, workers: int = 1, *,
     bar = tqdm(total=len(idx), desc=scenario, unit="trial", disable=not progress,
                file=sys.stderr, dynamic_ncols=True)
     if workers <= 1:
-        runner = runner or ml.StudyRunner(cfg, scenario)
+        runner = runner or hpti.StudyRunner(cfg, scenario)
         labels = runner.case_labels()
         for k in idx:
             results[pos[k]] = runner.trial(k)
             bar.update(1)
     else:
-        labels = [c.label for c in ml.cases_from_config(cfg)]
+        labels = [c.label for c in hpti.cases_from_config(cfg)]
         size = max(1, min(25, len(idx) // (workers * 8) or 1))
-        with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
-                                 initializer=ml._worker_init,
-                                 initargs=(cfg, scenario)) as pool:
-            futs = [pool.submit(ml._worker_trials, idx[i:i + size])
-                    for i in range(0, len(idx), size)]
-            for f in as_completed(futs):
-                for r in f.result():
-                    results[pos[r["index"]]] = r
-                    bar.update(1)
+        chunks = [idx[i:i + size] for i in range(0, len(idx), size)]
+        kernel = hpti.TrialKernel(cfg, scenario)
+        for _, part in run_chunks(kernel, chunks, workers=workers):
+            for r in part:
+                results[pos[r["index"]]] = r
+                bar.update(1)
     bar.close()
     out = {key: np.stack([r[key] for r in results]) for key in
            ("errors_um", "success", "iterations", "geometry_mm")}
@@ -212,18 +212,18 @@ class ScenarioJob:
     def __init__(self, cfg: dict, scenario: str, workers: int = 1):
         self.cfg, self.scenario, self.workers = cfg, scenario, workers
         self.name = scenario
-        self.cases = ml.cases_from_config(cfg)
+        self.cases = hpti.cases_from_config(cfg)
         self.labels = [c.label for c in self.cases]
         self._runner = None
 
     @property
-    def runner(self) -> ml.StudyRunner:
+    def runner(self) -> hpti.StudyRunner:
         if self._runner is None:
-            self._runner = ml.StudyRunner(self.cfg, self.scenario)
+            self._runner = hpti.StudyRunner(self.cfg, self.scenario)
         return self._runner
 
     def truth_geometry(self):
-        return ml.experiment_from_config(self.cfg, self.scenario).instrument.geometry
+        return hpti.experiment_from_config(self.cfg, self.scenario).instrument.geometry
 
     def fingerprint(self) -> str:
         keep = {k: self.cfg.get(k) for k in ("mesh", "instrument", "case")}
@@ -258,19 +258,19 @@ class DampingJob:
                         "groups": list(sw.get("groups", ["points", "frame", "geometry"])),
                         "scaling": s} for s in self.scalings]
         self.sub = sub
-        self.cases = ml.cases_from_config(sub)
+        self.cases = hpti.cases_from_config(sub)
         self.keys = [(c, d) for c in self.cases for d in self.dampings]
         self.labels = [f"{c.scaling} | {d:g} | {100 * c.accuracy:g}" for c, d in self.keys]
         self._runner = None
 
     @property
-    def runner(self) -> ml.StudyRunner:
+    def runner(self) -> hpti.StudyRunner:
         if self._runner is None:
-            self._runner = ml.StudyRunner(self.sub, self.scenario)
+            self._runner = hpti.StudyRunner(self.sub, self.scenario)
         return self._runner
 
     def truth_geometry(self):
-        return ml.experiment_from_config(self.cfg, self.scenario).instrument.geometry
+        return hpti.experiment_from_config(self.cfg, self.scenario).instrument.geometry
 
     def fingerprint(self) -> str:
         keep = {k: self.cfg.get(k) for k in ("mesh", "instrument", "damping_sweep")}
@@ -553,7 +553,7 @@ def plot_errors(path: Path, hist: np.ndarray, cases: list, scenario: str, trials
 
 
 def jacobian_rows(cfg: dict, scenario: str) -> list[dict]:
-    runner = ml.StudyRunner(cfg, scenario)
+    runner = hpti.StudyRunner(cfg, scenario)
     rows = []
     for case, rep in runner.jacobian_reports():
         d = rep.as_dict()
@@ -607,6 +607,59 @@ def noise_alternatives(cfg: dict, args) -> int:
     return 0
 
 
+def _core_rows(runner: hpti.StudyRunner, keys: list, trials: int, scenario: str) -> list[dict]:
+    """:func:`core_check` for the (case, damping_rel) pairs ``keys`` of one runner."""
+    core = hpti.CoreEstimator(runner.experiment.n_points)
+    w = 1.0 / runner.sigma
+    acc = {k: [0.0, 0.0, 0.0, 0.0] for k in range(len(keys))}
+    for t in range(trials):
+        data = runner.simulate(t)
+        for k, (c, d) in enumerate(keys):
+            a = 1.0 if c.accuracy is None else c.accuracy
+            t0 = time.perf_counter()
+            ref = runner.estimator.estimate(
+                data, c.strategy, a, scale_instrument=runner.scale_instrument,
+                weights=np.full((data.n_points, 3), w), phase1=c.phase1,
+                joint_groups=c.groups, scaling=c.scaling, damping_rel=d,
+                cache_key=(c.name, c.accuracy))
+            t1 = time.perf_counter()
+            got = core.estimate(data, c.strategy, a, scale_instrument=runner.scale_instrument,
+                                weights=w, phase1=c.phase1, joint_groups=c.groups,
+                                scaling=c.scaling, damping_rel=d)
+            t2 = time.perf_counter()
+            r = acc[k]
+            r[0] = max(r[0], float(np.max(np.abs(got.errors_um(data) - ref.errors_um(data)))))
+            r[1] = max(r[1], 1e3 * float(np.max(np.abs(
+                np.subtract(got.instrument.geometry, ref.instrument.geometry)))))
+            r[2] += t1 - t0
+            r[3] += t2 - t1
+    return [{"scenario": scenario,
+             "case": c.label if len({d for _, d in keys}) == 1 else f"{c.label}, damping {d:g}",
+             "trials": trials, "point": f"{r[0]:.2g}", "geometry": f"{r[1]:.2g}",
+             "study_s": f"{r[2]:.2f}", "core_s": f"{r[3]:.2f}"}
+            for (c, d), r in zip(keys, acc.values())]
+
+
+def core_check(cfg: dict, trials: int, scenarios: list[str]) -> str:
+    """Every NLP case (points-only, two-phase, joint) of the first ``trials`` trials of
+    every scenario, and the damping sweep on its scenario, solved by the study's estimator
+    and by volcal's core (:class:`hpti.CoreEstimator`): a markdown table of the largest
+    difference of the point errors and of x1 x2 y2 (um), and the seconds each spent (one
+    process; the ratio is the point, the machine's load sets the seconds)."""
+    rows = []
+    for sc in scenarios:
+        runner = hpti.StudyRunner(cfg, sc)
+        keys = [(c, 1e-5) for c in runner.cases if c.strategy != "sphere"]
+        rows += _core_rows(runner, keys, trials, sc)
+    if cfg.get("damping_sweep"):
+        sweep = DampingJob(cfg)
+        rows += _core_rows(sweep.runner, sweep.keys, trials, f"{sweep.scenario} (sweep)")
+    return rt.markdown(rows, ["scenario", "case", "trials", "point", "geometry", "study_s",
+                              "core_s"],
+                       ["scenario", "case", "trials", "max abs point error diff um",
+                        "max abs x1 x2 y2 diff um", "study s", "core s"])
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--smoke", action="store_true", help="a handful of trials (config "
@@ -634,8 +687,19 @@ def main(argv: list[str] | None = None) -> int:
                     help="only the sphere intersection, on scenario `paper` (one f for the "
                          "three lasers) and `paper_per_laser` (own phases per laser); "
                          "--trials of each (default 1000)")
+    ap.add_argument("--core-check", type=int, default=None, metavar="N",
+                    help="print how far volcal's core (identify's problem and solvers) "
+                         "agrees with the study's estimator on the points-only and two-phase "
+                         "cases of trials 0..N-1; compute nothing else")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
+    if args.core_check is not None:
+        if args.core_check < 1:
+            ap.error("--core-check: expected a number of trials >= 1")
+        cfg = load_config(args.config)
+        names = args.scenarios or list(cfg.get("study", {}).get("scenarios", ["paper"]))
+        print(core_check(cfg, args.core_check, names))
+        return 0
     if args.fixed_from is not None:
         tab = fixed_from_csv(args.fixed_from, load_config(args.config))
         print(tab)

@@ -12,7 +12,10 @@ freedom ``dof``.  :func:`assess_residuals` tests ``chi2 / dof`` against its two-
   bin: a misfit of the tool point enters each station's readings through its own beam
   direction, so its sign differs between stations) and the cell means are compared with
   the station means alone;
-* against the **tool offset** (cells station x tool offset, data with several offsets);
+* against the **tool offset** (cells station x tool offset, data with several offsets;
+  an offset is a category, so every offset is its own group however many there are), and
+  each offset alone against the others, its p multiplied by the number of offsets
+  (Bonferroni): a significant one is named (``AxisStructure.group``);
 * against the **station** (station means against the overall mean);
 * against the **time** of the reading (cells station x time bin; data with a ``time``
   column).
@@ -142,7 +145,10 @@ class AxisStructure:
     statistic with degrees of freedom (df1, df2); p_value: its upper tail probability (0
     when below the smallest float; ``log10_p`` keeps the size); explained_share: share of
     the residual sum of squares explained by the group means beyond what chance explains
-    (0..1); kind: ``axis``, ``tool_offset``, ``station`` or ``time``.
+    (0..1); kind: ``axis``, ``tool_offset``, ``station`` or ``time``; group: the one
+    group whose readings differ from the others' (tool offsets: each offset tested alone
+    against the rest, its p multiplied by the number of offsets, Bonferroni), with that
+    p, when it is significant; empty otherwise.
     """
 
     axis: str
@@ -155,6 +161,7 @@ class AxisStructure:
     log10_p: float
     explained_share: float
     kind: str = "axis"
+    group: str = ""
 
     @property
     def significant(self) -> bool:
@@ -189,7 +196,10 @@ class Cause:
         if self.kind == "basis":
             return f"basis too poor for axis {nb.get('axis', '?')}"
         if self.kind == "tool_offset":
-            return "structure against the tool offset"
+            group = str(nb.get("group", ""))
+            return "structure against the tool offset" + (
+                f" (at {group.split(' (', 1)[0]})" if group else ""
+            )
         if self.kind == "station":
             a = str(nb.get("axis", ""))
             return (
@@ -427,6 +437,47 @@ def _binned(station: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, int]:
     return station.astype(np.int64) * (len(centres) + 1) + code, len(centres)
 
 
+def _offset_name(key: str) -> str:
+    """``(x, y, z) mm`` of a tool offset key ``"x,y,z"`` (the key itself otherwise)."""
+    try:
+        return "(" + ", ".join(f"{float(v):g}" for v in str(key).split(",")) + ") mm"
+    except ValueError:
+        return str(key)
+
+
+def _tool_structure(
+    z: np.ndarray, station: np.ndarray, codes: np.ndarray, names: Sequence[str] | None
+) -> AxisStructure | None:
+    """Structure against the tool offset.  An offset is a category, not a position: the
+    cells are station x offset, every offset its own group however many there are (no
+    binning).  Then each offset alone against the others (within each station): the
+    smallest p, multiplied by the number of offsets (Bonferroni: the chance that any of
+    them is that far off by chance), names the offset when it is significant."""
+    codes = np.unique(codes, return_inverse=True)[1]
+    n_t = int(codes.max()) + 1
+    st = station.astype(np.int64)
+    overall = _nested_f(z, st, st * n_t + codes, "tool offset", "", "tool_offset", n_t)
+    if overall is None or n_t < 3:
+        return overall
+    best: AxisStructure | None = None
+    best_k = 0
+    for k in range(n_t):
+        one = _nested_f(z, st, st * 2 + (codes == k), "", "", "tool_offset", 2)
+        if one is not None and (best is None or one.log10_p < best.log10_p):
+            best, best_k = one, k
+    if best is None:
+        return overall
+    log10_p = min(best.log10_p + math.log10(n_t), 0.0)
+    if log10_p >= math.log10(STRUCTURE_P):
+        return overall
+    name = _offset_name(names[best_k]) if names is not None else str(best_k)
+    return replace(
+        overall,
+        group=f"{name} (that offset alone against the others: F = {best.f:.3g}, p = "
+        f"{10**log10_p:.2g} after multiplying by the {n_t} offsets)",
+    )
+
+
 def _structure(
     z: np.ndarray,
     station: np.ndarray,
@@ -435,8 +486,10 @@ def _structure(
     tools: np.ndarray | None,
     time: np.ndarray | None,
     station_names: Sequence[str] | None = None,
+    tool_names: Sequence[str] | None = None,
 ) -> list[AxisStructure]:
-    """Every structure test the data allow (see the module), strongest first."""
+    """Every structure test the data allow (see the module), strongest first; ``tools``:
+    a code per reading, ``tool_names`` the offset of each code."""
     out: list[AxisStructure | None] = []
     if positions is not None:
         for name, unit in zip(positions.columns, units):
@@ -444,8 +497,7 @@ def _structure(
             if nb >= 2:
                 out.append(_nested_f(z, station, cell, str(name), unit, "axis", nb))
     if tools is not None and len(np.unique(tools)) > 1:
-        cell, nb = _binned(station, np.asarray(tools, float))
-        out.append(_nested_f(z, station, cell, "tool offset", "", "tool_offset", nb))
+        out.append(_tool_structure(z, station, np.asarray(tools), tool_names))
     n_st = len(np.unique(station))
     if n_st > 1:
         zero = np.zeros_like(station)
@@ -524,6 +576,8 @@ def _structure_cause(
         "explained_share": s.explained_share,
         "n_bins": s.n_bins,
     }
+    if s.group:
+        numbers["group"] = s.group
     stat = (
         f"the residuals' group means against {s.label} explain "
         f"{100 * s.explained_share:.0f} % of the residual sum of squares (F = {s.f:.3g}, "
@@ -534,7 +588,9 @@ def _structure_cause(
         text = f"{_basis_advice(s.axis, bases.get(s.axis, ()), s.axis in full_turn)}: {stat}"
     elif kind == "tool_offset":
         text = (
-            f"the readings differ between tool offsets: {stat}; check the tool offsets "
+            f"the readings differ between tool offsets: {stat}"
+            + (f"; most of all at tool offset {s.group}" if s.group else "")
+            + "; check the tool offsets "
             "in the data (measure the reflectors' offsets, e.g. on a tool presetter) or "
             "look for an angular error the model does not have (when the offsets were "
             "measured one after the other, a drift in time shows here too)"
@@ -640,11 +696,12 @@ def assess_residuals(
         if positions is not None and len(positions.columns):
             pos = positions.loc[keep].reset_index(drop=True).loc[inl].reset_index(drop=True)
             u = list(units) if units is not None else [""] * len(pos.columns)
-        tl = None
+        tl, t_names = None, None
         if tools is not None:
-            tl = np.unique(np.asarray(tools).astype(str), return_inverse=True)[1][keep][inl]
+            uniq, codes = np.unique(np.asarray(tools).astype(str), return_inverse=True)
+            tl, t_names = codes[keep][inl], [str(v) for v in uniq]
         tm = np.asarray(time, float)[keep][inl] if time is not None else None
-        structure = _structure(z[inl], st[inl], pos, u, tl, tm, list(st_names))
+        structure = _structure(z[inl], st[inl], pos, u, tl, tm, list(st_names), t_names)
     significant = [s for s in structure if s.significant]
 
     warnings: list[str] = []

@@ -70,11 +70,10 @@ _SHOWN_NAMES = 3
 
 
 def _g(v: Any, digits: int = 3) -> str:
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        return str(v)
-    return format(x, f".{digits}g") if math.isfinite(x) else "-"
+    """The report's number format (html_report), "-" where there is no number."""
+    from volcal.outputs.report_env import number
+
+    return number(v, digits, missing="-")
 
 
 def _rows(table: pd.DataFrame, reference: str) -> tuple[list[str], list[list[str]]]:
@@ -334,18 +333,6 @@ def _doc(cmp: Comparison) -> dict[str, Any]:
     }
 
 
-def _json_table(table: pd.DataFrame) -> list[dict[str, Any]]:
-    out = []
-    for r in table.to_dict("records"):
-        out.append(
-            {
-                k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                for k, v in ((k, v.item() if hasattr(v, "item") else v) for k, v in r.items())
-            }
-        )
-    return out
-
-
 def write_comparison(
     cmp: Comparison,
     out_dir: str | Path,
@@ -359,7 +346,7 @@ def write_comparison(
     data_name: the data file recorded in the reference's result; inputs: paths the run
     read (never inside the output); force: see :func:`volcal.base.folders.check_out_dir`."""
     from volcal.base.folders import write_folder
-    from volcal.outputs.results import save_result
+    from volcal.outputs.results import _json_safe, save_result
 
     doc = _doc(cmp)
     table = cmp.table
@@ -385,7 +372,7 @@ def write_comparison(
         (tmp / "compare.html").write_text(comparison_section(doc, table, png), encoding="utf-8")
         if png is not None:
             (tmp / PLOT).write_bytes(png)
-        full = dict(doc, table=_json_table(table))
+        full = dict(doc, table=_json_safe(table.to_dict("records")))
         (tmp / "compare.json").write_text(json.dumps(full, indent=1) + "\n", encoding="utf-8")
         ref = cmp.reference_result
         if ref is not None:

@@ -26,7 +26,6 @@ from __future__ import annotations
 import base64
 import json
 import logging
-import math
 import os
 import shutil
 import subprocess
@@ -46,6 +45,7 @@ from volcal.base.exceptions import InputError
 from volcal.outputs.report_env import TEMPLATE_DIR as TEMPLATE_DIR
 from volcal.outputs.report_env import code_spans as code_spans
 from volcal.outputs.report_env import environment as _environment
+from volcal.outputs.report_env import number as _g
 from volcal.outputs.results import (
     OPTIONAL_FILES,
     PLOT_FILES,
@@ -90,17 +90,6 @@ _PLOT_CAPTIONS = {
 
 # --------------------------------------------------------------------------------------
 # formatting
-
-
-def _g(v: Any, digits: int = 4) -> str:
-    """A number with ``digits`` significant digits; empty for None / NaN / inf."""
-    if v is None or isinstance(v, bool):
-        return "" if v is None else ("yes" if v else "no")
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        return str(v)
-    return format(x, f".{digits}g") if math.isfinite(x) else ""
 
 
 def _unit(u: Any) -> str:
@@ -603,7 +592,11 @@ def _error_motions(
     """The error-motion section: peak-to-peak per motion (error_motions.csv, or computed
     from the saved result for a folder written before it existed) and the motions at
     positions along each axis (rows of component_errors.csv)."""
-    from volcal.outputs.results import error_motion_table, error_motions_at_positions
+    from volcal.outputs.results import (
+        error_motion_table,
+        error_motions_at_positions,
+        positions_text,
+    )
 
     if motions is None:
         motions = error_motion_table(res.error_model, res.theta, res.cov_theta, res.identifiable)
@@ -633,6 +626,7 @@ def _error_motions(
         tables.append(
             {
                 "axis": axis,
+                "where": positions_text(t),
                 "head": [head(pos).replace("position", f"{axis} position")]
                 + [head(c) for c in cols],
                 "rows": [
@@ -900,10 +894,14 @@ def write_report(
         out = out.with_suffix(".pdf")
     if out.is_dir():
         raise InputError("expected a file name, got a folder", source=str(out))
-    if out.resolve() in _protected([Path(result_dir), compensation_dir, compare_dir]):
+    # the folders the report reads, as find_comparison resolves them (a compare folder
+    # given as the result reports its reference/ result; a reference/ result reads the
+    # compare folder around it) as well as the ones given
+    found = find_comparison(Path(result_dir), None if compare_dir is None else Path(compare_dir))
+    if out.resolve() in _protected([Path(result_dir), compensation_dir, compare_dir, *found]):
         raise InputError(
-            "the report would overwrite a file of the result or compensation folder; "
-            "choose another name",
+            "the report would overwrite a file of the result, comparison or compensation "
+            "folder; choose another name",
             source=str(out),
         )
     browser = None

@@ -1,9 +1,11 @@
-"""The Jinja2 environment of the HTML report's templates (``templates/report``), shared by
-:mod:`volcal.outputs.html_report` and :mod:`volcal.outputs.compare_report` (the comparison
-section both render) so that neither imports the other."""
+"""The Jinja2 environment of the HTML report's templates (``templates/report``) and its
+number format, shared by :mod:`volcal.outputs.html_report` and
+:mod:`volcal.outputs.compare_report` (the comparison section both render) so that neither
+imports the other."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -11,6 +13,17 @@ import jinja2
 from markupsafe import Markup, escape
 
 TEMPLATE_DIR = Path(__file__).parent / "templates" / "report"
+
+
+def number(v: Any, digits: int = 4, missing: str = "") -> str:
+    """A number with ``digits`` significant digits; ``missing`` for None / NaN / inf."""
+    if v is None or isinstance(v, bool):
+        return missing if v is None else ("yes" if v else "no")
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        return str(v)
+    return format(x, f".{digits}g") if math.isfinite(x) else missing
 
 
 def code_spans(text: Any) -> Markup:

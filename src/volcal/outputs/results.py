@@ -109,6 +109,7 @@ __all__ = [
     "component_error_table",
     "error_motion_table",
     "error_motions_at_positions",
+    "positions_text",
     "volumetric_grid_table",
     "RESULT_FORMAT",
     "RESULT_FORMAT_VERSION",
@@ -175,6 +176,24 @@ def _axis_unit(spec: MachineSpec, name: str) -> str:
 # tables
 
 
+def _axis_sweeps(error_model: ErrorModel, n: int):
+    """Per axis with component error motions: (axis spec, positions (n,) in file units
+    mm / deg over its travel, indices of its component errors, basis (n, n_errors,
+    n_params) at those positions with the other axes at their reference).  The one
+    set-up of :func:`component_error_table` and :func:`error_motion_table`."""
+    em = error_model
+    spec = em.spec
+    ref = np.array([np.deg2rad(a.reference) if a.is_rotary else a.reference for a in spec.axes])
+    for j, a in enumerate(spec.axes):
+        comps = [k for k, s in enumerate(em.errors) if s.axis == a.name and s.kind == "component"]
+        if not comps:
+            continue
+        pos = np.linspace(a.travel[0], a.travel[1], n)
+        q = np.tile(ref, (n, 1))
+        q[:, j] = np.deg2rad(pos) if a.is_rotary else pos
+        yield a, pos, comps, em.basis(q)
+
+
 def component_error_table(
     error_model: ErrorModel,
     theta: np.ndarray,
@@ -196,17 +215,9 @@ def component_error_table(
     theta = np.asarray(theta, float)
     ident = np.ones(em.n_params, bool) if identifiable is None else np.asarray(identifiable, bool)
     cov = None if cov_theta is None else np.nan_to_num(np.asarray(cov_theta, float))
-    ref = np.array([np.deg2rad(a.reference) if a.is_rotary else a.reference for a in spec.axes])
     frames, value_cols, u_cols, pos_cols = [], [], [], []
-    for j, a in enumerate(spec.axes):
-        comps = [k for k, s in enumerate(em.errors) if s.axis == a.name and s.kind == "component"]
-        if not comps:
-            continue
+    for a, pos, comps, B in _axis_sweeps(em, n):
         unit = _axis_unit(spec, a.name)
-        pos = np.linspace(a.travel[0], a.travel[1], n)
-        q = np.tile(ref, (n, 1))
-        q[:, j] = np.deg2rad(pos) if a.is_rotary else pos
-        B = em.basis(q)
         df = pd.DataFrame({"axis": a.name, f"position_{unit}": pos})
         if f"position_{unit}" not in pos_cols:
             pos_cols.append(f"position_{unit}")
@@ -279,16 +290,8 @@ def error_motion_table(
     theta = np.asarray(theta, float)
     ident = np.ones(em.n_params, bool) if identifiable is None else np.asarray(identifiable, bool)
     cov = None if cov_theta is None else np.nan_to_num(np.asarray(cov_theta, float))
-    ref = np.array([np.deg2rad(a.reference) if a.is_rotary else a.reference for a in spec.axes])
     rows = []
-    for j, a in enumerate(spec.axes):
-        comps = [k for k, s in enumerate(em.errors) if s.axis == a.name and s.kind == "component"]
-        if not comps:
-            continue
-        pos = np.linspace(a.travel[0], a.travel[1], n)
-        q = np.tile(ref, (n, 1))
-        q[:, j] = np.deg2rad(pos) if a.is_rotary else pos
-        B = em.basis(q)
+    for a, pos, comps, B in _axis_sweeps(em, n):
         for k in comps:
             s = em.errors[k]
             f, u_name = _unit_factor(s.unit)
@@ -352,6 +355,27 @@ def error_motions_at_positions(
         rows = np.unique(np.round(np.linspace(0, len(sub) - 1, min(n, len(sub)))).astype(int))
         out.append((axis, sub.iloc[rows][keep].reset_index(drop=True)))
     return out
+
+
+def positions_text(table: pd.DataFrame) -> str:
+    """How the positions of one table of :func:`error_motions_at_positions` are spread,
+    computed from them: ``every 50 mm (a tenth of the travel)`` when evenly spaced, else
+    ``at the positions listed (not evenly spaced: the table's rows do not divide the
+    travel into equal steps)``."""
+    pos = table.iloc[:, 0].to_numpy(float)
+    unit = str(table.columns[0]).rpartition("_")[2]
+    if len(pos) < 2:
+        return "at one position"
+    step = np.diff(pos)
+    span = pos[-1] - pos[0]
+    if not np.allclose(step, step[0], rtol=1e-6, atol=1e-9 * max(abs(span), 1.0)):
+        return (
+            "at the positions listed (not evenly spaced: the table's rows do not divide the "
+            "travel into equal steps)"
+        )
+    parts = len(step)
+    share = {2: "half", 4: "quarter", 10: "tenth"}.get(parts, f"1/{parts}")
+    return f"every {step[0]:g} {unit} (a {share} of the travel)"
 
 
 def volumetric_grid_table(
@@ -1262,17 +1286,18 @@ def _error_motion_lines(
         L += [
             "### Error motions at positions along each axis",
             "",
-            "Rows of `component_errors.csv` every tenth of the travel (other axes at their "
-            "reference); um for translational, urad for angular motions.",
+            "Rows of `component_errors.csv` evenly spread over each axis' travel (other "
+            "axes at their reference); um for translational, urad for angular motions.",
             "",
         ]
         for axis, table in error_motions_at_positions(comp):
+            where = positions_text(table)
             table = table.copy()
             pos = table.columns[0]
             table[pos] = [f"{v:g}" for v in table[pos]]  # positions in full, not 3 digits
             vals = table.columns[1:]
             table[vals] = table[vals].mask(table[vals].abs() < 1e-9, 0.0)
-            L += [f"Axis {axis}:", "", _md_table(table, ".3g"), ""]
+            L += [f"Axis {axis}, {where}:", "", _md_table(table, ".3g"), ""]
     return L
 
 

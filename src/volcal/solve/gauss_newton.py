@@ -15,6 +15,13 @@ Jacobian's structure), so the residual model is the same one IPOPT sees.  ``mu``
 Levenberg-Marquardt damping (Marquardt's diagonal scaling), 0 for a pure Gauss-Newton
 step; it is raised when a step does not lower the sum of squares and lowered when it does.
 
+:meth:`GaussNewtonSolver.solve_levenberg` is the other use of a damping: a *fixed* metric
+for a problem that stays rank deficient after its gauge is held (paper 001's joint
+estimation, studies/paper001).  Every step solves ``Z^T (H + diag(d)) Z dz = -Z^T J^T r``
+with d fixed and is taken whole, so the iteration converges to the exact fit its start and
+d select (nearly the minimum-norm correction in the metric d), not to a point set by
+rounding.
+
 The step is a single CasADi Function of (x, p, Z, mu) with no Python inside (it can be
 serialised for worker processes and generated as C); only the accept/reject loop and the
 stopping test are Python.  At the fixed point the reduced gradient Z^T J^T r is zero, which
@@ -116,6 +123,80 @@ class GaussNewtonSolver:
             )
             self._steps[n_z] = f
         return f
+
+    def levenberg_step_function(self, n_z: int) -> ca.Function:
+        """``step(x, p, Z, d) -> (f, dx)``: f = 0.5 ||r||^2 at x and the step dx = Z dz with
+        ``(Z^T (H + diag(d)) Z) dz = -Z^T J^T r`` (:meth:`solve_levenberg`)."""
+        key = -1 - n_z  # the same cache as the Marquardt steps, its own keys
+        f = self._steps.get(key)
+        if f is None:
+            pr = self.problem
+            x = ca.MX.sym("x", pr.n_x)
+            p = ca.MX.sym("p", pr.nlp["p"].shape[0])
+            Z = ca.MX.sym("Z", pr.n_x, n_z)
+            d = ca.MX.sym("d", pr.n_x)
+            r, g, H = pr.gram(x, p)
+            A = ca.mtimes(Z.T, ca.mtimes(H + ca.diag(d), Z))
+            dz = -ca.solve(A, ca.mtimes(Z.T, g), "qr") if n_z else ca.MX(0, 1)
+            f = ca.Function(
+                f"levenberg_step_{n_z}",
+                [x, p, Z, d],
+                [0.5 * ca.sumsqr(r), ca.mtimes(Z, dz)],
+                ["x", "p", "Z", "d"],
+                ["f", "dx"],
+            )
+            self._steps[key] = f
+        return f
+
+    def solve_levenberg(
+        self,
+        x0: np.ndarray,
+        p: np.ndarray,
+        damping: np.ndarray,
+        *,
+        fixed: np.ndarray | None = None,
+        max_iter: int | None = None,
+    ) -> SolveOutcome:
+        """Gauss-Newton with a fixed Levenberg damping: from x0 (physical units), with data
+        p and ``fixed`` variables held, every step solves ``(H + diag(damping)) dx = -J^T r``
+        on the free variables (under the datum in force) and is taken whole, until the
+        largest step is below ``step_tol``.
+
+        damping: (n_x,) >= 0, per scaled variable (units of J^T J: a scaled unit is 1 um or
+        1 urad).  For a problem whose Jacobian keeps null directions after the gauge is
+        held, the answer is then the exact fit that the start and this metric select (a
+        constant times the identity: nearly the minimum-norm correction in scaled units;
+        ``c * diag(J0^T J0)`` of the start: Marquardt's metric), reproducibly, where an
+        undamped or adaptively damped iteration ends wherever rounding sends it along the
+        null directions.  Well-posed problems should use :meth:`solve`."""
+        pr = self.problem
+        d = np.asarray(damping, float).ravel()
+        if d.shape != (pr.n_x,) or not np.all(np.isfinite(d)) or np.any(d < 0):
+            raise ValueError(f"damping: expected {pr.n_x} finite values >= 0, got {d.shape}")
+        t0 = time.perf_counter()
+        Z = feasible_basis(pr, fixed)
+        step = self.levenberg_step_function(Z.shape[1])
+        xs = project_feasible(pr, pr.to_scaled(x0), fixed)
+        max_iter = self.max_iter if max_iter is None else max_iter
+        status, it, f = "Maximum_Iterations_Exceeded", 0, float("nan")
+        for it in range(1, max_iter + 1):  # noqa: B007  (the count is reported)
+            try:
+                fv, dxv = step(xs, p, Z, d)
+            except RuntimeError:  # a singular system: no damping on a null direction
+                status = "Singular_Step"
+                break
+            f, dx = float(fv), dxv.full().ravel()
+            progress.update(f"Levenberg iteration {it}, cost {f:.6g}")
+            if not np.all(np.isfinite(dx)):
+                status = "Invalid_Number_Detected"
+                break
+            xs = xs + dx
+            if (float(np.max(np.abs(dx))) if dx.size else 0.0) <= self.step_tol:
+                status = "Solve_Succeeded"
+                break
+        x = pr.from_scaled(xs)
+        ok = status == "Solve_Succeeded" and bool(np.all(np.isfinite(x)))
+        return SolveOutcome(x, self.objective(xs, p), status, ok, it, time.perf_counter() - t0)
 
     def objective(self, xs: np.ndarray, p: np.ndarray) -> float:
         r = self.problem.residual(xs, p).full().ravel()

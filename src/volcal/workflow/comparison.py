@@ -17,7 +17,11 @@ same error model, budget and start values, and compares each with a reference st
   in um and in units of its standard uncertainty.  That uncertainty is the reference
   fit's standard uncertainty of the volumetric error taken modulo the same rigid motion
   (the covariance propagated through the field Jacobian with the rigid part projected
-  out), per point the root sum of squares of its three components.  Two fits of the same
+  out), per point the root sum of squares of its three components.  One gauge for both:
+  the rigid motion is fitted over the points both fits determine, for the difference and
+  for its uncertainty alike (``u_reference_um`` of the points table is the reference's
+  over the points it determines, the same set for every strategy that determines at
+  least as much).  Two fits of the same
   readings are not independent, so the difference is measured against the uncertainty of
   the reference result: a strategy whose field moves by several u from the reference
   moves it by more than the data's own uncertainty.  Points whose error one of the two
@@ -57,6 +61,7 @@ from volcal.analysis.identify import (
     build_error_model,
     declared_poses,
     field_jacobian,
+    rigid_fit,
 )
 from volcal.base.exceptions import InputError, SolverError
 from volcal.base.progress import stage as report_stage
@@ -183,13 +188,12 @@ def _centred(points: np.ndarray) -> np.ndarray:
 
 def modulo_gauge(points: np.ndarray, d: np.ndarray) -> np.ndarray:
     """``d`` (N, 3) at nominal points (N, 3) mm with the least-squares small rigid motion
-    ``a + w x p`` removed (the motion no multilateration sees); same units as ``d``."""
+    ``a + w x p`` removed (the motion no multilateration sees; the fit is
+    :func:`volcal.analysis.identify.rigid_fit`); same units as ``d``."""
     d = np.asarray(d, float)
     if len(d) == 0:
         return d.reshape(0, 3)
-    A = rigid_columns(_centred(points))
-    sol = np.linalg.lstsq(A, d.ravel(), rcond=None)[0]
-    return (d.ravel() - A @ sol).reshape(-1, 3)
+    return rigid_fit(_centred(points), d)[1]
 
 
 def _u_modulo_gauge(G: np.ndarray, points: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -416,6 +420,7 @@ def compare(
         if r.result is not None:
             fields[s] = _field(r.result, Q, T)
     u_ref = np.full(len(Q), np.nan)
+    G = None
     if ref is not None:
         _, _, G = field_jacobian(machine, em, ref.theta, Q, T)
         det_ref = fields[reference][1]
@@ -475,8 +480,13 @@ def compare(
                 d[m] = modulo_gauge(p0[m], f_s[m] - f_r[m])
                 differences[s] = d
                 rms, mx = _norm_stats(d[m])
+                # the uncertainty in the gauge of the difference: fitted over the same
+                # points m (module docstring)
+                u_m = u_ref[m]
+                if G is not None and not np.array_equal(m, det_r):
+                    u_m = _u_modulo_gauge(G[m], p0[m], ref.cov_theta) * 1e3
                 with np.errstate(divide="ignore", invalid="ignore"):
-                    z = np.linalg.norm(d[m], axis=1) / u_ref[m]
+                    z = np.linalg.norm(d[m], axis=1) / u_m
                 z = z[np.isfinite(z)]
                 row.update(
                     field_diff_rms_um=rms,
@@ -624,9 +634,11 @@ class TrialKernel:
         seed: int,
         solver: str = "ipopt",
     ) -> TrialKernel:
-        """The kernel simulating the layout of ``meas``: its distinct poses and tool
-        offsets, measured by the true stations; readings the data do not have are
-        dropped after the simulation."""
+        """The kernel simulating the layout of ``meas``: its poses and tool offsets,
+        measured by the true stations; readings the data do not have are dropped after
+        the simulation.  A reading the data repeat (the same station, tool offset and
+        pose more than once) is simulated as often, each repeat with its own noise: the
+        plan holds a pose as many times as its most repeated reading."""
         names = list(machine.spec.axis_names)
         tab = meas.table
         plan = tab[names].drop_duplicates().reset_index(drop=True)
@@ -638,11 +650,22 @@ class TrialKernel:
                 source="true_stations",
             )
         st = true_stations.set_index("station").loc[list(meas.station_ids)].reset_index()
-        # the simulator's reading order: station-major, then tool, then pose
-        S, K, N = len(st), len(tools), len(plan)
         pose_idx = pd.MultiIndex.from_frame(plan).get_indexer(pd.MultiIndex.from_frame(tab[names]))
         tool_idx = np.array([np.flatnonzero((tools == t).all(axis=1))[0] for t in meas.tool])
-        r = (meas.station_index * K + tool_idx) * N + pose_idx
+        # the k-th repeat of a reading goes to the k-th copy of its pose in the plan
+        occ = (
+            pd.DataFrame({"s": meas.station_index, "k": tool_idx, "p": pose_idx})
+            .groupby(["s", "k", "p"])
+            .cumcount()
+            .to_numpy()
+        )
+        copies = np.zeros(len(plan), dtype=int)
+        np.maximum.at(copies, pose_idx, occ + 1)
+        first = np.concatenate([[0], np.cumsum(copies)[:-1]])
+        plan = plan.loc[np.repeat(np.arange(len(plan)), copies)].reset_index(drop=True)
+        # the simulator's reading order: station-major, then tool, then pose
+        S, K, N = len(st), len(tools), len(plan)
+        r = (meas.station_index * K + tool_idx) * N + first[pose_idx] + occ
         keep = np.zeros(S * K * N, dtype=bool)
         keep[r] = True
         return cls(
@@ -673,6 +696,26 @@ class TrialKernel:
             self._true = _true_field(self.machine, self.error_model, self.theta, self.Q, self.T)
         return self._true
 
+    def simulated(self, trial: int) -> pd.DataFrame:
+        """The readings of trial ``trial``: the data's layout simulated from the true
+        parameters and stations with the budget's noise (seed :func:`trial_seed`)."""
+        from volcal.measurement.simulate import simulate
+
+        sim = simulate(
+            self.machine,
+            self.error_model,
+            self.theta,
+            self.stations,
+            self.plan,
+            self.tools,
+            self.budget,
+            trial_seed(self.seed, trial),
+        )
+        data = sim.measurements
+        if self.keep is not None:
+            data = data.loc[self.keep].reset_index(drop=True)
+        return data
+
     def run_chunk(self, chunk: tuple[int, int]) -> np.ndarray:
         """Trials ``range(*chunk)``: (n, n_strategies, 3) of field error RMS and max (um,
         modulo the gauge, over the points the reference determines) and 1.0 / 0.0 for a
@@ -689,8 +732,6 @@ class TrialKernel:
             progress.enable(was)
 
     def _run(self, chunk: tuple[int, int]) -> np.ndarray:
-        from volcal.measurement.simulate import simulate
-
         true_um = self.true_field()
         m = self.mask
         p0 = self.machine.nominal_points(self.Q[m], self.T[m])
@@ -699,19 +740,7 @@ class TrialKernel:
             # the run said it once (compare); a trial, maybe in its own process, not
             warnings.simplefilter("ignore", BudgetWarning)
             for i, trial in enumerate(range(*chunk)):
-                sim = simulate(
-                    self.machine,
-                    self.error_model,
-                    self.theta,
-                    self.stations,
-                    self.plan,
-                    self.tools,
-                    self.budget,
-                    trial_seed(self.seed, trial),
-                )
-                data = sim.measurements
-                if self.keep is not None:
-                    data = data.loc[self.keep].reset_index(drop=True)
+                data = self.simulated(trial)
                 for j, s in enumerate(self.strategies):
                     try:
                         res = identify(

@@ -47,6 +47,8 @@ __all__ = [
     "beam_blocked",
     "stations_ok",
     "aim_axes",
+    "beam_angles_deg",
+    "segment_box_clearance",
     "constraints_from_dict",
     "constraint_slack",
 ]
@@ -353,6 +355,55 @@ def aim_axes(
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+def beam_angles_deg(
+    points: np.ndarray,
+    tool_axes: np.ndarray,
+    stations: np.ndarray,
+    reflector: Reflector,
+    centre: np.ndarray,
+) -> np.ndarray:
+    """(N,) deg: the angle between the reflector's mounting axis (:func:`aim_axes`) and
+    the beam from each reflector point (N, 3) mm to its station (N, 3) mm.  The one
+    computation of the acceptance angle (violations, slack and the set-up sheet)."""
+    P, S = np.asarray(points, float), np.asarray(stations, float)
+    beam = S - P
+    beam = beam / np.linalg.norm(beam, axis=1, keepdims=True)
+    ax = aim_axes(P, tool_axes, S, reflector, centre)
+    return np.degrees(np.arccos(np.clip(np.sum(beam * ax, axis=1), -1.0, 1.0)))
+
+
+def _box_sdf(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Signed distance (mm) of points p (N, 3) to boxes (lo, hi) (N, 3): positive
+    outside, minus the depth inside."""
+    c, h = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    q = np.abs(p - c) - h
+    return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+
+
+def segment_box_clearance(
+    a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray, iterations: int = 80
+) -> np.ndarray:
+    """(N,) mm: the smallest signed distance of the segments a[i] -> b[i] (N, 3) to the
+    boxes (lo, hi) (N, 3 or 3,): the clearance of a beam to a box obstacle, negative (the
+    depth) when it crosses it.  The signed distance of a convex set is convex along a
+    line, so a golden-section search over the segment finds its minimum."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    lo, hi = np.broadcast_to(lo, a.shape), np.broadcast_to(hi, a.shape)
+    d = b - a
+    g = (np.sqrt(5.0) - 1.0) / 2.0
+    x0, x1 = np.zeros(len(a)), np.ones(len(a))
+    for _ in range(iterations):
+        m0, m1 = x1 - g * (x1 - x0), x0 + g * (x1 - x0)
+        f0 = _box_sdf(a + m0[:, None] * d, lo, hi)
+        f1 = _box_sdf(a + m1[:, None] * d, lo, hi)
+        left = f0 <= f1
+        x1 = np.where(left, m1, x1)
+        x0 = np.where(left, x0, m0)
+    t = 0.5 * (x0 + x1)
+    ends = np.minimum(_box_sdf(a, lo, hi), _box_sdf(b, lo, hi))
+    return np.minimum(_box_sdf(a + t[:, None] * d, lo, hi), ends)
+
+
 def reading_violations(
     points: np.ndarray,
     tool_axes: np.ndarray,
@@ -390,9 +441,7 @@ def reading_violations(
     add(dist > constraints.max_range_mm, "range", dist, constraints.max_range_mm)
     ref = constraints.reflector
     if ref.limited:
-        ax = aim_axes(P, tool_axes, S, ref, centre)
-        beam = (S - P) / dist[:, None]
-        ang = np.degrees(np.arccos(np.clip(np.sum(beam * ax, axis=1), -1, 1)))
+        ang = beam_angles_deg(P, tool_axes, S, ref, centre)
         add(ang > ref.half_angle_deg + 1e-9, "angle", ang, ref.half_angle_deg)
     if constraints.obstacles:
         add(beam_blocked(P, S, constraints.obstacles), "sight", np.ones(len(P)), 0.0)
@@ -412,7 +461,7 @@ def constraint_slack(
     (angle, distance, range, region, sight), ``worst`` (the value closest to the limit:
     largest beam angle to the reflector axis in deg, smallest or largest station-to-point
     distance in mm, smallest distance of a station to a face of its region in mm, smallest
-    clearance of a beam to a cylinder obstacle in mm), ``limit``, ``slack`` (how much room
+    clearance of a beam to an obstacle, box or cylinder, in mm), ``limit``, ``slack`` (how much room
     is left, deg or mm; negative: broken), ``unit``, ``station`` (0-based index) and
     ``reading`` (the reading's row, -1 for a station-only limit)."""
     station_of = np.asarray(station_of, int)
@@ -438,8 +487,7 @@ def constraint_slack(
         dist = np.linalg.norm(S - P, axis=1)
         ref = constraints.reflector
         if ref.limited:
-            ax = aim_axes(P, tool_axes, S, ref, centre)
-            ang = np.degrees(np.arccos(np.clip(np.sum((S - P) / dist[:, None] * ax, 1), -1, 1)))
+            ang = beam_angles_deg(P, tool_axes, S, ref, centre)
             i = int(np.argmax(ang))
             h = ref.half_angle_deg
             add("angle", ang[i], h, h - ang[i], "deg", station_of[i], i)
@@ -451,14 +499,19 @@ def constraint_slack(
             i = int(np.argmax(dist))
             lim = constraints.max_range_mm
             add("range", dist[i], lim, lim - dist[i], "mm", station_of[i], i)
-        cyl = [ob for ob in constraints.obstacles if ob.kind == "cylinder"]
-        if cyl:
+        if constraints.obstacles:
             clear = np.full(len(P), np.inf)
-            for ob in cyl:
+            for ob in constraints.obstacles:
                 shift = P if ob.moves_with == "tool" else np.zeros((1, 3))
-                p0 = np.broadcast_to(np.asarray(ob.p0) + shift, P.shape)
-                p1 = np.broadcast_to(np.asarray(ob.p1) + shift, P.shape)
-                clear = np.minimum(clear, _segment_segment_distance(P, S, p0, p1) - ob.radius)
+                if ob.kind == "box":
+                    lo = np.broadcast_to(np.asarray(ob.lo) + shift, P.shape)
+                    hi = np.broadcast_to(np.asarray(ob.hi) + shift, P.shape)
+                    c = segment_box_clearance(P, S, lo, hi)
+                else:
+                    p0 = np.broadcast_to(np.asarray(ob.p0) + shift, P.shape)
+                    p1 = np.broadcast_to(np.asarray(ob.p1) + shift, P.shape)
+                    c = _segment_segment_distance(P, S, p0, p1) - ob.radius
+                clear = np.minimum(clear, c)
             i = int(np.argmin(clear))
             add("sight", clear[i], 0.0, clear[i], "mm", station_of[i], i)
     if constraints.regions:

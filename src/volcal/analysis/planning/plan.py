@@ -44,7 +44,7 @@ import pandas as pd
 from volcal.analysis.planning.evaluator import CRITERIA, PlanEvaluator
 from volcal.analysis.planning.geometry import (
     Constraints,
-    aim_axes,
+    beam_angles_deg,
     constraint_slack,
     constraints_from_dict,
     reading_violations,
@@ -275,12 +275,7 @@ class PlanResult:
         half-angle)."""
         ref = self.constraints.reflector
         P, axes, st = self._planned()
-        S = self.stations_mm[st]
-        ax = aim_axes(P, axes, S, ref, self.centre_mm)
-        d = S - P
-        ang = np.degrees(
-            np.arccos(np.clip(np.sum(d / np.linalg.norm(d, axis=1, keepdims=True) * ax, 1), -1, 1))
-        )
+        ang = beam_angles_deg(P, axes, self.stations_mm[st], ref, self.centre_mm)
         rows = []
         for k, s in enumerate(self.stations_mm):
             if not ref.limited:

@@ -269,30 +269,33 @@ class Compensation:
         return lines
 
 
-def rigid_split(r: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def rigid_split(
+    r: np.ndarray, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Split residuals r (N, 3) mm at nominal points (N, 3) mm into the least-squares
     small rigid motion t + w x (p - centroid) and the rest: (rest (N, 3) mm, t (3,) mm,
-    w (3,) rad).  The rigid motion is the one multilateration does not determine."""
+    w (3,) rad, centroid (3,) mm).  The rigid motion is the one multilateration does not
+    determine.  Rows where r is not finite (a format that does not apply at that tool
+    offset) take no part: neither in the fit nor in the centroid, and stay NaN."""
+    from volcal.analysis.identifiability import rigid_columns
+
     r = np.asarray(r, float)
+    points = np.asarray(points, float)
     ok = np.all(np.isfinite(r), axis=1)
-    p = np.asarray(points, float) - np.asarray(points, float)[ok].mean(axis=0)
     n = int(ok.sum())
+    if n == 0:
+        return r.copy(), np.zeros(3), np.zeros(3), np.full(3, np.nan)
+    centre = points[ok].mean(axis=0)
     if n < 3:
-        return r.copy(), np.zeros(3), np.zeros(3)
-    A = np.zeros((n, 3, 6))
-    A[:, 0, 0] = A[:, 1, 1] = A[:, 2, 2] = 1.0
-    x, y, z = p[ok].T
-    # w x p = (wy z - wz y, wz x - wx z, wx y - wy x)
-    A[:, 0, 4], A[:, 0, 5] = z, -y
-    A[:, 1, 3], A[:, 1, 5] = -z, x
-    A[:, 2, 3], A[:, 2, 4] = y, -x
-    A2 = A.reshape(3 * n, 6)
-    col = np.linalg.norm(A2, axis=0)
+        return r.copy(), np.zeros(3), np.zeros(3), centre
+    A = rigid_columns(points[ok] - centre)
+    # translations (mm) and rotations (rad) differ in scale by the lever arm: unit columns
+    col = np.linalg.norm(A, axis=0)
     col[col == 0] = 1.0
-    sol = np.linalg.lstsq(A2 / col, r[ok].ravel(), rcond=None)[0] / col
+    sol = np.linalg.lstsq(A / col, r[ok].ravel(), rcond=None)[0] / col
     out = r.copy()
-    out[ok] = r[ok] - (A2 @ sol).reshape(n, 3)
-    return out, sol[:3], sol[3:]
+    out[ok] = r[ok] - (A @ sol).reshape(n, 3)
+    return out, sol[:3], sol[3:], centre
 
 
 def _pooled(df: pd.DataFrame, col: str) -> float:
@@ -515,8 +518,7 @@ def compensate(
         res_all.append(built.residual(q, t))
         pts_all.append(fld.nominal(q, t))
     # one rigid motion of the workpiece frame for the whole setup (every tool offset)
-    mod_all, rig_t, rig_w = rigid_split(np.vstack(res_all), np.vstack(pts_all))
-    centre = np.vstack(pts_all).mean(axis=0)
+    mod_all, rig_t, rig_w, centre = rigid_split(np.vstack(res_all), np.vstack(pts_all))
     for k, t in enumerate(report_tools):
         dp = fld.volumetric(q, t) * 1e3
         r = res_all[k] * 1e3

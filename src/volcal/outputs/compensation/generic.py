@@ -93,12 +93,19 @@ def build(ctx: Context) -> Built:
     per = [a.full_turn for a in axes]
     mins = [8 if a.full_turn else 1 for a in axes]
 
-    def n_nodes(tol: float) -> int:
-        sp = choose_spacing([a.length for a in axes], S, tol, min_intervals=mins)
+    def n_nodes(tol: float, scale: float = 1.0) -> int:
+        """Grid nodes at ``tol`` from the curvature estimate times ``scale`` (the factor
+        the refinement in ``grid`` found the estimate short by)."""
+        sp = choose_spacing([a.length for a in axes], S * scale, tol, min_intervals=mins)
         return int(np.prod([len(uniform_nodes(a.lo, a.hi, sp.h[j])) for j, a in enumerate(axes)]))
 
-    def grid(tol: float):
-        scale, measured = 1.0, np.inf
+    # the factor the curvature estimate was found short by (interpolation error ~ S h^2,
+    # so a grid at scale s that measured m > tol needed at least s m / tol): the node
+    # counts of the hints use it, not the bare estimate
+    learnt = [1.0]
+
+    def grid(tol: float, scale: float = 1.0):
+        measured = np.inf
         for _ in range(5):
             sp = choose_spacing([a.length for a in axes], S * scale, tol, min_intervals=mins)
             nodes = [uniform_nodes(a.lo, a.hi, sp.h[j]) for j, a in enumerate(axes)]
@@ -120,19 +127,20 @@ def build(ctx: Context) -> Built:
             for k in range(len(tools)):
                 d = multilinear(nodes, vals[k], qv, per) - exact[k]
                 err = max(err, float(np.max(np.linalg.norm(d, axis=1))) * 1e3)
-            measured = err
+            measured, used = err, scale
             if measured <= tol:
                 break
+            learnt[0] = max(learnt[0], scale * measured / tol)
             scale *= max(1.2, 1.1 * measured / tol)
-        return sp, nodes, vals, measured
+        return sp, nodes, vals, measured, used
 
     grid_tol = ctx.tolerance_um
     chosen_note = None
     if not ctx.options.get("auto_tolerance"):
         try:
-            sp, nodes, vals, measured = grid(grid_tol)
+            sp, nodes, vals, measured, _ = grid(grid_tol)
         except LimitError as exc:
-            fits = [t for t in AUTO_TOLERANCES if n_nodes(t) * len(tools) <= max_points]
+            fits = [t for t in AUTO_TOLERANCES if n_nodes(t, learnt[0]) * len(tools) <= max_points]
             if fits and fits[0] > grid_tol:
                 raise LimitError(f"{exc}; --tolerance {fits[0]:g} fits") from None
             raise
@@ -140,10 +148,10 @@ def build(ctx: Context) -> Built:
         # no tolerance given: the smallest of the ladder whose grid fits the limit
         built = None
         for tol in AUTO_TOLERANCES:
-            if n_nodes(tol) * len(tools) > max_points:
+            if n_nodes(tol, learnt[0]) * len(tools) > max_points:
                 continue
             try:
-                built = grid(tol)
+                built = grid(tol, learnt[0])
             except LimitError:
                 continue
             grid_tol = tol
@@ -160,11 +168,13 @@ def build(ctx: Context) -> Built:
                 + ",".join(f"{v:g}" for v in tools[0])
                 + "), or raise --max-points"
             )
-        sp, nodes, vals, measured = built
+        sp, nodes, vals, measured, scale = built
         if grid_tol != ctx.tolerance_um:
+            # the count at the default with the curvature scale the refinement found
+            need = n_nodes(ctx.tolerance_um, max(scale, learnt[0]))
             chosen_note = (
                 f"volumetric grid tolerance chosen automatically: {grid_tol:g} um (the "
-                f"default {ctx.tolerance_um:g} um would need {n_nodes(ctx.tolerance_um):,} "
+                f"default {ctx.tolerance_um:g} um would need {need:,} "
                 f"nodes x {len(tools)} tool offset(s), more than the limit of "
                 f"{max_points:,}); give --tolerance to choose another"
             )

@@ -434,12 +434,10 @@ def component_tables(
 @dataclass(eq=False)
 class AxisTable:
     """One 1-D table: ``values`` at ``nodes`` of axis ``input`` (internal units) added to
-    the command of axis ``output`` (mm, or rad for a rotary output).  ``multiplier``: the
-    index of another table whose value multiplies this one; the product is added *in
-    addition to* this table's own value (SINUMERIK's table multiplication).  kind:
-    ``base`` (a function of one axis), ``carrier`` (the factor of a product),
-    ``multiplier`` (the other factor: the axis position), ``own`` (a rotary axis'
-    positioning error corrected on that axis)."""
+    the command of axis ``output`` (mm, or rad for a rotary output).  kind: ``base`` (a
+    function of another axis), ``lec`` (a linear axis over its own position), ``own`` (a
+    rotary axis' positioning error corrected on that axis).  No table multiplies another:
+    its factor would hold a position (siemens module docstring)."""
 
     input: str
     output: str
@@ -447,8 +445,6 @@ class AxisTable:
     values: np.ndarray
     periodic: bool
     kind: str = "base"
-    multiplier: int | None = None
-    label: str = ""  # what a multiplier holds (``position of X``, ``cos(C)``)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         return interp1(self.nodes, self.values, x, periodic=self.periodic)
@@ -458,12 +454,8 @@ def table_corrections(field, tables: list[AxisTable], q: np.ndarray) -> np.ndarr
     """Axis corrections (N, n_axes), internal units, that ``tables`` give at poses q."""
     q = np.atleast_2d(np.asarray(q, float))
     c = np.zeros((len(q), field.n_axes))
-    vals = [t(q[:, field.axis(t.input).index]) for t in tables]
-    for t, v in zip(tables, vals):
-        o = field.axis(t.output).index
-        c[:, o] += v
-        if t.multiplier is not None:
-            c[:, o] += v * vals[t.multiplier]
+    for t in tables:
+        c[:, field.axis(t.output).index] += t(q[:, field.axis(t.input).index])
     return c
 
 
@@ -544,8 +536,7 @@ def fit_tables(
 ) -> None:
     """Least-squares values of ``tables`` (in place) so that their sum per output axis
     matches ``target`` (N, len(outputs)) at poses q; tables listed in ``fixed`` keep
-    their values (their contribution is taken from the target first).  A carrier's
-    column is its hat functions times (1 + the multiplier's value).  Values common to
+    their values (their contribution is taken from the target first).  Values common to
     several tables (constants) are split by a tiny ridge."""
     from scipy import sparse
 
@@ -562,9 +553,6 @@ def fit_tables(
                 y -= vals[i]
                 continue
             H = hat_matrix(t.nodes, q[:, field.axis(t.input).index], periodic=t.periodic)
-            if t.multiplier is not None:
-                m = tables[t.multiplier]
-                H = sparse.diags(1.0 + m(q[:, field.axis(m.input).index])) @ H
             cols.append(H)
             owners.append((i, H.shape[1]))
         if not cols:

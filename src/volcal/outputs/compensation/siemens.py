@@ -313,7 +313,6 @@ def build(ctx: Context) -> Built:
                     min=f"{xs[0]:.6f}",
                     max=f"{xs[-1]:.6f}",
                     modulo=int(t.periodic),
-                    mult=None,
                 )
             )
         ltab = []

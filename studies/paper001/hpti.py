@@ -1,4 +1,11 @@
-"""Paper 001's simultaneous three-laser telescopic instrument (HPTI): model, simulator, solvers.
+"""Paper 001's simultaneous three-laser telescopic instrument (HPTI): the study's simulator,
+noise model, solvers and trial runner.
+
+Study code (it moved here from ``volcal.analysis.multilaser``): the library's instrument is
+:class:`volcal.measurement.instruments.multilaser.MultiLaserInstrument`, whose CasADi reading
+the estimator below evaluates; the study's own NLP (points as unknowns, the Levenberg-damped
+solve of the rank-deficient joint problem, the variable scalings its tables compare) is not
+a volcal problem, see studies/paper001/README.md.
 
 Aguado, Brosed, Acero, Aguilar, Santolaria, Pueo, "Influence of high precision telescopic
 instrument characterization on multilateration points accuracy", IOP Conf. Ser. Mater. Sci.
@@ -116,6 +123,7 @@ import casadi as ca
 import numpy as np
 
 from volcal.analysis import analyse_jacobian
+from volcal.base.threads import set_blas_threads
 from volcal.measurement.budget import PAPER001_DRIFT, DriftModel
 from volcal.measurement.instruments.multilaser import FRAME_NAMES, MultiLaserInstrument
 from volcal.measurement.multilateration import multilaterate
@@ -139,11 +147,13 @@ __all__ = [
     "section5_experiment",
     "simulate",
     "HPTIEstimator",
+    "CoreEstimator",
+    "point_cloud_spec",
     "JacobianReport",
     "Estimate",
     "trial_rng",
     "StudyRunner",
-    "limit_blas_threads",
+    "TrialKernel",
     "Case",
     "cases_from_config",
     "experiment_from_config",
@@ -955,28 +965,216 @@ class HPTIEstimator:
 
 
 # --------------------------------------------------------------------------------------
-# BLAS threads
+# the same estimation through volcal's core (identify's one problem and solvers)
 
 
-def limit_blas_threads(n: int | dict = 1) -> dict:
-    """Limit BLAS to ``n`` threads (or restore a state returned by an earlier call); returns
-    the previous state.  See :mod:`volcal.base.threads` for why."""
-    from threadpoolctl import threadpool_info, threadpool_limits
+def point_cloud_spec(n_points: int) -> Any:
+    """A volcal machine whose error parameters are the deviations of ``n_points`` points
+    from their nominal positions (mm), so that free points are the unknowns of volcal's one
+    identification problem.
 
-    before = {
-        i["filepath"]: i["num_threads"] for i in threadpool_info() if i.get("user_api") == "blas"
-    }
-    if isinstance(n, dict):
-        for path, k in n.items():
-            threadpool_limits(limits={path: k})
-    else:
-        threadpool_limits(limits=int(n), user_api="blas")
-    return before
+    One linear axis ``P`` whose position is the point's index, with the translational
+    error motions EXP, EYP, EZP as tables with a knot at every index (piecewise linear:
+    at an index exactly the knot's value) and no other error; the nominal point enters as
+    the tool offset (mm) of its readings, so the tool point of pose k is
+    ``(k, 0, 0) + tool offset + (EXP, EYP, EZP)@k = nominal_k + deviation_k``.  The
+    structural point of the core (errors zero, where gauge and datum are decided) is then
+    the nominal point cloud."""
+    from volcal.model.spec import AxisSpec, ErrorForm, MachineSpec
+
+    n = int(n_points)
+    knots = tuple(float(k) for k in range(n))
+    axis = AxisSpec(
+        "P",
+        "linear",
+        "+x",
+        "tool",
+        (0.0, float(n - 1)),
+        errors=("EXP", "EYP", "EZP"),
+        location="none",
+        basis=ErrorForm("table", knots=knots),
+    )
+    return MachineSpec(f"pointcloud{n}", (axis,), "free points (paper 001)", tool_errors="none")
+
+
+class CoreEstimator:
+    """The NLP strategies of :class:`HPTIEstimator` through volcal's core: the one problem
+    of :class:`volcal.analysis.identify.Identifier` with the :class:`MultiLaserInstrument`
+    on the point cloud of :func:`point_cloud_spec`.
+
+    Variables: the points' deviations from nominal (``errors``), the lasers' origins and
+    offsets (``stations``; the ICRS convention holds 6 of the 9 coordinates) and the frame
+    (``frame``).  points-only and two-phase are :class:`volcal.problem.strategies.PhasedStrategy`
+    objects run by ``Identifier.run`` (IPOPT, then the core's Gauss-Newton polish).  joint:
+    the gauge (null directions over the points and the frame, the stations held) is found
+    by ``Identifier.analyse`` and held on its pivots (the frame); the null directions that
+    remain (x1 x2 y2, and the offsets when free, trade against the points) are left to the
+    core's fixed-metric Levenberg solve
+    (:meth:`volcal.solve.gauss_newton.GaussNewtonSolver.solve_levenberg`) with the study's
+    damping: ``damping_rel`` times the mean diagonal of J^T J over the free variables in
+    the scaling ``scaling`` (``"units"``: 1 um / 1 urad; ``"jacobian"``: unit Jacobian
+    columns at the start)."""
+
+    def __init__(self, n_points: int) -> None:
+        from volcal.analysis.identify import Identifier
+        from volcal.model.errors import ErrorModel
+        from volcal.model.machine import Machine
+        from volcal.problem.residuals import Layout
+
+        N = self.n_points = int(n_points)
+        spec = point_cloud_spec(N)
+        layout = Layout(np.tile(np.arange(3), N), 3, LASERS, np.repeat(np.arange(N), 3))
+        self.identifier = Identifier(
+            Machine.from_model(spec),
+            ErrorModel(spec, datum="none"),
+            layout,
+            instrument=MultiLaserInstrument(),
+        )
+        pr = self.identifier.problem
+        self._q = np.repeat(np.arange(N, dtype=float), 3)[:, None]
+        names = pr.names
+        self._geometry = [names.index(n) for n in ("laser2.x_mm", "laser3.x_mm", "laser3.y_mm")]
+        self._offsets = [names.index(f"{lz}.offset_mm") for lz in LASERS]
+        # the ICRS convention (the instrument's own held station parameters)
+        self._icrs = self.identifier.station_fixed(np.zeros(3, bool))
+        # joint: (held mask with the gauge pivots, rank deficient after them) per free set;
+        # decided once, at the structural point (nominal points), as the study does
+        self._joint_cache: dict[tuple, tuple[np.ndarray, bool]] = {}
+
+    def data(self, data: HPTIData, weights: np.ndarray | float) -> np.ndarray:
+        """The problem's data vector p: pose index, nominal point as tool offset, readings
+        (mm) and weights 1/sigma (1/mm), laser 1..3 per point."""
+        N = self.n_points
+        tool = np.repeat(data.points_nominal - np.c_[np.arange(N), np.zeros((N, 2))], 3, axis=0)
+        w = np.broadcast_to(np.asarray(weights, float), (N, 3)).ravel()
+        return self.identifier.problem.pack_data(self._q, tool, data.lengths.ravel(), w)
+
+    def start(self, points_machine: np.ndarray, data: HPTIData, inst: HPTI) -> np.ndarray:
+        """x (physical units) from points (machine frame, mm) and an instrument state."""
+        dev = np.asarray(points_machine, float) - data.points_nominal
+        g, o = inst.geometry, inst.offsets
+        st = np.array([[0, 0, 0, o[0]], [g[0], 0, 0, o[1]], [g[1], g[2], 0, o[2]]], float)
+        return self.identifier.problem.pack_x(dev.T.ravel(), st, np.asarray(inst.frame, float))
+
+    def unpack(self, x: np.ndarray, data: HPTIData) -> tuple[np.ndarray, HPTI]:
+        """(points, machine frame mm; instrument state) from x."""
+        theta, st, frame = self.identifier.problem.unpack_x(x)
+        points = data.points_nominal + theta.reshape(3, -1).T
+        return points, HPTI((st[1, 0], st[2, 0], st[2, 1]), tuple(st[:, 3]), tuple(frame))
+
+    def estimate(
+        self,
+        data: HPTIData,
+        strategy: str,
+        accuracy: float = 1.0,
+        *,
+        scale_instrument: bool = False,
+        weights: np.ndarray | float = 1.0,
+        phase1: Sequence[str] = ("frame", "geometry", "offsets"),
+        joint_groups: Sequence[str] = ("points", "frame", "geometry", "offsets"),
+        scaling: str = "units",
+        damping_rel: float = 1e-5,
+    ) -> Estimate:
+        """As :meth:`HPTIEstimator.estimate` for ``"points-only"``, ``"two-phase"`` (all
+        calibration points) and ``"joint"``, from the same start values (points
+        a * nominal, x1 x2 y2 analytic, characterised offsets, frame identity)."""
+        if strategy not in ("points-only", "two-phase", "joint"):
+            raise ValueError(
+                f"strategy {strategy!r} is not run through the core here; "
+                "expected 'points-only', 'two-phase' or 'joint'"
+            )
+        for key, groups, allowed in (
+            ("phase1", phase1, GROUPS[1:]),
+            ("joint_groups", joint_groups, GROUPS),
+        ):
+            bad = sorted(set(groups) - set(allowed))
+            if bad:
+                raise ValueError(f"{key}: unknown group(s) {bad}; expected {allowed}")
+        if scaling not in ("units", "jacobian"):
+            raise ValueError(f"scaling must be 'units' or 'jacobian', got {scaling!r}")
+        a = float(accuracy)
+        geom, off = data.geometry_analytic, np.asarray(data.offsets_characterised, float)
+        if scale_instrument and strategy != "points-only":
+            geom, off = a * geom, a * off
+        x0 = self.start(a * data.points_nominal, data, HPTI(tuple(geom), tuple(off)))
+        p = self.data(data, weights)
+        t0 = time.perf_counter()
+        if strategy == "joint":
+            x, outs = self._joint(x0, p, tuple(joint_groups), scaling, float(damping_rel))
+        else:
+            x, outs = self._phased(strategy, x0, p, phase1)
+        PM, inst = self.unpack(x, data)
+        return Estimate(
+            strategy,
+            inst.to_instrument(PM),
+            PM,
+            inst,
+            all(o.success for o in outs),
+            [o.status for o in outs],
+            sum(o.iterations for o in outs),
+            time.perf_counter() - t0,
+        )
+
+    def _joint(self, x0, p, groups: tuple[str, ...], scaling: str, damping_rel: float):
+        """The joint step: gauge held on its pivots, the rest by the core's fixed-metric
+        Levenberg solve (see the class docstring)."""
+        idf = self.identifier
+        key = (groups, scaling)
+        if key not in self._joint_cache:
+            held = self._icrs.copy()
+            if "points" not in groups:
+                held |= idf.is_theta
+            if "frame" not in groups:
+                held |= idf.is_frame
+            if "geometry" not in groups:
+                held[self._geometry] = True
+            if "offsets" not in groups:
+                held[self._offsets] = True
+            gauge = idf.analyse(x0, p, held | idf.is_station)
+            fixed = held.copy()
+            fixed[list(gauge.pivots)] = True
+            deficient = len(idf.analyse(x0, p, fixed).pivots) > 0
+            self._joint_cache[key] = (fixed, deficient)
+        fixed, deficient = self._joint_cache[key]
+        free = ~fixed
+        _, J = idf.jacobian(x0, p)  # whitened, wrt the scaled variables (1 um, 1 urad)
+        norms = np.linalg.norm(J, axis=0)
+        # the solver's metric: scaled variable z = u * c (u in 1 um / 1 urad), c = 1 or the
+        # column norms at the start; damping mu I in z is mu c^2 in u
+        c = np.where(norms > 0, norms, 1.0) if scaling == "jacobian" else np.ones_like(norms)
+        mu = damping_rel * float(np.mean((norms[free] / c[free]) ** 2)) if deficient else 0.0
+        out = idf.gauss_newton.solve_levenberg(x0, p, mu * c**2, fixed=fixed, max_iter=200)
+        return out.x, [out]
+
+    def _phased(self, strategy: str, x0, p, phase1: Sequence[str]):
+        """points-only and two-phase as core strategies run by ``Identifier.run``."""
+        from volcal.problem.strategies import POINTS_ONLY, Phase, PhasedStrategy
+
+        held = self._icrs.copy()
+        if strategy == "points-only":
+            strat = POINTS_ONLY
+        else:
+            # phase 1: the instrument groups of ``phase1`` on the points held at their start
+            # values (not zeroed, as the study's); phase 2: the points alone
+            if "geometry" not in phase1:
+                held[self._geometry] = True
+            if "offsets" not in phase1:
+                held[self._offsets] = True
+            hold1 = {"errors"} | ({"frame"} if "frame" not in phase1 else set())
+            strat = PhasedStrategy(
+                "paper001 two-phase",
+                "the instrument on the start points, then the points",
+                (
+                    Phase(hold=frozenset(hold1), datum=False, pivots=False),
+                    Phase(hold=frozenset({"stations", "frame"})),
+                ),
+            )
+        x, outs, _, _ = self.identifier.run(strat, x0, p, user_fixed=held)
+        return x, outs
 
 
 # --------------------------------------------------------------------------------------
-# Monte Carlo study (used by studies/paper001/run.py; importable so that worker processes
-# find it)
+# Monte Carlo study (used by run.py; importable so that worker processes find it)
 
 
 def trial_rng(seed: int, index: int) -> np.random.Generator:
@@ -1111,6 +1309,8 @@ class StudyRunner:
     :attr:`cases`."""
 
     def __init__(self, cfg: dict, scenario: str | None = None, *, threads_one: bool = True):
+        """threads_one: limit BLAS to one thread for the rest of the process (small SVDs;
+        several processes share the cores)."""
         st = cfg.get("study", {})
         self.cfg = cfg
         self.scenario = scenario
@@ -1125,7 +1325,7 @@ class StudyRunner:
         self.scale_instrument = applies == "points+instrument"
         self.cases = cases_from_config(cfg)
         if threads_one:
-            limit_blas_threads(1)
+            set_blas_threads(1)
         self.estimator = HPTIEstimator(self.experiment.n_points)
         # weights 1 / nominal reading uncertainty (uniform: they scale the objective, which
         # matters only to the damping of rank-deficient steps)
@@ -1200,15 +1400,25 @@ class StudyRunner:
         return out
 
 
-_RUNNER: StudyRunner | None = None
+class TrialKernel:
+    """The trials of one scenario as a kernel of
+    :func:`volcal.analysis.uncertainty.parallel.run_chunks` (a chunk is a list of trial
+    indices): the :class:`StudyRunner` (one IPOPT build) is made on first use in each
+    process and never pickled, so a worker builds its own."""
 
+    def __init__(self, cfg: dict, scenario: str | None = None) -> None:
+        self.cfg, self.scenario = cfg, scenario
+        self._runner: StudyRunner | None = None
 
-def _worker_init(cfg: dict, scenario: str | None) -> None:
-    """Process-pool initializer: build the study runner (and its solver) once per worker."""
-    global _RUNNER
-    _RUNNER = StudyRunner(cfg, scenario)
+    def __getstate__(self) -> dict:
+        return {"cfg": self.cfg, "scenario": self.scenario, "_runner": None}
 
+    @property
+    def runner(self) -> StudyRunner:
+        if self._runner is None:
+            self._runner = StudyRunner(self.cfg, self.scenario)
+        return self._runner
 
-def _worker_trials(indices: Sequence[int]) -> list[dict]:
-    assert _RUNNER is not None, "worker not initialised"
-    return [_RUNNER.trial(k) for k in indices]
+    def run_chunk(self, indices: Sequence[int]) -> list[dict]:
+        """:meth:`StudyRunner.trial` of every index."""
+        return [self.runner.trial(k) for k in indices]
