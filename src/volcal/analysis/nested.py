@@ -21,7 +21,8 @@ is built once, for the largest orders, and each candidate is a set of held colum
   step 1e-9 in solver units): the fixed point has zero reduced gradient, the minimiser
   IPOPT and the polish reach.  A candidate that does not converge so is solved by
   Levenberg-Marquardt from where it stopped.  Warm start: the solved candidate with the
-  nearest set of columns.  It also stops where the step promises less than the rounding
+  nearest set of columns, its first step from that candidate's last gradient carried over
+  by the kept matrix (no evaluation).  It also stops where the step promises less than the rounding
   level of the sum of squares (Gauss-Newton's other test);
 * no covariance, null space of the field, adequacy or result tables: the caller identifies
   the chosen model in full.
@@ -87,7 +88,8 @@ class NestedFits:
         self.R0 = _r_factor(np.array(J0, float))
         self.C_all = np.zeros((pr.C_all.shape[0], pr.n_x))
         self.C_all[:, : pr.n_theta] = pr.C_all * pr.scale[None, : pr.n_theta]
-        self._solved: list[tuple[np.ndarray, np.ndarray]] = []  # (free columns, x)
+        #: solved candidates: (free columns, x physical, x scaled, gradient J^T r there)
+        self._solved: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         #: the kept Gram matrix J^T J (scaled unknowns) of the chord iteration
         self.gram = self.R0.T @ self.R0
         #: gradient and Gram evaluations so far (the cost of the candidates)
@@ -142,15 +144,16 @@ class NestedFits:
         # warm start: the solved candidate with the fewest columns of difference; the
         # columns this one holds at zero, its pivots at their start values
         x = self.x0.copy()
+        warm = None
         if self._solved:
             near = min(self._solved, key=lambda s: int(np.sum(s[0] != free_cols)))
-            x = near[1].copy()
+            x, warm = near[1].copy(), (near[2], near[3])
         x[~free_cols] = 0.0
         x[pivot] = np.where(ider.is_theta[pivot], 0.0, self.x0[pivot])
-        x, chi2, status, iterations = self._chord(x, fixed)
+        x, chi2, status, iterations, g = self._chord(x, fixed, warm)
         ok = status in ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-        if ok:
-            self._solved.append((free_cols, x))
+        if ok and g is not None:
+            self._solved.append((free_cols, x, pr.to_scaled(x), g))
         return NestedFit(
             chi2,
             int(ident.rank),
@@ -162,10 +165,18 @@ class NestedFits:
         )
 
     def _chord(
-        self, x: np.ndarray, fixed: np.ndarray, *, max_iter: int = 30
-    ) -> tuple[np.ndarray, float, str, int]:
+        self,
+        x: np.ndarray,
+        fixed: np.ndarray,
+        warm: tuple[np.ndarray, np.ndarray] | None = None,
+        *,
+        max_iter: int = 30,
+    ) -> tuple[np.ndarray, float, str, int, np.ndarray | None]:
         """Minimise from x (physical) with ``fixed`` held (module docstring); returns (x,
-        chi2, status, iterations)."""
+        chi2, status, iterations, the gradient J^T r at x (scaled; None after the
+        fallback)).  warm: (x scaled, gradient) of the solved candidate x comes from: the
+        first step takes the gradient there carried to x by the kept matrix (a linear
+        prediction, no evaluation); convergence is judged on evaluated gradients only."""
         ider = self.identifier
         pr, gn = ider.problem, ider.gauss_newton
         Z = feasible_basis(pr, fixed)
@@ -173,6 +184,9 @@ class NestedFits:
         last = np.inf
         try:
             factor = sla.cho_factor(Z.T @ self.gram @ Z, check_finite=False)
+            if warm is not None:
+                g_pred = warm[1] + self.gram @ (xs - warm[0])
+                xs = xs - Z @ sla.cho_solve(factor, Z.T @ g_pred, check_finite=False)
             for it in range(1, max_iter + 1):
                 f, g = (v.full().ravel() for v in pr.grad_f(xs, self.p))
                 self.gradients += 1
@@ -185,7 +199,7 @@ class NestedFits:
                 if pred < 1e-13 * max(float(f[0]), 1.0):
                     # the step promises less than the rounding level of f: converged
                     # (Gauss-Newton's own test, volcal.solve.gauss_newton)
-                    return pr.from_scaled(xs), 2.0 * float(f[0]), "Solve_Succeeded", it
+                    return pr.from_scaled(xs), 2.0 * float(f[0]), "Solve_Succeeded", it, g
                 if size > 0.25 * last:
                     # slow or diverging: the kept matrix is far from this point; take
                     # J^T J here and redo the step
@@ -196,11 +210,11 @@ class NestedFits:
                     dx = -Z @ sla.cho_solve(factor, Z.T @ g, check_finite=False)
                     size = float(np.max(np.abs(dx))) if dx.size else 0.0
                 if size <= gn.step_tol:
-                    return pr.from_scaled(xs), 2.0 * float(f[0]), "Solve_Succeeded", it
+                    return pr.from_scaled(xs), 2.0 * float(f[0]), "Solve_Succeeded", it, g
                 last = size
                 xs = xs + dx
         except (sla.LinAlgError, ValueError):
             pass  # the reduced Gram matrix is not positive definite: Levenberg-Marquardt
         out = gn.solve(pr.from_scaled(xs), self.p, fixed=fixed)
         f = 2.0 * out.f if np.isfinite(out.f) else float("nan")
-        return np.array(out.x, float), f, out.status, max_iter + out.iterations
+        return np.array(out.x, float), f, out.status, max_iter + out.iterations, None
