@@ -163,6 +163,35 @@ def test_symbolic_criterion_and_gradient_match_the_numeric_one():
     assert np.allclose(g, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
 
 
+def test_written_out_gradient_is_the_criterion_s_derivative():
+    """The gradient IPOPT gets (written out, not AD) against central differences of the
+    criterion and against AD of it, for every smooth criterion, away from the reference
+    design."""
+    import casadi as ca
+
+    _, _, _, ev, sel = _evaluator()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ev.freeze(S_LEFT_RIGHT, sel)
+    S = S_LEFT_RIGHT + np.random.default_rng(1).normal(0, 40, S_LEFT_RIGHT.shape)
+    w = ev.weights(S, sel)
+    s = ca.MX.sym("s", S.size)
+    for crit in ("I", "A", "D"):
+        f, fg = ev.criterion_functions(crit, sel)
+        value, g = (np.asarray(v, float).ravel() for v in fg(S.ravel(), w))
+        assert value[0] == pytest.approx(float(f(S.ravel(), w)), rel=1e-12)
+        ad = np.asarray(ca.Function("g", [s], [ca.gradient(f(s, w), s)])(S.ravel())).ravel()
+        h = 1e-3  # mm
+        fd = np.array(
+            [
+                (float(f(S.ravel() + h * e, w)) - float(f(S.ravel() - h * e, w))) / (2 * h)
+                for e in np.eye(S.size)
+            ]
+        )
+        assert np.allclose(g, ad, rtol=1e-7, atol=1e-9 * np.abs(ad).max()), crit
+        assert np.allclose(g, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max()), crit
+
+
 def test_criterion_rows_are_the_identification_jacobian():
     """The evaluator's information is J^T J of the problem's own Jacobian (the rows
     identify solves with), restricted to the free directions."""
@@ -387,9 +416,18 @@ def test_cli_plan_writes_a_plan_identify_can_read(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text('model = "mcv754_wxyzt"\nstation = 4\n')
     r = subprocess.run(
-        [sys.executable, "-m", "volcal.cli.main", "plan", "--setting", str(bad),
-         "--out", str(tmp_path / "x")],
-        capture_output=True, text=True,
+        [
+            sys.executable,
+            "-m",
+            "volcal.cli.main",
+            "plan",
+            "--setting",
+            str(bad),
+            "--out",
+            str(tmp_path / "x"),
+        ],
+        capture_output=True,
+        text=True,
     )
     assert r.returncode == 2 and "station" in r.stderr and "bad.toml" in r.stderr
     assert not (tmp_path / "x").exists()
@@ -423,9 +461,18 @@ def test_bad_constraints_name_the_setting_file(tmp_path):
     bad = tmp_path / "bad_box.toml"
     bad.write_text('model = "mcv754_wxyzt"\n[[constraints.region]]\nbox = [[0, 0, 0]]\n')
     r = subprocess.run(
-        [sys.executable, "-m", "volcal.cli.main", "plan", "--setting", str(bad),
-         "--out", str(tmp_path / "x")],
-        capture_output=True, text=True,
+        [
+            sys.executable,
+            "-m",
+            "volcal.cli.main",
+            "plan",
+            "--setting",
+            str(bad),
+            "--out",
+            str(tmp_path / "x"),
+        ],
+        capture_output=True,
+        text=True,
     )
     assert r.returncode == 2, r.stderr
     assert "bad_box.toml" in r.stderr and "region[0]" in r.stderr and "box" in r.stderr

@@ -96,6 +96,15 @@ def test_dense_jacobian_is_the_problems_jacobian(model, instrument):
         h[j] = 1e-3
         fd = (np.asarray(pr.residual(xs + h, p)) - np.asarray(pr.residual(xs - h, p))).ravel()
         assert np.max(np.abs(fd / 2e-3 - J_np[:, j])) <= 1e-6 * max(scale, 1.0), (model, j)
+    # the R factor the analyses use, accumulated station by station in blocks of a few
+    # readings without forming J: the same J^T J and singular values as CasADi's J
+    r_f, R = DenseJacobian(pr).r_factor(xs, p, block_rows=7)
+    assert R.shape == (pr.n_x, pr.n_x) and np.all(np.tril(R, -1) == 0)
+    assert np.array_equal(r_f, r_np)
+    gram = J_ca.T @ J_ca
+    assert np.max(np.abs(R.T @ R - gram)) <= 1e-12 * np.abs(gram).max()
+    s_ref = np.linalg.svd(J_ca, compute_uv=False)
+    assert np.max(np.abs(np.linalg.svd(R, compute_uv=False) - s_ref)) <= 1e-12 * s_ref[0]
 
 
 def test_gauss_newton_stops_where_the_sum_of_squares_is_at_its_rounding_level(monkeypatch):

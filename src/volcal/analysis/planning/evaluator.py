@@ -231,8 +231,29 @@ class PlanEvaluator:
         self, criterion: str = "I", selected: np.ndarray | None = None
     ) -> ca.Function:
         """``f(s, w) -> criterion^2`` as a CasADi Function of the station coordinates s
-        (3K, mm) and the weights w of the selected readings (1/mm), for gradient-based
-        placement.
+        (3K, mm) and the weights w of the selected readings (1/mm) (see
+        :meth:`_criterion_graph`)."""
+        return self.criterion_functions(criterion, selected)[0]
+
+    def criterion_functions(
+        self, criterion: str = "I", selected: np.ndarray | None = None
+    ) -> tuple[ca.Function, ca.Function]:
+        """:meth:`symbolic_criterion` and ``(s, w) -> (criterion^2, its gradient wrt s
+        (3K,), per mm)`` from one graph.  The gradient is written out (see
+        :meth:`_criterion_graph`) for IPOPT's ``grad_f``: it equals AD of the first (a
+        test checks it) at about half the cost."""
+        s, w, f, g = self._criterion_graph(criterion, selected)
+        return (
+            ca.Function("plan_criterion", [s, w], [f], ["s", "w"], ["f"]),
+            ca.Function("plan_criterion_grad", [s, w], [f, g], ["s", "w"], ["f", "grad_s"]),
+        )
+
+    def _criterion_graph(
+        self, criterion: str = "I", selected: np.ndarray | None = None
+    ) -> tuple[ca.MX, ca.MX, ca.MX, ca.MX]:
+        """(s, w, f, df/ds): the criterion^2 f as a CasADi expression of the station
+        coordinates s (3K, mm) and the weights w of the selected readings (1/mm), for
+        gradient-based placement, and its gradient wrt s.
 
         Only the stations move, so only the instrument's derivatives change: each row of
         the Jacobian is w d(reading)/d(point) G(pose) for the error parameters and
@@ -269,38 +290,54 @@ class PlanEvaluator:
         # the map lays the (1, 3) and (1, n_ps) row Jacobians side by side
         dp, ds = ca.reshape(dp, 3, N), ca.reshape(ds, ins.n_station_params, N)
         # A = J[:, free] Z without forming J: the theta columns of a row are
-        # w (dp_x G_x + dp_y G_y + dp_z G_z), so A's theta part is
-        # sum_c diag(w dp_c) (G_c Z_theta) with G_c Z_theta fixed (numeric); every free
-        # station parameter adds w d(reading)/d(station) times its row of Z.
+        # w (dp_x G_x + dp_y G_y + dp_z G_z) and a free station parameter j of the row's
+        # station adds w ds_j times its row of Z, so A = sum_b diag(w v_b) H_b over the
+        # 3 + n_ps rows v_b of (dp; ds), with every H_b (N, r) fixed (numeric): G_c
+        # Z_theta, and for ds_j the Z row of parameter j of each reading's station.  One
+        # term per instrument derivative (not per station and parameter): the fewest
+        # N x r operations, whose adjoints dominate the gradient's cost.
         ZZ = np.zeros((pr.n_x, fz.Z.shape[1]))
         ZZ[fz.free] = fz.Z
         r = ZZ.shape[1]
-        A: ca.MX = ca.MX(N, r)
-        for c in range(3):
-            GZ = G[:, c, :] @ ZZ[:nt]  # (N, r)
-            A = A + ca.repmat(w * dp[c, :].T, 1, r) * ca.DM(GZ)
         nps = ins.n_station_params
-        for k in range(K):
-            for j in range(nps):
-                i = nt + nps * k + j
-                if not np.any(ZZ[i]):
-                    continue  # held
-                col = w * ds[j, :].T * ca.DM((st == k).astype(float)) * pr.scale[i]
-                A = A + ca.mtimes(col, ca.DM(ZZ[i][None, :]))
+        H = [G[:, c, :] @ ZZ[:nt] for c in range(3)]
+        for j in range(nps):
+            i = nt + nps * st + j  # parameter j of each reading's station
+            H.append(ZZ[i] * pr.scale[i][:, None])
+        V = ca.vertcat(dp, ds) * ca.repmat(w.T, 3 + nps, 1)  # (3 + n_ps, N)
+        used = [b for b, Hb in enumerate(H) if np.any(Hb)]  # all zero: held, or unmoved
+        A: ca.MX = ca.MX(N, r)
+        for b in used:
+            A = A + ca.repmat(V[b, :].T, 1, r) * ca.DM(H[b])
         M = dense_mtimes(A.T, A)
-        if criterion == "I":
-            # trace(B M^-1 B^T) = trace(M^-1 B^T B): an r x r right-hand side
-            W = self._B.T @ self._B
-            f = ca.trace(ca.solve(M, ca.DM(W))) / self.n_eval
-        elif criterion == "A":
-            Zt = fz.Z[self._theta_rows]
-            f = ca.trace(ca.solve(M, ca.DM(Zt.T @ Zt))) / max(len(self._theta_rows), 1)
+        # f and the r x r matrix Q with df = -<A Q, dA> (times 2): I and A are
+        # trace(M^-1 W) / n, so Q = M^-1 W M^-1 / n; D is det(M)^(-1/r), Q = f M^-1 / r
+        if criterion in ("I", "A"):
+            if criterion == "I":
+                # trace(B M^-1 B^T) = trace(M^-1 B^T B): an r x r right-hand side
+                W, n = self._B.T @ self._B, self.n_eval
+            else:
+                Zt = fz.Z[self._theta_rows]
+                W, n = Zt.T @ Zt, max(len(self._theta_rows), 1)
+            X = ca.solve(M, ca.DM(W))
+            f = ca.trace(X) / n
+            Q = ca.solve(M, X.T) / n
         elif criterion == "D":
             f = ca.exp(-ca.log(ca.det(M)) / M.shape[0])
+            Q = f * ca.inv(M) / M.shape[0]
         else:
             raise ValueError(f"criterion {criterion!r} has no smooth form; use I, A or D")
+        # the gradient written out rather than left to reverse AD: df/dA = -2 A Q, then
+        # df/dv_b per reading = row sums of df/dA * H_b, and the instrument's small
+        # derivative map takes it to s.  Two products of N x r by r x r (M and A Q) through
+        # the dense kernel, where reverse AD of A^T A takes two more through CasADi's
+        # reference loops: about half the cost of an iteration.
+        GA = -2.0 * dense_mtimes(A, Q)
+        dV = ca.MX(3 + nps, N)
+        for b in used:
+            dV[b, :] = ca.sum2(GA * ca.DM(H[b])).T
         self._sym_rows = rows
-        return ca.Function("plan_criterion", [s, w], [f], ["s", "w"], ["f"])
+        return s, w, f, ca.jtimes(V, s, dV, True)
 
     def weights(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
         """1/sigma (1/mm) of the selected readings (the ``w`` of :meth:`symbolic_criterion`)."""
@@ -345,6 +382,7 @@ class Scorer:
         self.free: np.ndarray = np.zeros(0, int)
         self.Z: np.ndarray = np.zeros((0, 0))
         self.B: np.ndarray = np.zeros((0, 0))
+        self.B_r: np.ndarray = np.zeros((0, 0))
         self.theta_rows: np.ndarray = np.zeros(0, int)
         self._call: NumpyCall | None = None
 
@@ -354,6 +392,9 @@ class Scorer:
         """The free variables, the basis of the directions the datum leaves, the scaled
         volumetric map B (3 n_eval, r) and the rows of Z that are error parameters."""
         self.free, self.Z, self.B, self.theta_rows = free, Z, B, theta_rows
+        # the I-criterion needs only B^T B = R^T R: ||L^-1 B^T||_F = ||L^-1 R^T||_F with R
+        # (at most r x r) from a QR of B, a right-hand side of r columns, not 3 n_eval
+        self.B_r = sla.qr(B, mode="r", check_finite=False)[0][: B.shape[1]] if B.size else B
 
     def _frozen(self) -> None:
         if not len(self.free):
@@ -438,7 +479,7 @@ class Scorer:
             return float("inf")
         d = np.diag(L)
         if criterion == "I":
-            X = sla.solve_triangular(L, self.B.T, lower=True)
+            X = sla.solve_triangular(L, self.B_r.T, lower=True)
             return float(np.sqrt(np.sum(X * X) / self.n_eval))
         if criterion == "A":
             X = sla.solve_triangular(L, self.Z[self.theta_rows].T, lower=True)

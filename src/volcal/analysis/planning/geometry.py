@@ -116,6 +116,16 @@ class Region:
         A[len(v) + 1, u], bb[len(v) + 1] = -1.0, -self.low
         return A, bb
 
+    def corners(self) -> np.ndarray:
+        """(2 n, 3) mm: the polygon's vertices at the low and at the high height."""
+        a, b_, u = _plane_axes(self.up)
+        n = len(self.vertices)
+        out = np.empty((2 * n, 3))
+        out[:, a] = np.tile(self.vertices[:, 0], 2)
+        out[:, b_] = np.tile(self.vertices[:, 1], 2)
+        out[:, u] = np.repeat([self.low, self.high], n)
+        return out
+
     def contains(self, s: np.ndarray, tol: float = 1e-6) -> np.ndarray:
         A, b = self.halfspaces()
         s = np.atleast_2d(np.asarray(s, float))

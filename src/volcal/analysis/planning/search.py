@@ -13,10 +13,12 @@ so feasibility is checked (and repaired) station by station.
   Dask, :func:`volcal.analysis.uncertainty.parallel.run_chunks`); the search saves a
   checkpoint after every generation and resumes from it.
 * :func:`gradient_placement`: IPOPT on the station coordinates with exact derivatives of the
-  criterion (CasADi through the problem's Jacobian), the regions, distance, range and
-  acceptance-angle constraints written as smooth inequalities, from several feasible
-  starts; line of sight is checked on each result (a start whose optimum a beam of which
-  is blocked is discarded).  Checkpointed after every start.
+  criterion (CasADi through the problem's Jacobian; the gradient written out, see
+  :meth:`~volcal.analysis.planning.evaluator.PlanEvaluator.criterion_functions`), the
+  regions, distance, range and acceptance-angle constraints written as smooth
+  inequalities (those the station's region cannot break left out: the region implies
+  them), from several feasible starts; line of sight is checked on each result (a start
+  whose optimum a beam of which is blocked is discarded).  Checkpointed after every start.
 * :func:`exchange_poses`: a Fedorov-type exchange of poses between the plan and a candidate
   grid for the I-criterion, with rank-K updates of the information matrix.
 
@@ -335,7 +337,7 @@ def gradient_placement(
         "criterion": criterion,
         "problem": fingerprint,
     }
-    f_sym = ev.symbolic_criterion(criterion, selected)
+    f_sym, fg_sym = ev.criterion_functions(criterion, selected)
     sel = np.ones(len(ev.poses), bool) if selected is None else np.asarray(selected, bool)
     use = sel[ev.pose_of] & (ev.station_of == 0)  # the points of one station's readings
     P = ev.points[use]
@@ -344,19 +346,29 @@ def gradient_placement(
     pp = ca.MX.sym("w", f_sym.size1_in(1))
     f0 = float(scorer.score(initial if initial is not None else sampler.draw(rng, K), selected))
     fscale = 1.0 / max(f0 * f0, 1e-12)
-    g, lbg, ubg = [], [], []
     cos_h = np.cos(np.radians(cons.reflector.half_angle_deg))
+    # the reading constraints of each station: (expression, lower, upper, kind) with one
+    # row per point; kind "distance" rows may be dropped where the station's region
+    # cannot break them (_reading_rows)
+    rows_of: list[list[tuple[ca.MX, np.ndarray, np.ndarray, str]]] = []
     for k in range(K):
         sk = s[3 * k : 3 * k + 3]
         D = ca.repmat(sk.T, len(P), 1) - ca.DM(P)  # beams, point -> station
         d2 = ca.sum2(D * D)
+        mine = []
         if cons.min_distance_mm > 0 or np.isfinite(cons.max_range_mm):
             # in metres: constraint values of order one (IPOPT's scaling is gradient based
             # and a squared range of 3.6e7 mm^2 stalls it)
-            g.append(ca.sqrt(d2) / 1000.0)
-            # small margins inside every limit: IPOPT may end a hair outside (1e-8 scale)
-            lbg.append(np.full(len(P), cons.min_distance_mm / 1000.0 + 1e-6))
-            ubg.append(np.full(len(P), cons.max_range_mm / 1000.0 - 1e-6))
+            mine.append(
+                (
+                    ca.sqrt(d2) / 1000.0,
+                    # small margins inside every limit: IPOPT may end a hair outside (1e-8
+                    # scale)
+                    np.full(len(P), cons.min_distance_mm / 1000.0 + 1e-6),
+                    np.full(len(P), cons.max_range_mm / 1000.0 - 1e-6),
+                    "distance",
+                )
+            )
         if cons.reflector.limited:
             ax: ca.MX | ca.DM
             if cons.reflector.axis is not None:
@@ -364,10 +376,15 @@ def gradient_placement(
             else:
                 a = sk - ca.DM(sampler.centre)
                 ax = ca.repmat((a / ca.norm_2(a)).T, len(P), 1)
-            g.append(ca.sum2(D * ax) / ca.sqrt(d2) - cos_h - 1e-7)
-            lbg.append(np.zeros(len(P)))
-            ubg.append(np.full(len(P), np.inf))
-    g_base = ca.vertcat(*g) if g else ca.MX(0, 1)
+            mine.append(
+                (
+                    ca.sum2(D * ax) / ca.sqrt(d2) - cos_h - 1e-7,
+                    np.zeros(len(P)),
+                    np.full(len(P), np.inf),
+                    "angle" if cons.reflector.axis is not None else "aimed",
+                )
+            )
+        rows_of.append(mine)
     results, history, n_eval = [], [], 0
     state = _load(checkpoint, "gradient", key)
     done_starts: list[np.ndarray] = []
@@ -387,8 +404,11 @@ def gradient_placement(
         # per assignment of stations to regions, built once and reused by later starts
         regions = tuple(_region_of(sampler, S0[k]) for k in range(K)) if cons.regions else ()
         if regions not in solvers:
+            g, lbg, ubg = _reading_rows(rows_of, cons, regions, P, sampler.centre)
+            fv, gv = fg_sym(s, pp)
+            grad_f = ca.Function("grad_f", [s, pp], [fscale * fv, fscale * gv])
             solvers[regions] = _placement_solver(
-                s, pp, fscale * f_sym(s, pp), g_base, lbg, ubg, cons, regions, max_iter
+                s, pp, fscale * f_sym(s, pp), g, lbg, ubg, cons, regions, max_iter, grad_f
             )
         solver, lb_all, ub_all = solvers[regions]
         sol = solver(x0=S0.ravel(), p=ev.weights(S0, selected), lbg=lb_all, ubg=ub_all)
@@ -425,10 +445,58 @@ def gradient_placement(
     )
 
 
-def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter):
-    """IPOPT on the station coordinates ``s`` with weights ``pp``: objective f, the smooth
-    reading constraints g_base and the half-spaces of each station's region ``regions``
-    (indices into ``cons.regions``).  Returns (solver, lbg, ubg)."""
+def _reading_rows(
+    rows_of: list[list[tuple[Any, np.ndarray, np.ndarray, str]]],
+    cons: Constraints,
+    regions: tuple[int, ...],
+    P: np.ndarray,
+    centre: np.ndarray,
+) -> tuple[Any, list[np.ndarray], list[np.ndarray]]:
+    """The reading constraints of every station for one assignment of stations to
+    regions (indices into ``cons.regions``; () when there are none), without those no
+    position in the station's region can break: a minimum distance below the nearest
+    position, a range above the farthest (1 mm to spare), and the acceptance angle of a
+    reflector re-aimed at every set-up (its axis from the workspace ``centre`` to the
+    station) at a point p whose beam cannot turn that far: in the triangle station,
+    centre, p the angle at the station is below arcsin(|p - centre| / |station -
+    centre|) when |p - centre| is the shorter side (0.5 deg to spare).  The region's
+    own constraints imply it, so the feasible set is the same, and IPOPT's cost per
+    iteration grows with the number of constraints (its back-solves dominate once the
+    criterion is cheap).  The plan is checked against every constraint afterwards."""
+    g, lbg, ubg = [], [], []
+    for k, mine in enumerate(rows_of):
+        lo_box = hi_box = None
+        if regions:
+            c = cons.regions[regions[k]].corners()
+            lo_box, hi_box = c.min(0) - 1.0, c.max(0) + 1.0  # mm, with room to spare
+        for expr, lb, ub, kind in mine:
+            lb, ub = lb.copy(), ub.copy()
+            if kind == "distance" and lo_box is not None:
+                # nearest: to the region's bounding box; farthest: a corner (convex)
+                near = np.linalg.norm(P - np.clip(P, lo_box, hi_box), axis=1) / 1000.0
+                far = np.max(np.linalg.norm(P[:, None, :] - c[None], axis=2), axis=1) + 1.0
+                lb[near > lb + 1e-3] = -np.inf
+                ub[far / 1000.0 < ub] = np.inf
+            elif kind == "aimed" and lo_box is not None:
+                d_c = np.linalg.norm(centre - np.clip(centre, lo_box, hi_box))
+                ratio = np.linalg.norm(P - centre, axis=1) / max(d_c, 1e-9)
+                turn = np.degrees(np.arcsin(np.minimum(ratio, 1.0)))
+                lb[(ratio < 1.0) & (turn < cons.reflector.half_angle_deg - 0.5)] = -np.inf
+            keep = np.isfinite(lb) | np.isfinite(ub)
+            if keep.all():
+                g.append(expr)
+            elif keep.any():
+                g.append(expr[np.flatnonzero(keep).tolist()])
+            lbg.append(lb[keep])
+            ubg.append(ub[keep])
+    return (ca.vertcat(*g) if g else ca.MX(0, 1)), lbg, ubg
+
+
+def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter, grad_f):
+    """IPOPT on the station coordinates ``s`` with weights ``pp``: objective f (its value
+    and gradient from the Function ``grad_f(s, pp)``, written out rather than reverse
+    AD), the smooth reading constraints g_base and the half-spaces of each station's
+    region ``regions`` (indices into ``cons.regions``).  Returns (solver, lbg, ubg)."""
     K = s.shape[0] // 3
     gg, lb, ub = [g_base], list(lbg), list(ubg)
     if regions:
@@ -456,6 +524,7 @@ def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter):
             "ipopt.acceptable_tol": 1e-4,
             "ipopt.sb": "yes",
             "ipopt.bound_relax_factor": 0.0,
+            "grad_f": grad_f,
         },
     )
     cat = np.concatenate
@@ -463,6 +532,53 @@ def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter):
 
 
 # ---- pose exchange ---------------------------------------------------------------------
+
+
+def _exchange_effects(
+    A: np.ndarray,
+    blocks: list[np.ndarray],
+    stacked: np.ndarray | None,
+    Minv: np.ndarray,
+    MWM: np.ndarray,
+    sel: np.ndarray,
+    allowed: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(gain, loss) of the trace(W M^-1) criterion per candidate pose: what adding an
+    unselected allowed pose takes off, tr((I + V)^-1 U), and what removing a selected one
+    adds, tr((I - V)^-1 U), with V = A_c M^-1 A_c^T and U = A_c M^-1 W M^-1 A_c^T of the
+    pose's rows A_c; -inf / inf where a pose cannot be added / removed."""
+    gain = np.full(len(sel), -np.inf)
+    loss = np.full(len(sel), np.inf)
+    if stacked is not None:
+        AM = stacked @ Minv  # (n, k, r)
+        At = np.swapaxes(stacked, 1, 2)
+        V, U = AM @ At, (stacked @ MWM) @ At  # (n, k, k)
+        eye = np.eye(V.shape[1])
+        sign = np.where(sel, -1.0, 1.0)[:, None, None]
+        use = sel | allowed
+        try:
+            X = np.linalg.solve(eye + sign[use] * V[use], U[use])
+        except np.linalg.LinAlgError:  # a singular one: pose by pose below
+            pass
+        else:
+            tr = np.trace(X, axis1=1, axis2=2)
+            idx = np.flatnonzero(use)
+            loss[idx[sel[use]]] = tr[sel[use]]
+            gain[idx[~sel[use]]] = tr[~sel[use]]
+            return gain, loss
+    for c, rows in enumerate(blocks):
+        Ac = A[rows]
+        V = Ac @ Minv @ Ac.T
+        U = Ac @ MWM @ Ac.T
+        k = len(rows)
+        if sel[c]:
+            try:  # removing: trace increases by tr((I - V)^-1 U)
+                loss[c] = np.trace(np.linalg.solve(np.eye(k) - V, U))
+            except np.linalg.LinAlgError:
+                loss[c] = np.inf
+        elif allowed[c]:
+            gain[c] = np.trace(np.linalg.solve(np.eye(k) + V, U))
+    return gain, loss
 
 
 def exchange_poses(
@@ -485,6 +601,9 @@ def exchange_poses(
     A = J[:, scorer.free] @ scorer.Z  # (N, r) every reading of every candidate
     pose = scorer.pose_of
     blocks = [np.flatnonzero(pose == c) for c in range(len(sel))]
+    # every candidate has the same readings (each station, each tool offset): one stack
+    # (n_candidates, k, r) scored at once instead of a Python loop over candidates
+    stacked = A[np.array(blocks)] if len({len(b) for b in blocks}) == 1 else None
     M = A[sel[pose]].T @ A[sel[pose]]
     best = scorer.value(M)
     swaps = 0
@@ -493,20 +612,7 @@ def exchange_poses(
     for _ in range(max_exchanges):
         Minv = np.linalg.inv(M)
         MWM = Minv @ W @ Minv
-        gain = np.full(len(sel), -np.inf)
-        loss = np.full(len(sel), np.inf)
-        for c, rows in enumerate(blocks):
-            Ac = A[rows]
-            V = Ac @ Minv @ Ac.T
-            U = Ac @ MWM @ Ac.T
-            k = len(rows)
-            if sel[c]:
-                try:  # removing: trace increases by tr((I - V)^-1 U)
-                    loss[c] = np.trace(np.linalg.solve(np.eye(k) - V, U))
-                except np.linalg.LinAlgError:
-                    loss[c] = np.inf
-            elif allowed[c]:
-                gain[c] = np.trace(np.linalg.solve(np.eye(k) + V, U))
+        gain, loss = _exchange_effects(A, blocks, stacked, Minv, MWM, sel, allowed)
         improved = False
         for add in np.argsort(-gain)[:5]:
             if not np.isfinite(gain[add]):
