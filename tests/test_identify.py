@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from volcal.analysis.identify import identify, rigid_fit
+from volcal.analysis.identify import rigid_fit
 from volcal.base.exceptions import SolverError
 from volcal.measurement.plans import default_stations, grid_plan
 from volcal.measurement.simulate import draw_true_parameters, simulate
 from volcal.model.errors import ErrorForm, ErrorModel
 from volcal.model.machine import Machine
+from volcal.workflow import identify
 
 TOOLS = np.array([[0, 0, 0], [0, 0, -100.0], [80, 0, -100.0], [0, 80, -100.0]])
 
