@@ -196,8 +196,7 @@ def _small_example():
     return ex, m.loc[keep].reset_index(drop=True)
 
 
-def test_same_seed_same_trials_serially_in_processes_and_on_dask():
-    distributed = pytest.importorskip("distributed")
+def test_same_seed_same_trials_serially_in_processes_and_on_dask(dask_client):
     ex, data = _small_example()
     cmp = compare(ex.machine, data, strategies=("joint", "classic"), error_model=ex.error_model,
                   budget=ex.budget, truth=ex.theta_true, trials=1, seed=11, workers=1,
@@ -207,10 +206,7 @@ def test_same_seed_same_trials_serially_in_processes_and_on_dask():
     serial = run_trials(k, 2, workers=1)
     pd.testing.assert_frame_equal(serial.iloc[:2], cmp.trials)
     procs = run_trials(k, 2, workers=2)
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, \
-            distributed.Client(cluster) as client:
-        dask = run_trials(k, 2, scheduler=client)
+    dask = run_trials(k, 2, scheduler=dask_client)
     assert serial["success"].all()
     pd.testing.assert_frame_equal(serial, procs)
     pd.testing.assert_frame_equal(serial, dask)
