@@ -485,7 +485,9 @@ def test_identify_cli_solver_failure_exits_1(case, tmp_path, monkeypatch, capsys
         raise SolverError("identification (joint) did not converge",
                           status="Maximum_Iterations_Exceeded")
 
-    monkeypatch.setattr(volcal.analysis.identify, "identify", fail)
+    # the single fit the workflow layer dispatches to (volcal.workflow.single.fit imports
+    # it at call time), so the failure travels the whole way up to the command
+    monkeypatch.setattr(volcal.analysis.identify, "_identify", fail)
     out = tmp_path / "res"
     code = run_cli(["identify", "--model", "xfyz", "--data", str(case["data"]), "--out",
                     str(out)], monkeypatch)
