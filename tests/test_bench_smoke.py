@@ -5,10 +5,15 @@ import importlib.util
 from pathlib import Path
 
 import pandas as pd
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
+# The benchmark's whole smoke run (volcal and every scipy configuration, each in processes
+# of its own, about 12 s): run by hand for its figures, its table's columns checked in CI's
+# slow step (-m slow); the profiling benchmark's smoke run below stays in the default suite.
+@pytest.mark.slow
 def test_compare_scipy_smoke(tmp_path, capsys):
     spec = importlib.util.spec_from_file_location("compare_scipy",
                                                   ROOT / "benchmarks" / "compare_scipy.py")

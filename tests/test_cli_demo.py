@@ -1,16 +1,9 @@
 """The README's first command: ``volcal demo`` as a user runs it (a separate process, with
 its plotting processes), end to end."""
 
-import subprocess
-import sys
-from pathlib import Path
 
-
-def test_volcal_demo_writes_everything_and_prints_the_summary(tmp_path):
-    exe = Path(sys.executable).parent / "volcal"
-    out = tmp_path / "demo"
-    run = subprocess.run([str(exe), "demo", "--out", str(out)], capture_output=True, text=True,
-                         timeout=600)
+def test_volcal_demo_writes_everything_and_prints_the_summary(demo_run):
+    run, out = demo_run  # tests/conftest.py: the program in its own process, run once
     assert run.returncode == 0, run.stdout + run.stderr
     ident = out / "identification"
     for name in ("component_errors", "volumetric_map", "residuals", "residuals_vs_axes",

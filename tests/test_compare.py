@@ -22,8 +22,8 @@ import pandas as pd
 import pytest
 
 import indep_sim as ind
-from volcal.analysis.compare import compare, modulo_gauge, run_trials, trial_seed
 from volcal.cli.main import main
+from volcal.workflow.comparison import compare, modulo_gauge, run_trials, trial_seed
 
 TOOLS = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0], [80.0, 0.0, 60.0], [0.0, 80.0, 60.0]])
 
@@ -196,8 +196,7 @@ def _small_example():
     return ex, m.loc[keep].reset_index(drop=True)
 
 
-def test_same_seed_same_trials_serially_in_processes_and_on_dask():
-    distributed = pytest.importorskip("distributed")
+def test_same_seed_same_trials_serially_in_processes_and_on_dask(dask_client):
     ex, data = _small_example()
     cmp = compare(ex.machine, data, strategies=("joint", "classic"), error_model=ex.error_model,
                   budget=ex.budget, truth=ex.theta_true, trials=1, seed=11, workers=1,
@@ -207,10 +206,7 @@ def test_same_seed_same_trials_serially_in_processes_and_on_dask():
     serial = run_trials(k, 2, workers=1)
     pd.testing.assert_frame_equal(serial.iloc[:2], cmp.trials)
     procs = run_trials(k, 2, workers=2)
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, \
-            distributed.Client(cluster) as client:
-        dask = run_trials(k, 2, scheduler=client)
+    dask = run_trials(k, 2, scheduler=dask_client)
     assert serial["success"].all()
     pd.testing.assert_frame_equal(serial, procs)
     pd.testing.assert_frame_equal(serial, dask)
@@ -276,7 +272,7 @@ def test_bad_truth_file_names_file_row_and_column(tmp_path, capsys):
 def test_a_failed_strategy_is_reported_and_the_others_compared(monkeypatch, tmp_path):
     """A strategy whose solver fails gets its status in the table, no figures, and the
     command's exit code 1; the other strategies are still compared and written."""
-    import volcal.analysis.compare as mod
+    import volcal.workflow.comparison as mod
     from volcal.base.exceptions import SolverError
     from volcal.outputs.compare_report import format_table, write_comparison
 
@@ -309,10 +305,10 @@ def test_trials_draw_every_repeat_of_a_reading():
     """Data that measure every reading twice: each trial simulates both, with their own
     noise (their differences scatter as sqrt(2) times the reading's standard
     uncertainty), not one reading standing for both."""
-    from volcal.analysis.compare import TrialKernel
     from volcal.measurement.budget import load_budget
     from volcal.measurement.simulate import example
     from volcal.measurement.tables import load_measurements, load_stations
+    from volcal.workflow.comparison import TrialKernel
 
     ex = example("mcv754")
     sim = ex.simulate()

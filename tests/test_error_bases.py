@@ -1,6 +1,6 @@
 """Error bases (volcal.model.errors): Fourier for rotary axes, cubic B-splines, their declaration in
 model files, the API and the command line, the result round trip, and ``degree="auto"``
-(volcal.analysis.order_selection) on simulated data."""
+(volcal.workflow.orders) on simulated data."""
 from __future__ import annotations
 
 import warnings
@@ -342,8 +342,8 @@ def _truth(machine, high: bool) -> tuple[ErrorModel, np.ndarray]:
 @pytest.mark.filterwarnings("ignore:.*tool offset")
 @pytest.mark.parametrize("high", [True, False])
 def test_degree_auto_follows_the_truth(xfyz_case, tmp_path, high):
-    from volcal.analysis.identify import identify
     from volcal.outputs.results import save_result
+    from volcal.workflow import identify
 
     machine, plan = xfyz_case
     em_true, theta = _truth(machine, high)
@@ -372,8 +372,8 @@ def test_degree_auto_follows_the_truth(xfyz_case, tmp_path, high):
 
 @pytest.mark.filterwarnings("ignore:.*tool offset")
 def test_degree_auto_cross_validation(xfyz_case):
-    from volcal.analysis.order_selection import select_orders
     from volcal.measurement.plans import grid_plan
+    from volcal.workflow.orders import select_orders
 
     machine, _ = xfyz_case
     em_true, theta = _truth(machine, True)

@@ -11,10 +11,11 @@ import pytest
 
 import fusion_sim as fs
 import indep_sim as ind
-from volcal.analysis.identify import field_jacobian, identify
+from volcal.analysis.identify import field_jacobian
 from volcal.base.exceptions import InputError
 from volcal.measurement.instruments import Ballbar, LaserInterferometer, get_instrument
 from volcal.model.spec import resolve_model
+from volcal.workflow import identify
 
 MODEL = "mcv754_wxyzt"
 LINES = [

@@ -1,11 +1,11 @@
 """`volcal report` and volcal.outputs.html_report: one self-contained HTML document.
 
-Two result folders, each made once per module: the demo (MCV 754, `run_demo`, with
-plots, plus a generic compensation export) and a poor fit of the same readings (one tool
-offset, Legendre degree 1: the model does not fit and some parameters are not
-identifiable), written without plots.  The browser test runs only where a Chromium is
-installed (CI installs one in .ci/run); the README's screenshots of the report are
-written by `python docs/make_images.py --only report`.
+Two result folders, each made once: the demo (MCV 754, `volcal demo` run once per session
+in tests/conftest.py, with plots; plus a generic compensation export) and a poor fit of
+the same readings (one tool offset, Legendre degree 1: the model does not fit and some
+parameters are not identifiable), written without plots.  The browser test runs only where
+a Chromium is installed (CI installs one in .ci/run); the README's screenshots of the
+report are written by `python docs/make_images.py --only report`.
 """
 from __future__ import annotations
 
@@ -64,16 +64,16 @@ def parse(html: str) -> Refs:
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    from volcal.cli.commands.demo import run_demo
+def demo(tmp_path_factory, demo_run):
     from volcal.outputs.compensation import compensate
 
+    run, folder = demo_run
+    assert run.returncode == 0, run.stdout + run.stderr
     tmp = tmp_path_factory.mktemp("report")
-    run_demo(tmp / "demo")
-    result = tmp / "demo" / "identification"
+    result = folder / "identification"
     comp = tmp / "comp"
     compensate(result, "generic", comp)
-    return {"tmp": tmp, "result": result, "comp": comp}
+    return {"tmp": tmp, "demo": folder, "result": result, "comp": comp}
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +84,7 @@ def poor(demo):
     from volcal.measurement.simulate import example
     from volcal.outputs.results import save_result
 
-    m = pd.read_csv(demo["tmp"] / "demo" / "simulation" / "measurements.csv")
+    m = pd.read_csv(demo["demo"] / "simulation" / "measurements.csv")
     m = m[(m["tool_x"] == 0) & (m["tool_y"] == 0) & (m["tool_z"] == 0)]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the single tool offset is warned about

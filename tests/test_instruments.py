@@ -16,7 +16,6 @@ import scipy.optimize as so
 
 import coordinate_probe  # noqa: F401  (registers the instrument)
 import indep_sim as ind
-from volcal.analysis.identify import identify
 from volcal.measurement.instruments import (
     MultiLaserInstrument,
     SequentialMultilateration,
@@ -24,6 +23,7 @@ from volcal.measurement.instruments import (
     instruments,
 )
 from volcal.model.machine import Machine
+from volcal.workflow import identify
 
 MODEL = "mcv754_wxyzt"
 

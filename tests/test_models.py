@@ -21,8 +21,21 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def machines() -> dict[str, Machine]:
-    return {name: Machine.from_model(name, use_cache=False) for name in MODELS}
+def machines(tmp_path_factory) -> dict[str, Machine]:
+    """Every bundled model built from its SymPy chain here (never read from a cache), each
+    into an empty build cache of its own (``cache_dirs``), which the cache test then reads."""
+    out = {}
+    with pytest.MonkeyPatch.context() as mp:
+        for name in MODELS:
+            mp.setenv("VOLCAL_CACHE_DIR", str(cache_dirs(tmp_path_factory, name)))
+            out[name] = Machine.from_model(name)
+            assert out[name].from_cache is False
+    return out
+
+
+def cache_dirs(tmp_path_factory, name: str) -> Path:
+    """The build cache folder of one model in this module (tmp_path_factory's base)."""
+    return tmp_path_factory.getbasetemp() / "models_build_cache" / name
 
 
 def random_inputs(m: Machine, rng: np.random.Generator, *, trans: float, ang: float):
@@ -161,11 +174,13 @@ def test_jacobian_matches_finite_differences(machines, name, fname):
 
 
 @pytest.mark.parametrize("name", MODELS)
-def test_cached_build_is_identical(tmp_path, monkeypatch, name):
-    monkeypatch.setenv("VOLCAL_CACHE_DIR", str(tmp_path / "cache"))
-    cold = Machine.from_model(name)
+def test_cached_build_is_identical(machines, tmp_path_factory, monkeypatch, name):
+    # the cold build is the fixture's (built into an empty cache folder of its own)
+    cache = cache_dirs(tmp_path_factory, name)
+    monkeypatch.setenv("VOLCAL_CACHE_DIR", str(cache))
+    cold = machines[name]
     assert cold.from_cache is False
-    entries = list((tmp_path / "cache").glob("*.casadi"))
+    entries = list(cache.glob("*.casadi"))
     assert len(entries) == 1
     warm = Machine.from_model(name)
     assert warm.from_cache is True

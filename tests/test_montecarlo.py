@@ -97,24 +97,20 @@ def test_same_seed_same_numbers_whatever_the_workers(example_mc):
     assert dev.max() < 1e-3  # um / urad: the problem is nearly linear
 
 
-def test_dask_local_cluster_gives_identical_results(example_mc):
-    distributed = pytest.importorskip("distributed")
+def test_dask_local_cluster_gives_identical_results(example_mc, dask_client):
     k = example_mc["kernel"]
     local = run_trials(k, 400, 9, workers=1, chunk_size=100)
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, \
-            distributed.Client(cluster) as client:
-        remote = run_trials(k, 400, 9, scheduler=client, chunk_size=100)
+    remote = run_trials(k, 400, 9, scheduler=dask_client, chunk_size=100)
     assert np.array_equal(local.x, remote.x)
     assert np.array_equal(local.vol, remote.vol)
 
 
 @pytest.mark.parametrize("mode", ["nonlinear", "linear"])
-def test_same_seed_identical_serially_with_processes_and_on_dask(example_mc, mode, monkeypatch):
+def test_same_seed_identical_serially_with_processes_and_on_dask(example_mc, mode, monkeypatch,
+                                                               dask_client):
     """One seed, one chunk size: the same numbers in this process, in local worker
     processes (forked: the kernel inherited; spawned: the kernel pickled; by default this
     process computing chunks too) and on a Dask LocalCluster."""
-    distributed = pytest.importorskip("distributed")
     k = example_mc["kernel"]
     opts = dict(mode=mode, chunk_size=60)
     serial = run_trials(k, 240, 21, workers=1, **opts)
@@ -124,10 +120,7 @@ def test_same_seed_identical_serially_with_processes_and_on_dask(example_mc, mod
         runs[method] = run_trials(k, 240, 21, workers=2, **opts)
         runs[method + ", this process too"] = run_trials(k, 240, 21, workers=None, **opts)
     monkeypatch.delenv("VOLCAL_MP_START")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, \
-            distributed.Client(cluster) as client:
-        runs["dask"] = run_trials(k, 240, 21, scheduler=client, **opts)
+    runs["dask"] = run_trials(k, 240, 21, scheduler=dask_client, **opts)
     for name, other in runs.items():
         for f in ("x", "vol", "iterations", "converged", "step"):
             assert np.array_equal(getattr(serial, f), getattr(other, f)), (name, f)

@@ -172,6 +172,9 @@ def test_study_reproduces_the_paper_mechanism():
     assert 80.0 < rows[("joint", 95)]["mean_um"] < 250.0  # paper: 139.57
 
 
+# The study's command line in a subprocess: its scenarios run in-process above and below
+# (the same cases, a few trials); CI runs this one (-m slow).
+@pytest.mark.slow
 def test_study_smoke_cli(tmp_path):
     out = tmp_path / "res"
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")

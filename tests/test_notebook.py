@@ -9,6 +9,10 @@ import pytest
 NB = Path(__file__).resolve().parents[1] / "docs" / "tutorial.ipynb"
 
 
+# A fresh Jupyter kernel through the tutorial (about 25 s): the calls it makes (plan,
+# simulate, identify, the plots) are tested in the default suite, the notebook's own run
+# and its rich displays here; CI runs this one (-m slow).
+@pytest.mark.slow
 def test_tutorial_notebook_runs(tmp_path):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")

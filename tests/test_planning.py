@@ -15,6 +15,7 @@ import functools
 import subprocess
 import sys
 import warnings
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -351,7 +352,7 @@ def test_ga_resumes_from_its_checkpoint(tmp_path):
     assert [h["best"] for h in full.history] == [h["best"] for h in resumed.history]
 
 
-def test_cli_plan_writes_a_plan_identify_can_read(tmp_path):
+def test_cli_plan_writes_a_plan_identify_can_read(tmp_path, capsys):
     from volcal.measurement.tables import load_measurements, load_stations
     from volcal.model.spec import resolve_model
 
@@ -411,24 +412,11 @@ def test_cli_plan_writes_a_plan_identify_can_read(tmp_path):
         warnings.simplefilter("ignore")
         meas = load_measurements(mp, spec, stations=st)
     assert len(meas.length) == len(mp) == 240
-    _simulate_and_identify_the_plan(out, tmp_path)
+    _simulate_and_identify_the_plan(out, tmp_path, capsys)
     # bad input: an unknown key in the setting names the file and the key, exit 2
     bad = tmp_path / "bad.toml"
     bad.write_text('model = "mcv754_wxyzt"\nstation = 4\n')
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "volcal.cli.main",
-            "plan",
-            "--setting",
-            str(bad),
-            "--out",
-            str(tmp_path / "x"),
-        ],
-        capture_output=True,
-        text=True,
-    )
+    r = _cli(capsys, "plan", "--setting", str(bad), "--out", str(tmp_path / "x"))
     assert r.returncode == 2 and "station" in r.stderr and "bad.toml" in r.stderr
     assert not (tmp_path / "x").exists()
 
@@ -457,23 +445,10 @@ def test_gradient_search_resumes_from_its_checkpoint(tmp_path):
     assert np.array_equal(full.stations, resumed.stations) and full.value == resumed.value
 
 
-def test_bad_constraints_name_the_setting_file(tmp_path):
+def test_bad_constraints_name_the_setting_file(tmp_path, capsys):
     bad = tmp_path / "bad_box.toml"
     bad.write_text('model = "mcv754_wxyzt"\n[[constraints.region]]\nbox = [[0, 0, 0]]\n')
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "volcal.cli.main",
-            "plan",
-            "--setting",
-            str(bad),
-            "--out",
-            str(tmp_path / "x"),
-        ],
-        capture_output=True,
-        text=True,
-    )
+    r = _cli(capsys, "plan", "--setting", str(bad), "--out", str(tmp_path / "x"))
     assert r.returncode == 2, r.stderr
     assert "bad_box.toml" in r.stderr and "region[0]" in r.stderr and "box" in r.stderr
     assert "Traceback" not in r.stderr and not (tmp_path / "x").exists()
@@ -486,13 +461,24 @@ def _nominal_points(model, mp):
     return ind.tool_points(geom, q, mp[["tool_x_mm", "tool_y_mm", "tool_z_mm"]].to_numpy(float))
 
 
-def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "volcal.cli.main", *args], capture_output=True, text=True
-    )
+def _cli(capsys, *args: str) -> SimpleNamespace:
+    """``volcal *args`` run in this process (volcal.cli.main.main, what the program calls):
+    its exit code and what it printed. The program itself runs in a subprocess in
+    test_cli_plan_writes_a_plan_identify_can_read (plan) and tests/test_project_file.py
+    (simulate, identify); here the hand-over's content is checked without paying three
+    more interpreter starts."""
+    from volcal.cli.main import main
+
+    capsys.readouterr()
+    try:
+        code = main(list(args))
+    except SystemExit as exc:  # argparse's own errors
+        code = exc.code
+    out, err = capsys.readouterr()
+    return SimpleNamespace(returncode=code, stdout=out, stderr=err)
 
 
-def _simulate_and_identify_the_plan(out, tmp_path):
+def _simulate_and_identify_the_plan(out, tmp_path, capsys):
     """The hand-over: ``volcal simulate --plan measurement_plan.csv`` (tools and stations
     from the plan) read back row by row against the plan and against distances from the
     independent simulator's nominal points, then ``volcal identify`` on the plan file
@@ -507,8 +493,8 @@ def _simulate_and_identify_the_plan(out, tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["margins"] == {"deg": 4.0, "mm": 15.0}
     # the plan as it is: its tools, poses and stations (stations.csv beside it)
-    r = _cli("simulate", "--model", "mcv754_wxyzt", "--plan", str(out / "measurement_plan.csv"),
-             "--seed", "1", "--out", str(sim))  # fmt: skip
+    r = _cli(capsys, "simulate", "--model", "mcv754_wxyzt", "--plan",
+             str(out / "measurement_plan.csv"), "--seed", "1", "--out", str(sim))  # fmt: skip
     assert r.returncode == 0, r.stderr
     mp = pd.read_csv(out / "measurement_plan.csv")
     meas = pd.read_csv(sim / "measurements.csv")
@@ -527,8 +513,9 @@ def _simulate_and_identify_the_plan(out, tmp_path):
     # the operator's route: the plan file with its length_mm filled in
     mp["length_mm"] = meas["length"].to_numpy()
     mp.to_csv(tmp_path / "measured.csv", index=False)
-    r = _cli("identify", "--model", "mcv754_wxyzt", "--data", str(tmp_path / "measured.csv"),
-             "--stations", str(out / "stations.csv"), "--no-plots", "--out", str(fit))  # fmt: skip
+    r = _cli(capsys, "identify", "--model", "mcv754_wxyzt", "--data",
+             str(tmp_path / "measured.csv"), "--stations", str(out / "stations.csv"),
+             "--no-plots", "--out", str(fit))  # fmt: skip
     assert r.returncode == 0, r.stderr
     assert re.search(r"solver status +Solve(d_To_Acceptable_Level|_Succeeded)", r.stdout)
     assert re.search(r"model adequacy +fits", r.stdout), r.stdout
@@ -545,6 +532,7 @@ def _simulate_and_identify_the_plan(out, tmp_path):
     # RMS per component; the plan predicts its total (3 components) over the workspace
     assert err * np.sqrt(3) < 4 * summary["volumetric_u_rms_um"], err
     # tools that differ from the plan's are refused, naming the option
-    r = _cli("simulate", "--model", "mcv754_wxyzt", "--plan", str(out / "measurement_plan.csv"),
-             "--tools", "0,0,0", "--seed", "1", "--out", str(tmp_path / "xt"))  # fmt: skip
+    r = _cli(capsys, "simulate", "--model", "mcv754_wxyzt", "--plan",
+             str(out / "measurement_plan.csv"), "--tools", "0,0,0", "--seed", "1",
+             "--out", str(tmp_path / "xt"))  # fmt: skip
     assert r.returncode == 2 and "--tools" in r.stderr and not (tmp_path / "xt").exists()

@@ -15,7 +15,18 @@ def _volcal(cwd, *args):
     )
 
 
-def test_project_file_settings_flags_and_errors(tmp_path):
+def _volcal_here(cwd, monkeypatch, capsys, *args):
+    """The same command in this process (volcal.cli.main.main, what the program calls),
+    run from ``cwd``: exit code and stderr."""
+    from volcal.cli.main import main
+
+    monkeypatch.chdir(cwd)
+    capsys.readouterr()
+    code = main(list(args))
+    return code, capsys.readouterr().err
+
+
+def test_project_file_settings_flags_and_errors(tmp_path, monkeypatch, capsys):
     (tmp_path / "volcal.toml").write_text(
         '[simulate]\nexample = "mcv754"\nseed = 3\nout = "sim"\n'
         '[identify]\nmodel = "mcv754_wxyzt"\ndata = "sim/measurements.csv"\n'
@@ -29,14 +40,17 @@ def test_project_file_settings_flags_and_errors(tmp_path):
     opts = json.loads((tmp_path / "res" / "result.json").read_text())["options"]
     assert opts["strategy"] == "two-phase" and opts["project_file"].endswith("volcal.toml")
     assert not (tmp_path / "res" / "component_errors.png").exists()  # no-plots from the file
-    # --project elsewhere: relative paths are relative to that file
+    # --project elsewhere: relative paths are relative to that file (in this process: the
+    # program's own start is checked above)
     sub = tmp_path / "p"
     sub.mkdir()
     (sub / "other.toml").write_text('[simulate]\nexample = "mcv754"\nseed = 4\nout = "s4"\n')
-    r = _volcal(tmp_path, "--project", "p/other.toml", "simulate", "-q")
-    assert r.returncode == 0, r.stderr
+    code, err = _volcal_here(tmp_path, monkeypatch, capsys, "--project", "p/other.toml",
+                             "simulate", "-q")
+    assert code == 0, err
     assert (sub / "s4" / "measurements.csv").exists()
     (sub / "bad.toml").write_text('[identify]\nstrategi = "joint"\n')
-    r = _volcal(tmp_path, "--project", "p/bad.toml", "identify")
-    assert r.returncode == 2
-    assert "bad.toml" in r.stderr and "strategi" in r.stderr and "strategy" in r.stderr
+    code, err = _volcal_here(tmp_path, monkeypatch, capsys, "--project", "p/bad.toml",
+                             "identify")
+    assert code == 2
+    assert "bad.toml" in err and "strategi" in err and "strategy" in err

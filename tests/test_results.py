@@ -485,7 +485,9 @@ def test_identify_cli_solver_failure_exits_1(case, tmp_path, monkeypatch, capsys
         raise SolverError("identification (joint) did not converge",
                           status="Maximum_Iterations_Exceeded")
 
-    monkeypatch.setattr(volcal.analysis.identify, "identify", fail)
+    # the single fit the workflow layer dispatches to (volcal.workflow.single.fit imports
+    # it at call time), so the failure travels the whole way up to the command
+    monkeypatch.setattr(volcal.analysis.identify, "_identify", fail)
     out = tmp_path / "res"
     code = run_cli(["identify", "--model", "xfyz", "--data", str(case["data"]), "--out",
                     str(out)], monkeypatch)
@@ -525,15 +527,17 @@ def test_a_plot_failing_in_the_plotting_process_leaves_no_folder(
 
 def test_plots_drawn_by_the_plotting_processes_equal_those_drawn_here(case, tmp_path):
     """The plotting children draw from the same data with the same code: every PNG is
-    byte for byte the one this process draws without them."""
+    byte for byte the one this process draws without them (the module's result folder,
+    written here without plotting children)."""
     from volcal.outputs.plot_process import PlotProcess
 
-    here = save_result(case["res"], tmp_path / "here")
+    here = case["out"]
     pp = PlotProcess.start(workers=2)
     if pp is None:
         pytest.skip("no plotting process on this platform")
     try:
-        there = save_result(case["res"], tmp_path / "there", plotter=pp)
+        there = save_result(case["res"], tmp_path / "there", data_name="measurements.csv",
+                            plotter=pp)
     finally:
         pp.close()
     pngs = sorted(p.name for p in here.glob("*.png"))

@@ -18,6 +18,10 @@ sys.path.insert(0, str(ROOT / "studies"))
 import readme_tables as rt  # noqa: E402
 
 
+# The study's whole smoke run: the default datum against the reference fit and an imposed
+# datum that forbids what the data see are checked in the default suite on single cases
+# (tests/test_datum.py, tests/test_independent_truth.py); CI runs this one (-m slow).
+@pytest.mark.slow
 def test_datum_study_smoke(capsys):
     spec = importlib.util.spec_from_file_location("datum_study", STUDY / "run.py")
     mod = importlib.util.module_from_spec(spec)

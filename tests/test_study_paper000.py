@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "paper000"
@@ -24,6 +25,10 @@ def _load():
     return mod
 
 
+# The study's whole smoke run: the multilateration methods, Case B's conditioning and
+# Theorem 1's bound are checked in the default suite on single cases
+# (tests/test_multilateration.py); CI runs this one (-m slow).
+@pytest.mark.slow
 def test_paper000_smoke(capsys):
     mod = _load()
     before = rt.folder_state(STUDY)

@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "paper001"
 sys.path.insert(0, str(ROOT / "studies"))
@@ -25,14 +27,27 @@ def _run(*args):
     return p
 
 
-def test_paper001_smoke_readme():
+@pytest.fixture(scope="module")
+def smoke():
+    """One ``run.py --smoke`` (about 35 s) shared by the tests that read its tables: its
+    'paper' scenario is the one a ``--scenarios paper --no-sweep`` run computes, so the
+    fixed rows are the same numbers. Returns the repository folder's state before and
+    after the run, and the output folder."""
     # (the chunks of a full run that may be running in the background are left out; the
     # smoke run's own chunks go under its output folder, checked to be outside the repo)
     ignore = ("results/chunks/",)
     before = rt.folder_state(STUDY, ignore)
     p = _run("--smoke")
     out = Path(re.search(r"results in (\S+)", p.stderr).group(1))
-    assert rt.folder_state(STUDY, ignore) == before   # nothing written into the repository
+    return before, rt.folder_state(STUDY, ignore), out
+
+
+# The study's whole smoke run: its cases are checked in the default suite on a few trials
+# in-process (tests/test_multilaser.py) and its chunking below; CI runs these (-m slow).
+@pytest.mark.slow
+def test_paper001_smoke_readme(smoke):
+    before, after, out = smoke
+    assert after == before   # nothing written into the repository
     assert ROOT not in out.resolve().parents and (out / "chunks").is_dir()
     tables = json.loads((out / "tables.json").read_text())
     # the sphere_noise table is printed by run.py --noise-alternatives (its own run)
@@ -100,12 +115,12 @@ def test_paper001_chunks_resume_and_refuse_another_config(tmp_path):
     assert rows[0]["trials"] == 7 and rows[0]["mean_se_um"] > 0
 
 
-def test_paper001_smoke_fixed_rows_equal_the_full_run():
+@pytest.mark.slow
+def test_paper001_smoke_fixed_rows_equal_the_full_run(smoke):
     # two-phase at 95 / 90 % is set by the start values: every trial gives the same numbers,
     # so a 4-trial smoke run must reproduce the README's 10,000-trial figures (printed to 6
     # digits) and its verdicts on the paper's rounding, which the README's text quotes
-    p = _run("--smoke", "--scenarios", "paper", "--no-sweep")
-    out = Path(re.search(r"results in (\S+)", p.stderr).group(1))
+    out = smoke[2]
     smoke = json.loads((out / "tables.json").read_text())["table1_fixed"]
     readme = (STUDY / "README.md").read_text(encoding="utf-8")
     block = readme.split("<!-- table: table1_fixed -->")[1].split("<!-- /table -->")[0]

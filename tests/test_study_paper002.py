@@ -13,6 +13,8 @@ import re
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "paper002"
 sys.path.insert(0, str(ROOT / "studies"))
@@ -49,6 +51,10 @@ def _load():
     return mod
 
 
+# The study's whole smoke run (its plots, every table against its README): the study itself
+# runs in the default suite in tests/test_montecarlo.py::test_paper002_study_smoke (no
+# plots, the plan analysis and Monte Carlo figures); CI runs this one (-m slow).
+@pytest.mark.slow
 def test_paper002_smoke(capsys):
     before = rt.folder_state(STUDY)
     assert _load().main(["--smoke"]) == 0

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "paper003"
@@ -46,6 +47,10 @@ def _load():
     return mod
 
 
+# The study's whole smoke run (400 data sets per coverage figure): the regression and its
+# coverage are checked in the default suite on smaller cases (tests/test_iso230_2_model.py,
+# tests/test_iso230_2_cli.py); CI runs this one (-m slow).
+@pytest.mark.slow
 def test_paper003_smoke(capsys):
     before = rt.folder_state(STUDY)
     assert _load().main(["--smoke"]) == 0

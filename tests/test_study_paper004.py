@@ -13,6 +13,8 @@ import re
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "paper004"
 sys.path.insert(0, str(ROOT / "studies"))
@@ -34,6 +36,10 @@ def _rows(md: str) -> dict[str, list[str]]:
     return out
 
 
+# The study's whole smoke run: the planner it runs is checked in the default suite on
+# smaller settings (tests/test_planning.py, tests/test_plan_setup.py); CI runs this one
+# (-m slow).
+@pytest.mark.slow
 def test_paper004_smoke(capsys):
     before = rt.folder_state(STUDY)
     assert _load().main(["--smoke"]) == 0

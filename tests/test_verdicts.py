@@ -24,9 +24,9 @@ import pytest
 
 import indep_sim as ind
 import volcal.cli.main
-from volcal.analysis.identify import identify
 from volcal.model.errors import parse_basis
 from volcal.outputs.html_report import html_report
+from volcal.workflow import identify
 
 TOOLS = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0], [80.0, 0.0, 60.0], [0.0, 80.0, 60.0]])
 #: an instrument about half as noisy as paper 002's budget says

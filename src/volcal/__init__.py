@@ -16,8 +16,8 @@ from typing import Any
 __version__ = "0.1.0"
 
 _LAZY = {
-    "identify": ("volcal.analysis.identify", "identify"),
-    "compare": ("volcal.analysis.compare", "compare"),
+    "identify": ("volcal.workflow.dispatch", "identify"),
+    "compare": ("volcal.workflow.comparison", "compare"),
     "plan": ("volcal.analysis.planning.plan", "plan"),
     "plots": ("volcal.outputs.plots", None),
 }

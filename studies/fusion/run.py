@@ -42,8 +42,9 @@ sys.path.insert(0, str(HERE.parent))
 
 import fusion_sim as fs  # noqa: E402  (the independent simulators live with the tests)
 import indep_sim as ind  # noqa: E402
-from volcal.analysis.identify import field_jacobian, identify  # noqa: E402
+from volcal.analysis.identify import field_jacobian  # noqa: E402
 from volcal.measurement.tables import DataWarning  # noqa: E402
+from volcal.workflow import identify  # noqa: E402
 
 MODEL = "mcv754_wxyzt"
 TOOLS = np.array([[0.0, 0.0, 100.0], [0.0, 80.0, 150.0]])

@@ -897,10 +897,10 @@ def _identify(
     robust standard deviations and re-solves (the rejected readings are listed).
     Raises SolverError when IPOPT does not succeed.
 
-    forms: error bases {error or axis name: ErrorForm} (:mod:`volcal.model.errors`);
-    ``degree="auto"``: per-axis orders chosen by ``order_criterion`` (``"bic"`` or ``"cv"``
-    with ``cv_folds`` folds), see :mod:`volcal.analysis.order_selection` (``progress``: a progress
-    bar of its candidate fits on stderr; a single identification has none).
+    forms: error bases {error or axis name: ErrorForm} (:mod:`volcal.model.errors`).
+    This is the single fit; ``degree="auto"`` (``order_criterion``, ``cv_folds``,
+    ``progress``) and the classic strategy are orchestrated by
+    :func:`volcal.workflow.identify` (``volcal.identify``), which calls it.
 
     solver: ``"ipopt"`` (default) or ``"gauss-newton"`` (:mod:`volcal.solve`); both reach
     the same minimiser.
@@ -916,129 +916,51 @@ def _identify(
     exceeds it is refused with :class:`InputError` before the solve.  None (default): the
     memory available now; ``float("inf")``: no check.
 
-    Several instruments' tables (issue 32): ``data`` a list of tables, ``(instrument,
-    table[, budget[, name]])`` tuples or :class:`volcal.analysis.fusion.DataSet`; one problem, one
-    datum, one covariance, chi2/dof per table in ``result.instruments``;
-    ``variance_components``: each table's budget scale factor estimated (Helmert), see
-    :func:`volcal.analysis.fusion.identify_datasets`.
+    Several instruments' tables (issue 32; ``data`` a list, ``variance_components``) are
+    joined by :func:`volcal.workflow.identify` (``volcal.identify``) through
+    :func:`volcal.analysis.fusion.identify_datasets`, which calls this fit.
     """
-    if isinstance(data, (list, tuple)) or variance_components:
-        opts = {k: v for k, v in locals().items() if k not in ("model", "data")}
-        from volcal.analysis.fusion import identify_datasets
-
-        return identify_datasets(model, data if isinstance(data, (list, tuple)) else [data], **opts)
-    if degree == "auto":  # every other argument goes to each candidate fit
-        opts = {
-            k: v
-            for k, v in locals().items()
-            if k
-            not in (
-                "model",
-                "data",
-                "stations",
-                "degree",
-                "order_criterion",
-                "cv_folds",
-                "progress",
-            )
-        }
-        from volcal.analysis.order_selection import select_orders
-
-        return select_orders(
-            model,
-            data,
-            stations,
-            criterion=order_criterion,
-            folds=cv_folds,
-            progress=progress,
-            **opts,
+    several = isinstance(data, (list, tuple)) or variance_components
+    if (
+        several
+        or degree == "auto"
+        or isinstance(
+            get_strategy(strategy, station_method=station_method, point_method=point_method),
+            ClassicPipeline,
+        )
+    ):
+        # orchestration, not a single fit: volcal.workflow joins several tables, chooses
+        # the orders or runs the classic pipeline, and calls this fit; analysis does not
+        # import upward
+        raise InputError(
+            "several tables, variance components, degree='auto' and the classic strategy "
+            "are run by volcal.identify (volcal.workflow.identify), not by the single fit "
+            "of volcal.analysis.identify",
+            source="data" if several else ("degree" if degree == "auto" else "strategy"),
         )
     t_start = time.perf_counter()
     from volcal.base.progress import reset_timings
 
     reset_timings()  # the stage timings recorded with the result are this run's
-    # the tables are read and checked before the model is built: a bad input is reported
-    # at once, not after the build
-    spec = model.spec if isinstance(model, Machine) else resolve_model(model)
-    ins = get_instrument(instrument)
-    st_table = None
-    if stations is not None:
-        # the tracker's stations table is validated by its reader; another instrument's
-        # table is a DataFrame whose columns are its station parameters
-        if ins.name == "tracker":
-            given = isinstance(stations, pd.DataFrame) and (
-                "x_mm" in stations and "dead_length_given" in stations
-            )
-            st_table = stations if given else load_stations(stations)
-        else:
-            st_table = load_instrument_stations(stations, ins.station_param_names)
-    with report_stage("reading the data"):
-        meas = (
-            data
-            if isinstance(data, Measurements)
-            else load_measurements(
-                data,
-                spec,
-                stations=st_table,
-                relative_lengths=not ins.positive_readings,
-                columns=columns,
-            )
-        )
-    if isinstance(model, Machine):
-        machine = model
-    else:
-        with report_stage("building the model"):
-            machine = Machine.from_model(spec)
-    em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
-    bud = budget if isinstance(budget, Budget) else load_budget(budget)
-    strat = get_strategy(strategy, station_method=station_method, point_method=point_method)
-    strategy = strat.name
-    # before anything of the table's size is built: a table too large for the memory is
-    # refused with the estimate and the limit, not ended by the kernel's OOM killer
-    check_memory(
-        len(meas),
-        em.n_params
-        + len(meas.station_ids) * len(ins.station_param_names)
-        + len(ins.global_param_names),
-        limit_gb=max_memory_gb,
-        what=meas.source,
+    prep = prepare(
+        model,
+        data,
+        stations,
+        strategy=strategy,
+        degree=degree,
+        datum=datum,
+        error_model=error_model,
+        budget=budget,
+        station_method=station_method,
+        point_method=point_method,
+        forms=forms,
+        instrument=instrument,
+        columns=columns,
+        max_memory_gb=max_memory_gb,
     )
-
-    with report_stage("start values and reading uncertainties"):
-        st0, glob0, st_fixed, notes = initial_instrument(machine, meas, st_table, ins)
-        sigma = meas.sigma.copy()
-        no_sigma = ~np.isfinite(sigma)
-        if no_sigma.any():  # the budget only where the table gives no sigma
-            sigma[no_sigma] = reading_sigma(machine, bud, meas, st0, ins)[no_sigma]
-            uncovered = bud.warn_uncovered(spec)
-            if uncovered:
-                notes.append(uncovered)
-    sigma_source = (
-        "table"
-        if not no_sigma.any()
-        else (f"budget {bud.name}" if no_sigma.all() else f"table and budget {bud.name}")
-    )
-
-    if isinstance(strat, ClassicPipeline):
-        if ins.name != "tracker":
-            raise InputError(
-                f"the classic pipeline calibrates tracker stations; it does not "
-                f"apply to the {ins.name} instrument"
-            )
-        from volcal.analysis.classic import classic_pipeline
-
-        return classic_pipeline(
-            machine,
-            em,
-            meas,
-            st0,
-            sigma,
-            station_method=strat.station_method,
-            point_method=strat.point_method,
-            t_start=t_start,
-            sigma_source=sigma_source,
-            notes=notes,
-        )
+    machine, em, meas, ins, strat = prep.machine, prep.error_model, prep.meas, prep.ins, prep.strat
+    st0, glob0, st_fixed, sigma = prep.st0, prep.glob0, prep.st_fixed, prep.sigma
+    notes, sigma_source, strategy = prep.notes, prep.sigma_source, strat.name
 
     layout = Layout.from_measurements(meas)
     with report_stage(f"building the problem ({layout.n_readings} readings)"):
@@ -1194,4 +1116,127 @@ def _identify(
         state,
         identifier=ider,
         imposed=imposed,
+    )
+
+
+@dataclass
+class Prepared:
+    """The checked inputs of one identification, before any problem is built: the model,
+    the readings, the error model, the strategy, the instrument's start values (stations
+    (K, n_station_params), globals; mm / rad) and the standard uncertainty of every
+    reading (mm).  :func:`prepare` makes it; the single fit and the workflow's other
+    strategies (volcal.workflow) start from it."""
+
+    spec: MachineSpec
+    machine: Machine
+    meas: Measurements
+    st_table: pd.DataFrame | None
+    ins: Instrument
+    error_model: ErrorModel
+    budget: Budget
+    strat: Strategy
+    st0: np.ndarray
+    glob0: np.ndarray
+    st_fixed: np.ndarray
+    sigma: np.ndarray
+    sigma_source: str
+    notes: list[str]
+
+
+def prepare(
+    model: str | Path | MachineSpec | Machine,
+    data: str | Path | pd.DataFrame | Measurements,
+    stations: str | Path | pd.DataFrame | None = None,
+    *,
+    strategy: str = "joint",
+    degree: int = 3,
+    datum: Datum = "iso230",
+    error_model: ErrorModel | None = None,
+    budget: str | Path | Budget = "paper002",
+    station_method: str = "sqrt",
+    point_method: str = "sqrt",
+    forms: dict[str, ErrorForm] | None = None,
+    instrument: str | Instrument | None = None,
+    columns: Mapping[str, str] | str | None = None,
+    max_memory_gb: float | None = None,
+) -> Prepared:
+    """Read and check the inputs of an identification (arguments as :func:`_identify`):
+    tables, model, error model, budget, strategy, memory, start values and reading
+    uncertainties."""
+    # the tables are read and checked before the model is built: a bad input is reported
+    # at once, not after the build
+    spec = model.spec if isinstance(model, Machine) else resolve_model(model)
+    ins = get_instrument(instrument)
+    st_table = None
+    if stations is not None:
+        # the tracker's stations table is validated by its reader; another instrument's
+        # table is a DataFrame whose columns are its station parameters
+        if ins.name == "tracker":
+            given = isinstance(stations, pd.DataFrame) and (
+                "x_mm" in stations and "dead_length_given" in stations
+            )
+            st_table = stations if given else load_stations(stations)
+        else:
+            st_table = load_instrument_stations(stations, ins.station_param_names)
+    with report_stage("reading the data"):
+        meas = (
+            data
+            if isinstance(data, Measurements)
+            else load_measurements(
+                data,
+                spec,
+                stations=st_table,
+                relative_lengths=not ins.positive_readings,
+                columns=columns,
+            )
+        )
+    if isinstance(model, Machine):
+        machine = model
+    else:
+        with report_stage("building the model"):
+            machine = Machine.from_model(spec)
+    em = error_model or build_error_model(spec, degree=degree, datum=datum, forms=forms)
+    bud = budget if isinstance(budget, Budget) else load_budget(budget)
+    strat = get_strategy(strategy, station_method=station_method, point_method=point_method)
+    # before anything of the table's size is built: a table too large for the memory is
+    # refused with the estimate and the limit, not ended by the kernel's OOM killer
+    check_memory(
+        len(meas),
+        em.n_params
+        + len(meas.station_ids) * len(ins.station_param_names)
+        + len(ins.global_param_names),
+        limit_gb=max_memory_gb,
+        what=meas.source,
+    )
+
+    with report_stage("start values and reading uncertainties"):
+        st0, glob0, st_fixed, notes = initial_instrument(machine, meas, st_table, ins)
+        sigma = meas.sigma.copy()
+        no_sigma = ~np.isfinite(sigma)
+        if no_sigma.any():  # the budget only where the table gives no sigma
+            sigma[no_sigma] = reading_sigma(machine, bud, meas, st0, ins)[no_sigma]
+            uncovered = bud.warn_uncovered(spec)
+            if uncovered:
+                notes.append(uncovered)
+    sigma_source = (
+        "table"
+        if not no_sigma.any()
+        else (f"budget {bud.name}" if no_sigma.all() else f"table and budget {bud.name}")
+    )
+
+    return Prepared(
+        spec,
+        machine,
+        meas,
+        st_table,
+        ins,
+        em,
+        bud,
+        strat,
+        st0,
+        glob0,
+        st_fixed,
+        sigma,
+        sigma_source,
+        notes,
     )

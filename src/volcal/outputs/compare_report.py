@@ -1,10 +1,10 @@
 """The folder of ``volcal compare``: strategies side by side, as tables, text and a plot.
 
-:func:`write_comparison` writes a :class:`volcal.analysis.compare.Comparison` as one folder
+:func:`write_comparison` writes a :class:`volcal.workflow.comparison.Comparison` as one folder
 (temporary folder renamed into place, ``manifest.json``; :func:`volcal.base.folders.write_folder`):
 
 ``comparison.csv``             one row per strategy (the columns of
-                               :func:`volcal.analysis.compare.compare`, units in the names);
+                               :func:`volcal.workflow.comparison.compare`, units in the names);
 ``parameter_differences.csv``  per strategy and parameter both fits identify: values,
                                difference and the difference over the reference's u
                                (um / urad);
@@ -38,7 +38,7 @@ from volcal import __version__
 from volcal.base.exceptions import InputError
 
 if TYPE_CHECKING:
-    from volcal.analysis.compare import Comparison
+    from volcal.workflow.comparison import Comparison
 
 __all__ = [
     "COMPARE_FILES",
@@ -71,7 +71,7 @@ _SHOWN_NAMES = 3
 
 def _g(v: Any, digits: int = 3) -> str:
     """The report's number format (html_report), "-" where there is no number."""
-    from volcal.outputs.html_report import _g as number
+    from volcal.outputs.report_env import number
 
     return number(v, digits, missing="-")
 
@@ -222,10 +222,10 @@ def comparison_section(doc: dict[str, Any], table: pd.DataFrame, png: bytes | No
     """The comparison as an HTML ``<section>`` (Jinja2 template
     ``templates/report/compare_section.html.j2``, autoescaped), the plot embedded as a data
     URI; ``volcal report`` includes the same section."""
-    from volcal.outputs.html_report import _environment
+    from volcal.outputs.report_env import environment
 
     return (
-        _environment()
+        environment()
         .get_template("compare_section.html.j2")
         .render(cmp=section_context(doc, table, png))
     )

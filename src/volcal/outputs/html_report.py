@@ -26,7 +26,6 @@ from __future__ import annotations
 import base64
 import json
 import logging
-import math
 import os
 import shutil
 import subprocess
@@ -37,14 +36,16 @@ from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import jinja2
 import numpy as np
 import pandas as pd
-from markupsafe import Markup, escape
 
 from volcal import __version__
 from volcal.analysis.adequacy import STRUCTURE_P, Adequacy
 from volcal.base.exceptions import InputError
+from volcal.outputs.report_env import TEMPLATE_DIR as TEMPLATE_DIR
+from volcal.outputs.report_env import code_spans as code_spans
+from volcal.outputs.report_env import environment as _environment
+from volcal.outputs.report_env import number as _g
 from volcal.outputs.results import (
     OPTIONAL_FILES,
     PLOT_FILES,
@@ -67,7 +68,6 @@ __all__ = [
     "TEMPLATE",
 ]
 
-TEMPLATE_DIR = Path(__file__).parent / "templates" / "report"
 TEMPLATE = "report.html.j2"
 #: how many of the largest parameter uncertainties the uncertainty section lists per unit
 LARGEST_UNCERTAINTIES = 5
@@ -92,17 +92,6 @@ _PLOT_CAPTIONS = {
 # formatting
 
 
-def _g(v: Any, digits: int = 4, missing: str = "") -> str:
-    """A number with ``digits`` significant digits; ``missing`` for None / NaN / inf."""
-    if v is None or isinstance(v, bool):
-        return missing if v is None else ("yes" if v else "no")
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        return str(v)
-    return format(x, f".{digits}g") if math.isfinite(x) else missing
-
-
 def _unit(u: Any) -> str:
     """Report unit as a reader writes it (um -> µm)."""
     return _UNITS.get(str(u), str(u))
@@ -120,17 +109,6 @@ def _option(v: Any) -> str:
     if isinstance(v, dict):
         return "; ".join(f"{k} {_option(x)}" for k, x in v.items()) or "none"
     return str(v)
-
-
-def code_spans(text: Any) -> Markup:
-    """Escaped text whose Markdown code spans (`` `x` ``, as notes and messages write
-    them) become ``<code>x</code>``: no literal backticks in the document."""
-    parts = str(text).split("`")
-    if len(parts) % 2 == 0:  # an unpaired backtick: leave the text as it is
-        return escape(str(text))
-    return Markup("").join(
-        escape(p) if k % 2 == 0 else Markup("<code>%s</code>") % p for k, p in enumerate(parts)
-    )
 
 
 def _axis_unit(axis: Any) -> str:
@@ -711,19 +689,6 @@ def _compensation(doc: Mapping[str, Any], comp_dir: Path) -> dict[str, Any]:
 
 
 @lru_cache(maxsize=1)
-def _environment() -> jinja2.Environment:
-    # autoescape on: model descriptions, file names and notes are user text in HTML
-    env = jinja2.Environment(
-        loader=jinja2.FileSystemLoader(str(TEMPLATE_DIR)),
-        undefined=jinja2.StrictUndefined,
-        autoescape=True,
-        trim_blocks=True,
-        lstrip_blocks=True,
-    )
-    env.filters["code_spans"] = code_spans
-    return env
-
-
 def find_comparison(result_dir: Path, compare_dir: Path | None) -> tuple[Path, Path | None]:
     """(the result folder to report, the ``volcal compare`` folder to embed or None): a
     compare folder given as the result reports its reference result with the comparison;

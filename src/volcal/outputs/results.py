@@ -37,7 +37,7 @@ file                       content
                            its 99.9 % interval, verdict and (``--variance-components``)
                            the budget's scale factor with its uncertainty
 ``order_selection.csv``    only with ``--degree auto``: every candidate order per axis and
-                           its criterion value (:mod:`volcal.analysis.order_selection`)
+                           its criterion value (:mod:`volcal.workflow.orders`)
 ``component_errors.png``   the component error motions with +-2 u bands
 ``volumetric_map.png``     2-D slice maps of the volumetric error (|d| in colour, in-plane
                            arrows): XY at several heights, and per rotary axis at several
@@ -1359,7 +1359,7 @@ def _error_motion_lines(
 
 def _write_order_selection(result: IdentificationResult, folder: Path) -> None:
     """``order_selection.csv`` when the orders were chosen from the data (``--degree
-    auto``, :mod:`volcal.analysis.order_selection`)."""
+    auto``, :mod:`volcal.workflow.orders`)."""
     table = getattr(result, "order_selection", None)
     if table is not None:
         table.to_csv(folder / "order_selection.csv", index=False)

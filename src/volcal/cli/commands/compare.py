@@ -203,8 +203,8 @@ def run(args: argparse.Namespace) -> int:
         inputs=inputs,
         allowed_dirs=(REFERENCE_DIR,),
     )
-    from volcal.analysis.compare import compare
     from volcal.outputs.compare_report import format_table, write_comparison
+    from volcal.workflow.comparison import compare
 
     truth = args.truth
     truth_name = None

@@ -52,10 +52,11 @@ def run_demo(
     ``out_dir`` (``simulation/``, ``identification/``, ``truth_comparison.csv``);
     ``plotter``: a :class:`volcal.outputs.plot_process.PlotProcess` that draws the plots
     (else they are drawn here)."""
-    from volcal.analysis.identify import identify, rigid_fit
+    from volcal.analysis.identify import rigid_fit
     from volcal.base.folders import check_out_dir, write_folder
     from volcal.measurement.simulate import example, save_simulation
     from volcal.outputs.results import save_result
+    from volcal.workflow.dispatch import identify
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)

@@ -303,10 +303,10 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
 
     t_command = time.perf_counter()
     from volcal.analysis.adequacy import assess
-    from volcal.analysis.identify import identify
     from volcal.base.exceptions import InputError
     from volcal.model.errors import parse_basis
     from volcal.outputs.results import check_out_dir, save_result
+    from volcal.workflow.dispatch import identify
 
     degree: int | str = str(args.degree).strip().lower()
     if degree != "auto":

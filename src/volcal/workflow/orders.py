@@ -5,9 +5,13 @@ whose component error motions have an order (Legendre degree, Fourier harmonics,
 segments) gets the order that minimises an information criterion, found by a greedy
 coordinate search: starting from the declared orders (default 3), one axis at a time tries
 every candidate order with the other axes held, keeps the best, and the sweeps over the
-axes repeat until none changes (at most ``max_sweeps``).  Every candidate is a full
-identification through the public :func:`volcal.analysis.identify.identify` with an explicit
-``error_model``; fits are cached by their orders.
+axes repeat until none changes (at most ``max_sweeps``); fits are cached by their orders.
+With ``bic``, the joint strategy and nested bases (Legendre, Fourier) every candidate is
+fitted on one problem built for the largest orders (:mod:`volcal.analysis.nested`: the
+same chi2 and rank as its own identification, without covariance or tables) and only the
+chosen model is identified in full; otherwise (B-splines, ``cv``, other strategies,
+``robust``) every candidate is a full identification (:func:`volcal.workflow.single.fit`)
+with an explicit ``error_model``.
 
 Criteria (smaller is better):
 
@@ -136,7 +140,7 @@ def select_orders(
 ):
     """Identify with per-axis orders chosen by ``criterion`` (module docstring).
 
-    model, data, stations: as :func:`volcal.analysis.identify.identify`; criterion: ``"bic"`` or
+    model, data, stations: as :func:`volcal.workflow.identify`; criterion: ``"bic"`` or
     ``"cv"``; folds: K of the cross-validation; candidates: {kind: orders} replacing those
     of :data:`CANDIDATES`; error_model / forms / datum: the starting error model (kinds and
     starting orders; default Legendre degree 3, Fourier 3 on full-turn rotary axes, plus
@@ -146,12 +150,7 @@ def select_orders(
     :class:`~volcal.analysis.identify.IdentificationResult` of the chosen orders with
     ``order_selection`` (DataFrame) set and a note.
     """
-    from volcal.analysis.identify import (
-        build_error_model,
-        identify,
-        initial_stations,
-        reading_sigma,
-    )
+    from volcal.analysis.identify import build_error_model, initial_stations, reading_sigma
     from volcal.measurement.budget import Budget, load_budget
     from volcal.measurement.tables import Measurements, load_measurements, load_stations
     from volcal.model.machine import Machine
@@ -215,6 +214,13 @@ def select_orders(
         fold_of_point[perm] = np.arange(n_pts) % k_folds
         fold_of_reading = fold_of_point[meas.point_index]
 
+    # BIC of nested bases: every candidate on one problem built for the largest orders
+    nested = (
+        _nested_fits(machine, meas, st_table, em0, options, kinds, datum, identify_options)
+        if criterion == "bic"
+        else None
+    )
+
     cache: dict[tuple, dict[str, Any]] = {}
     results: dict[tuple, Any] = {}
     from volcal.base.progress import counter
@@ -225,7 +231,9 @@ def select_orders(
     bar = counting.__enter__()
 
     def fit(em: ErrorModel, m):
-        return identify(machine, m, st_table, error_model=em, **identify_options)
+        from volcal.workflow.single import fit as fit_one  # classic or the single fit
+
+        return fit_one(machine, m, st_table, error_model=em, **identify_options)
 
     def score(orders_: Mapping[str, int]) -> dict[str, Any]:
         key = tuple(orders_[a] for a in orders)
@@ -238,7 +246,18 @@ def select_orders(
             "criterion": criterion,
         }
         try:
-            if criterion == "bic":
+            if nested is not None:
+                nf = nested.fit(em)
+                if not nf.success:
+                    raise SolverError("candidate fit did not converge", status=nf.status)
+                row.update(
+                    value=nf.chi2 + nf.k * math.log(nf.n),
+                    chi2=nf.chi2,
+                    k=nf.k,
+                    n_readings=nf.n,
+                    status=nf.status,
+                )
+            elif criterion == "bic":
                 res = fit(em, meas)
                 used = ~np.asarray(res.residuals["rejected"], bool)
                 r = res.residuals["normalised_residual"].to_numpy(float)[used]
@@ -321,8 +340,19 @@ def select_orders(
         )
     chosen_label = _label(orders, kinds)
     res = results.get(key)
-    if res is None:  # cv: the final fit on all readings
+    if res is None:  # cv or nested candidates: the chosen orders identified in full
         res = fit(with_orders(em0, orders), meas)
+        if nested is not None:
+            # the candidate fit and the full one solve the same problem: the same minimum
+            full = float(np.sum(res.residuals["normalised_residual"].to_numpy(float) ** 2))
+            cand = cache[key]["chi2"]
+            if not math.isclose(full, cand, rel_tol=1e-6):
+                log.warning(
+                    "order selection: the chosen model's chi2 %.9g (full fit) differs from "
+                    "its candidate fit's %.9g",
+                    full,
+                    cand,
+                )
     table = pd.DataFrame(
         rows,
         columns=[
@@ -344,12 +374,73 @@ def select_orders(
     res.order_selection = table
     counting.__exit__(None, None, None)
     n_fits = len(cache) * (k_folds if criterion == "cv" else 1) + (criterion == "cv")
+    how = f"{n_fits} fits"
+    if nested is not None:
+        how = (
+            f"{len(cache)} candidate fits on one problem of the largest orders "
+            f"({nested.gradients} gradients, {nested.grams} Gram "
+            f"{'matrix' if nested.grams == 1 else 'matrices'}), then the chosen "
+            "model identified in full"
+        )
     what = "BIC (chi2 + k ln N)" if criterion == "bic" else f"{k_folds}-fold cross-validation"
     res.notes.append(
         f"error-basis orders chosen per axis by {what}: "
         + ", ".join(f"{a} {kinds[a]} {n}" for a, n in orders.items())
-        + f" ({len(cache)} candidates, {n_fits} fits, {sweeps} sweep(s); "
+        + f" ({len(cache)} candidates, {how}, {sweeps} sweep(s); "
         "order_selection.csv)"
     )
     res.seconds = time.perf_counter() - t0
     return res
+
+
+def _nested_fits(machine, meas, st_table, em0, options, kinds, datum, identify_options):
+    """The candidate fits of nested bases on one problem
+    (:class:`volcal.analysis.nested.NestedFits`), or None where a candidate must be a full
+    identification: B-spline axes (not nested), another strategy than joint (phases), robust
+    rejection (the rejected set changes with the model), the ``impose-all`` datum (decided
+    on the largest model's rows), another instrument than the tracker."""
+    from volcal.analysis.identify import Identifier, prepare
+    from volcal.analysis.nested import NestedFits
+    from volcal.base.progress import stage
+    from volcal.measurement.instruments import get_instrument
+    from volcal.problem.residuals import Layout
+    from volcal.problem.strategies import get_strategy
+
+    opts = identify_options
+    strategy = get_strategy(opts.get("strategy", "joint"))
+    if (
+        any(k not in ("poly", "fourier") for k in kinds.values())
+        or strategy.name != "joint"
+        or opts.get("robust", False)
+        or opts.get("datum_mode", "minimal") != "minimal"
+        or get_instrument(opts.get("instrument")).name != "tracker"
+    ):
+        return None
+    largest = with_orders(em0, {a: max(ns) for a, ns in options.items()})
+    prepared = prepare(
+        machine,
+        meas,
+        st_table,
+        error_model=largest,
+        datum=datum,
+        **{
+            k: opts[k]
+            for k in ("budget", "station_method", "point_method", "columns", "max_memory_gb")
+            if k in opts
+        },
+    )
+    what = f"order selection: building the problem of the largest orders ({len(meas)} readings)"
+    with stage(what):
+        ider = Identifier(
+            prepared.machine,
+            largest,
+            Layout.from_measurements(prepared.meas),
+            exact=opts.get("exact", False),
+            instrument=prepared.ins,
+            solver="gauss-newton",  # IPOPT is not used for the candidates
+        )
+        pr = ider.problem
+        x0 = pr.pack_x(np.zeros(largest.n_params), prepared.st0, prepared.glob0)
+        m = prepared.meas
+        p = pr.pack_data(m.q_internal, m.tool, m.length, 1.0 / prepared.sigma)
+        return NestedFits(ider, x0, p, ider.station_fixed(prepared.st_fixed))

@@ -2,7 +2,7 @@
 
 ``volcal compare`` / :func:`compare` runs every requested strategy (default: joint,
 two-phase, points-only, classic; any name :func:`volcal.problem.strategies.strategies`
-knows) through :func:`volcal.analysis.identify.identify` on the same readings, with the
+knows) through :func:`volcal.workflow.identify` on the same readings, with the
 same error model, budget and start values, and compares each with a reference strategy
 (default joint):
 
@@ -61,7 +61,6 @@ from volcal.analysis.identify import (
     build_error_model,
     declared_poses,
     field_jacobian,
-    identify,
     rigid_fit,
 )
 from volcal.base.exceptions import InputError, SolverError
@@ -72,6 +71,7 @@ from volcal.model.errors import Datum, ErrorForm, ErrorModel
 from volcal.model.machine import Machine
 from volcal.model.spec import MachineSpec
 from volcal.problem.strategies import strategies as registered_strategies
+from volcal.workflow.dispatch import identify
 
 log = logging.getLogger(__name__)
 
@@ -336,7 +336,7 @@ def compare(
     """Identify the same data with several strategies and compare them (module docstring).
 
     model, data, stations, degree, datum, forms, error_model, budget, solver, columns: as
-    :func:`volcal.analysis.identify.identify` (one error model for every strategy);
+    :func:`volcal.workflow.identify` (one error model for every strategy);
     strategies: registered strategy names; reference: the strategy the others are compared
     with (default joint when listed, else the first); truth: true parameters (a
     ``name, value, unit`` file as ``volcal simulate --true-parameters`` reads, or theta in
