@@ -5,10 +5,10 @@ unknowns (the Jacobian and the arrays of its size that the solver and the covari
 hold) plus a part per reading (the table, the residuals, the per-reading results).  The
 factors below were measured with ``python benchmarks/bench_memory.py`` (peak resident
 set of ``volcal identify --no-plots`` on simulated mcv754_wxyzt tables of 12,288 to
-139,968 readings with 75 to 147 unknowns; least-squares fit, residuals below 13 MB;
+139,968 readings with 75 to 147 unknowns; least-squares fit, residuals below 16 MB;
 benchmarks/results/memory.txt):
 
-    peak ~ 140 MB + readings x (2.50 kB + 61.6 B x unknowns)
+    peak ~ 151 MB + readings x (2.40 kB + 47.2 B x unknowns)
 
 :func:`check_memory` refuses a run whose estimate exceeds the memory available
 (the smaller of ``MemAvailable`` in /proc/meminfo and the room left under the control
@@ -33,11 +33,11 @@ __all__ = [
 ]
 
 #: measured (see the module docstring): the interpreter, CasADi, the model
-BASE_BYTES = 140e6
+BASE_BYTES = 151e6
 #: per reading, whatever the unknowns (table, residuals, per-reading results)
-BYTES_PER_READING = 2.50e3
+BYTES_PER_READING = 2.40e3
 #: per reading and unknown (the Jacobian and the arrays of its size)
-BYTES_PER_READING_UNKNOWN = 61.6
+BYTES_PER_READING_UNKNOWN = 47.2
 
 
 def estimate_peak_bytes(readings: int, unknowns: int) -> float:
