@@ -261,6 +261,20 @@ def test_variance_components_recover_a_budget_wrong_by_two(noisy):
     assert any("variance components" in n for n in res.notes)
 
 
+def test_a_budget_wrong_by_two_is_blamed_on_its_own_table(noisy):
+    # the detection side of the per-table check: the interferometer's table claims twice
+    # its real precision (its readings' variance is 4x the budget's), so its chi2/dof is
+    # far above its interval and it alone is named; the tracker's table still fits
+    _, _, d = noisy
+    ifm = d["interferometer"].copy()
+    ifm["sigma_um"] = ifm["sigma_um"] / 2
+    res = identify(MODEL, [d["tracker"], ("interferometer", ifm)], degree=3)
+    fit = res.instruments.set_index("instrument")
+    assert fit.loc["interferometer", "verdict"] == "too large", fit
+    assert fit.loc["interferometer", "chi2_per_dof"] > 2.0, fit
+    assert fit.loc["tracker", "verdict"] == "fits", fit
+
+
 def test_registry_has_the_new_instruments():
     assert get_instrument("interferometer").name == "interferometer"
     assert get_instrument("ballbar").name == "ballbar"
