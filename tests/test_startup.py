@@ -1,0 +1,58 @@
+"""What a command imports before it needs it (issue 27): ``volcal --help`` loads none of
+the numerics, and a bad measurement table is reported before SciPy, the solver or the
+plotting library is imported (and before the model is built: tests/test_input_first.py).
+Each check runs in a fresh interpreter, where ``sys.modules`` starts empty."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+HEAVY = ("numpy", "pandas", "scipy", "casadi", "sympy", "matplotlib", "jinja2")
+
+
+def _imported_after(code: str) -> tuple[set[str], str]:
+    """The heavy packages in sys.modules after ``code`` ran in a new interpreter (code
+    leaves its exit code in ``rc``), and the interpreter's stderr."""
+    probe = f"import sys\n{code}\nprint(rc, *[m for m in {HEAVY!r} if m in sys.modules])\n"
+    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    rc, *mods = r.stdout.split()
+    return {"rc=" + rc, *mods}, r.stderr
+
+
+def test_help_imports_no_numerics():
+    mods, _ = _imported_after(
+        "from volcal.cli.main import build_parser\n"
+        "p = build_parser(); rc = 0\n"
+        "assert 'identify' in p.format_help() and 'demo' in p.format_help()"
+    )
+    assert mods == {"rc=0"}, mods
+
+
+def test_bad_table_reported_before_scipy_and_plots(tmp_path: Path):
+    bad = tmp_path / "bad.csv"
+    pd.DataFrame(
+        {
+            "station": ["A"] * 4,
+            "point": ["1", "2", "3", "4"],
+            "X": [0.0, 10.0, 20.0, 30.0],
+            "Y": 0.0,
+            "Z": 0.0,
+            "length": ["800", "801", "4x5", "803"],
+        }
+    ).to_csv(bad, index=False)
+    out = tmp_path / "out"
+    mods, err = _imported_after(
+        "from volcal.cli.main import main\n"
+        f"rc = main(['identify', '--model', 'mcv754_wxyzt', '--data', {str(bad)!r}, "
+        f"'--out', {str(out)!r}])"
+    )
+    assert "rc=2" in mods
+    assert "bad.csv, row 4, column 'length'" in err and "got '4x5'" in err
+    # reading a table needs numpy and pandas; the solver's and the plots' libraries wait
+    assert not mods & {"scipy", "sympy", "matplotlib", "jinja2"}, mods
+    assert not out.exists()
