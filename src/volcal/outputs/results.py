@@ -583,8 +583,8 @@ def _json_text(obj: Any, level: int) -> str:
     if isinstance(obj, (int, np.integer)):
         return int.__repr__(int(obj))
     if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return float.__repr__(v) if math.isfinite(v) else "null"
+        x = float(obj)
+        return float.__repr__(x) if math.isfinite(x) else "null"
     if isinstance(obj, np.ndarray) and obj.ndim >= 1 and obj.dtype.kind in "fiub":
         if len(obj) == 0:
             return "[]"
