@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pandas as pd
+import pytest
 
 HEAVY = ("numpy", "pandas", "scipy", "casadi", "sympy", "matplotlib", "jinja2")
 
@@ -56,3 +57,29 @@ def test_bad_table_reported_before_scipy_and_plots(tmp_path: Path):
     # reading a table needs numpy and pandas; the solver's and the plots' libraries wait
     assert not mods & {"scipy", "sympy", "matplotlib", "jinja2"}, mods
     assert not out.exists()
+
+
+def test_command_runs_numpy_blas_on_one_thread():
+    """The command line limits BLAS to one thread (volcal.base.threads) although its parser
+    no longer imports numpy: numpy's BLAS is loaded before the limit is set (a library
+    loaded after threadpoolctl's call would keep its threads)."""
+    import os
+
+    code = (
+        "import sys\n"
+        "from volcal.cli.main import main\n"
+        "rc = main(['-q', 'models'])\n"
+        "import numpy\n"
+        "from threadpoolctl import threadpool_info\n"
+        "blas = [d for d in threadpool_info() if 'numpy' in d['filepath']]\n"
+        "print(rc, *[d['num_threads'] for d in blas])\n"
+    )
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="2")
+    r = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert r.returncode == 0, r.stderr
+    rc, *threads = r.stdout.splitlines()[-1].split()  # after the command's listing
+    if not threads:
+        pytest.skip("numpy uses a BLAS of the system, not its own")
+    assert rc == "0" and threads == ["1"], r.stdout
