@@ -83,3 +83,33 @@ def test_command_runs_numpy_blas_on_one_thread():
     if not threads:
         pytest.skip("numpy uses a BLAS of the system, not its own")
     assert rc == "0" and threads == ["1"], r.stdout
+
+
+def test_ids_with_blanks_read_as_without(tmp_path: Path):
+    """Reading skips the per-cell strip of an id column with no blank in it
+    (volcal.measurement.tables._stripped): ids padded with spaces, a tab, a no-break and an
+    ideographic space read as the same ids written without them, and an id of blanks
+    only is still a missing id."""
+    from volcal.base.exceptions import InputError
+    from volcal.measurement.simulate import example, simulate
+    from volcal.measurement.tables import load_measurements
+
+    ex = example("mcv754")
+    args = (ex.machine, ex.error_model, ex.theta_true, ex.stations, ex.plan, ex.tools)
+    clean = simulate(*args, ex.budget, 0).measurements
+    padded = clean.copy()
+    pads = [" ", "\t", "\u00a0", "\u3000"]
+    padded["station"] = [f"{s}{pads[k % 4]}" for k, s in enumerate(padded["station"])]
+    padded["point"] = [f"{pads[(k + 1) % 4]}{p} " for k, p in enumerate(padded["point"])]
+    a, b = tmp_path / "clean.csv", tmp_path / "padded.csv"
+    clean.to_csv(a, index=False)
+    padded.to_csv(b, index=False)
+    ma = load_measurements(a, "mcv754_wxyzt")
+    mb = load_measurements(b, "mcv754_wxyzt")
+    assert mb.station_ids == ma.station_ids and mb.point_ids == ma.point_ids
+    assert (mb.station_index == ma.station_index).all()
+    assert (mb.point_index == ma.point_index).all()
+    padded.loc[3, "point"] = " \t "
+    padded.to_csv(b, index=False)
+    with pytest.raises(InputError, match=r"row 5, column 'point'.*missing id"):
+        load_measurements(b, "mcv754_wxyzt")

@@ -234,12 +234,26 @@ class _Raw:
     rows: np.ndarray  # spreadsheet row of each body row
 
 
+def _stripped(col: pd.Series) -> pd.Series:
+    """``col.str.strip()`` of a column of text, without pandas' Python call per cell when
+    no cell holds a blank (ids like ``LT1``, ``p0001``): one search of the joined text
+    (``\\s`` is what str.strip removes).  A column with a missing cell is stripped."""
+    try:
+        joined = "\x00".join(col.tolist())
+    except TypeError:  # NaN or None among the cells
+        return col.str.strip()
+    return col.str.strip() if _BLANK.search(joined) else col
+
+
+_BLANK = re.compile(r"\s")
+
+
 def _blank_cells(col: pd.Series) -> np.ndarray:
     """:func:`_is_blank` of every cell of a column read as text (strings; NaN or None where
     a short row has no cell), vectorised."""
     if col.dtype != object and not pd.api.types.is_string_dtype(col):
         return np.asarray(col.isna(), bool)
-    text = col.str.strip()  # NaN for cells that are not strings
+    text = _stripped(col)  # NaN for cells that are not strings
     return np.asarray(col.isna(), bool) | np.asarray(text.eq("").fillna(False), bool)
 
 
@@ -699,7 +713,7 @@ def _id_text(v: Any) -> str | None:
 def _parse_ids(values: pd.Series, rows: np.ndarray, column: str, problems: _Problems) -> np.ndarray:
     if pd.api.types.infer_dtype(values, skipna=False) == "string":
         # text cells (a CSV file): _id_text vectorised (stripped; blank is missing)
-        out = values.str.strip().fillna("").to_numpy(dtype=object)
+        out = _stripped(values).fillna("").to_numpy(dtype=object)
         missing = out == ""
         out[missing] = None
     else:
