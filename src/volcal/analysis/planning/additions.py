@@ -58,7 +58,7 @@ import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -69,9 +69,6 @@ from volcal.analysis.identify import field_jacobian
 from volcal.base.exceptions import InputError
 from volcal.measurement.instruments import Ballbar, Instrument, LaserInterferometer
 from volcal.measurement.simulate_instruments import BALLBAR_SIGMA_UM, INTERFEROMETER_SIGMA_UM
-
-if TYPE_CHECKING:
-    from volcal.analysis.planning.plan import PlanResult
 
 __all__ = [
     "ADDABLE",
@@ -410,7 +407,7 @@ def _derivatives(ins: Instrument) -> ca.Function:
     return ca.Function(f"{ins.name}_d", [p, s, g], [ca.jacobian(v, p), ca.jacobian(v, s)])
 
 
-def candidate_information(plan_result: PlanResult, cand: Candidate, sigma_um: float) -> np.ndarray:
+def candidate_information(plan_result: Any, cand: Candidate, sigma_um: float) -> np.ndarray:
     """The information (r, r) a candidate adds about the plan's unknowns, its own free
     set-up parameters eliminated (module docstring)."""
     ev = plan_result.evaluator
@@ -689,7 +686,7 @@ def choose(
 
 
 def add_instruments(
-    plan_result: PlanResult,
+    plan_result: Any,
     instruments: Sequence[str] = ADDABLE,
     minutes: float = 60.0,
     costs: InstrumentCosts | Mapping[str, Any] | None = None,
