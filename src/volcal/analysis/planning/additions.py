@@ -54,6 +54,7 @@ uncertainties.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
 from collections.abc import Mapping, Sequence
@@ -67,6 +68,7 @@ import scipy.linalg as sla
 
 from volcal.analysis.identify import field_jacobian
 from volcal.base.exceptions import InputError
+from volcal.base.threads import blas_threads
 from volcal.measurement.instruments import Ballbar, Instrument, LaserInterferometer
 from volcal.measurement.simulate_instruments import BALLBAR_SIGMA_UM, INTERFEROMETER_SIGMA_UM
 
@@ -397,6 +399,7 @@ def _nominal_readings(instrument: str, P0: np.ndarray) -> np.ndarray:
     return np.zeros(len(P0))
 
 
+@functools.lru_cache(maxsize=8)
 def _derivatives(ins: Instrument) -> ca.Function:
     """(point, station) -> (d reading / d point, d reading / d station), from the
     instrument's one reading expression."""
@@ -459,6 +462,8 @@ class Additions:
     tracker_minutes: float
     method: str
     notes: list[str] = field(default_factory=list)
+    #: {axis: (lo, hi)} the candidates used (None: the whole travel)
+    travel: Mapping[str, Sequence[float]] | None = None
 
     @property
     def spent_minutes(self) -> float:
@@ -518,7 +523,7 @@ class Additions:
         axis' travel in ``interferometer_targets`` steps, the other axes in the middle
         (rotary at their reference), at the plan's first tool offset."""
         m = self.plan.machine
-        tr = _travel(m, self.plan.settings.get("travel"))
+        tr = _travel(m, self.travel)
         ref = _reference(m)
         for a in m.spec.axes:
             if not a.is_rotary:
@@ -533,28 +538,43 @@ class Additions:
             out.append((a.name, m.axis_to_internal(q), np.tile(self.plan.tools[0], (n, 1))))
         return out
 
-    def positioning_u_um(self, M: np.ndarray) -> dict[str, float]:
-        """{axis: RMS over the targets of its reference line (:meth:`positioning_lines`)
-        of the standard uncertainty (um) of the displacement along the axis relative to
-        the line's first target} for information M."""
+    @functools.cached_property
+    def _positioning_rows(self) -> dict[str, np.ndarray]:
+        """{axis: (n - 1, r)} the displacement along each reference line relative to its
+        first target, per reduced coordinate (mm per scaled unit)."""
         p = self.plan
         ev, pr = p.evaluator, p.evaluator.problem
         nt = pr.n_theta
         fz = ev.frozen
         ZZ = np.zeros((pr.n_x, fz.Z.shape[1]))
         ZZ[fz.free] = fz.Z
-        L = np.linalg.cholesky(M)
         out = {}
         for name, q, t in self.positioning_lines():
             P0, _, G = field_jacobian(p.machine, p.error_model, np.zeros(nt), q, t)
             u = P0[-1] - P0[0]
             u = u / np.linalg.norm(u)
-            g = np.einsum("c,nck->nk", u, G[1:] - G[0]) * pr.scale[None, :nt] @ ZZ[:nt]
+            out[name] = np.einsum("c,nck->nk", u, G[1:] - G[0]) * pr.scale[None, :nt] @ ZZ[:nt]
+        return out
+
+    def positioning_u_um(self, M: np.ndarray) -> dict[str, float]:
+        """{axis: RMS over the targets of its reference line (:meth:`positioning_lines`)
+        of the standard uncertainty (um) of the displacement along the axis relative to
+        the line's first target} for information M."""
+        L = np.linalg.cholesky(M)
+        out = {}
+        for name, g in self._positioning_rows.items():
             X = sla.solve_triangular(L, g.T, lower=True)
             out[name] = float(np.sqrt(np.mean(np.sum(X * X, axis=0)))) * 1e3
         return out
 
     def prediction(self) -> pd.DataFrame:
+        """See :meth:`_prediction` (computed once: the choice does not change)."""
+        if getattr(self, "_pred", None) is None:
+            with blas_threads(1):
+                self._pred = self._prediction()
+        return self._pred.copy()
+
+    def _prediction(self) -> pd.DataFrame:
         """The criterion and the predicted uncertainties of the tracker plan, then after
         each chosen set-up in measuring order (the last row: the plan with every
         addition): step, added (set-up id, empty for the tracker plan), instrument,
@@ -685,13 +705,22 @@ def choose(
     return sel, note
 
 
-def add_instruments(
+def add_instruments(*args: Any, **kwargs: Any) -> Additions:
+    """See :func:`_add_instruments`; run with one BLAS thread, as the planner runs (its
+    r x r solves are small, and a pool of threads on a shared machine slowed them ten
+    times)."""
+    with blas_threads(1):
+        return _add_instruments(*args, **kwargs)
+
+
+def _add_instruments(
     plan_result: Any,
     instruments: Sequence[str] = ADDABLE,
     minutes: float = 60.0,
     costs: InstrumentCosts | Mapping[str, Any] | None = None,
     *,
     tool_mm: Sequence[float] | None = None,
+    travel: Mapping[str, Sequence[float]] | None = None,
 ) -> Additions:
     """Add interferometer lines and / or ballbar circles to a tracker plan within
     ``minutes`` of measuring time (module docstring); the tracker plan stays as it is.
@@ -700,13 +729,15 @@ def add_instruments(
     :data:`ADDABLE`; minutes: the budget for the additions, on top of the tracker plan's
     time (0: nothing added); costs: :class:`InstrumentCosts` or a mapping of
     :data:`COST_KEYS`; tool_mm: the tool offset of the reflector / spindle ball, mm
-    (default the plan's first).  Returns :class:`Additions` (also set as
+    (default the plan's first); travel: {axis: (lo, hi)} mm / deg the lines and circles
+    may use (default the whole travel: the plan's criterion is judged over it, whatever
+    part the tracker plan covers).  Returns :class:`Additions` (also set as
     ``plan_result.additions``)."""
     ins = check_instruments(list(instruments))
     minutes = check_minutes(minutes)
     c = costs if isinstance(costs, InstrumentCosts) else InstrumentCosts.from_mapping(costs or {})
     tool = np.asarray(plan_result.tools[0] if tool_mm is None else tool_mm, float)
-    cands = candidates(plan_result.machine, ins, c, tool, plan_result.settings.get("travel"))
+    cands = candidates(plan_result.machine, ins, c, tool, travel)
     sigma = {"interferometer": c.interferometer_sigma_um, "ballbar": c.ballbar_sigma_um}
     for cand in cands:
         cand.info = candidate_information(plan_result, cand, sigma[cand.instrument])
@@ -738,7 +769,16 @@ def add_instruments(
     spr = float(plan_result.settings.get("seconds_per_reading", 4.0))
     n_read = int(plan_result.selected.sum()) * len(plan_result.tools) * len(plan_result.stations_mm)
     out = Additions(
-        plan_result, chosen, cands, float(minutes), c, ins, n_read * spr / 60.0, method, notes
+        plan_result,
+        chosen,
+        cands,
+        float(minutes),
+        c,
+        ins,
+        n_read * spr / 60.0,
+        method,
+        notes,
+        None if travel is None else {k: tuple(map(float, v)) for k, v in travel.items()},
     )
     plan_result.additions = out
     return out
