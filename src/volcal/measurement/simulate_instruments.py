@@ -15,6 +15,7 @@ of the fixed lines and circles.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pandas as pd
@@ -173,7 +174,7 @@ def planned_table(
     probe = df.copy()
     probe[col] = 0.0  # the geometry only: the readings are what is simulated
     try:
-        t = ins.read_table(probe, machine.spec)
+        t = cast(pd.DataFrame, ins.read_table(probe, machine.spec))
     except InputError as exc:  # name the file, not the DataFrame it was read into
         text = str(exc)
         msg = text.split(": ", 1)[1] if text.startswith("<") and ": " in text else text

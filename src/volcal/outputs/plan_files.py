@@ -395,7 +395,7 @@ def write_plan(
         hist.to_csv(d / "search_history.csv", index=False)
         (d / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
         (d / "report.md").write_text(_report(summary, vol, motions, pred))
-        if add is not None:
+        if add is not None and pred is not None:
             pred.to_csv(d / "prediction_instruments.csv", index=False)
             for name in add.instruments:
                 table = add.table(name)

@@ -287,7 +287,7 @@ def candidates(
     machine,
     instruments: Sequence[str],
     costs: InstrumentCosts,
-    tool_mm: Sequence[float],
+    tool_mm: Sequence[float] | np.ndarray,
     travel: Mapping[str, Sequence[float]] | None = None,
 ) -> list[Candidate]:
     """The candidate set-ups (module docstring) for the given instruments, without their

@@ -19,6 +19,7 @@ import argparse
 import logging
 import re
 from pathlib import Path
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -346,7 +347,10 @@ def run(args: argparse.Namespace) -> int:
         g = np.random.default_rng(np.random.SeedSequence(args.seed, spawn_key=(32,)))
         t0 = np.atleast_2d(tools)[0]
         tool = (float(t0[0]), float(t0[1]), float(t0[2]))
-        fixed = {"interferometer": si.interferometer_table, "ballbar": si.ballbar_table}
+        fixed: dict[str, Any] = {
+            "interferometer": si.interferometer_table,
+            "ballbar": si.ballbar_table,
+        }
         for name, path in extra.items():
             if path is None:
                 tables[f"{name}.csv"] = fixed[name](
