@@ -384,3 +384,19 @@ def test_cli_bad_instrument_settings_exit_2(tmp_path, capsys, extra, setting, wo
     for w in words:
         assert w in err, (w, err)
     assert not (tmp_path / "x").exists()
+
+
+def test_setting_instruments_table_sets_the_budget_and_costs(tmp_path):
+    from volcal.analysis.planning.additions import instruments_from_dict
+
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(
+        'model = "mcv754_wxyzt"\n[instruments]\nadd = ["interferometer"]\nminutes = 30\n'
+        "levels = 2\ninterferometer_setup_min = 20\n"
+    )
+    setting = load_setting(cfg)
+    inst = instruments_from_dict(setting["instruments"], str(cfg))
+    assert inst["add"] == ("interferometer",) and inst["minutes"] == 30.0
+    costs = InstrumentCosts.from_mapping(inst["costs"])
+    assert costs.levels == 2 and costs.line_minutes() == pytest.approx(20 + 11 * 10 / 60)
+    assert costs.ballbar_radii_mm == (50.0, 100.0, 150.0)  # the default kept
