@@ -649,6 +649,8 @@ def choose(
     minutes: each candidate's cost; value(M): the criterion (smaller is better)."""
     cost = np.asarray(minutes, float)
     n = len(infos)
+    if not budget_min > 0:  # no time: nothing, even set-ups costed at zero
+        return [], "nothing to choose: no time"
 
     def total(sel: list[int]) -> np.ndarray:
         M = base.copy()
