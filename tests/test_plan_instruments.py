@@ -132,6 +132,24 @@ def test_a_plan_weak_in_x_gets_a_line_along_x_first():
     assert first.setup.startswith("IZ"), first.what
 
 
+def test_exchange_repairs_an_early_greedy_pick():
+    """A cheap set-up with the best gain per minute uses the time an expensive one needs:
+    greedy alone keeps the cheap one (criterion 1.5), the exchange pass swaps it for the
+    expensive one (criterion 0.02), the best use of the budget."""
+    from volcal.analysis.planning.additions import choose
+
+    def value(M):
+        return float(np.trace(np.linalg.inv(M)))
+
+    base = np.eye(2)
+    infos = [np.diag([1.0, 0.0]), np.diag([100.0, 100.0])]
+    picked, note = choose(base, infos, [1.0, 10.0], 10.0, value)
+    assert picked == [1] and "1 exchange" in note
+    # with room for both, both
+    assert sorted(choose(base, infos, [1.0, 10.0], 11.0, value)[0]) == [0, 1]
+    assert choose(base, infos, [0.0, 0.0], 0.0, value)[0] == []  # no time, nothing
+
+
 def _planned_as_simulator_input(add, names):
     """The chosen lines and circles as tests/fusion_sim.py's arguments."""
     lines, circles = [], []
