@@ -113,3 +113,29 @@ def test_ids_with_blanks_read_as_without(tmp_path: Path):
     padded.to_csv(b, index=False)
     with pytest.raises(InputError, match=r"row 5, column 'point'.*missing id"):
         load_measurements(b, "mcv754_wxyzt")
+
+
+def test_point_reused_for_another_pose_names_its_first_row(tmp_path: Path):
+    """The first reading of each point id is found without a loop over the readings:
+    the warning names the row of the id's first use and the first row that differs from
+    it, and counts the differing rows (here known by construction)."""
+    from volcal.measurement.simulate import example, simulate
+    from volcal.measurement.tables import DataWarning, load_measurements
+
+    ex = example("mcv754")
+    args = (ex.machine, ex.error_model, ex.theta_true, ex.stations, ex.plan, ex.tools)
+    table = simulate(*args, ex.budget, 0).measurements
+    first = table.index[table["point"] == table.loc[1, "point"]][0]  # 0-based table row
+    later = [k for k in range(len(table)) if table.loc[k, "point"] != table.loc[1, "point"]]
+    k1, k2 = later[40], later[90]
+    table.loc[[k1, k2], "point"] = table.loc[1, "point"]  # same id, other poses
+    path = tmp_path / "reused.csv"
+    table.to_csv(path, index=False)
+    with pytest.warns(DataWarning) as record:
+        load_measurements(path, "mcv754_wxyzt")
+    text = " ".join(str(w.message) for w in record)
+    rows = sorted([k1, k2])
+    assert (
+        f"point '{table.loc[1, 'point']}' has different axis positions or tool offsets in "
+        f"rows {first + 2} and {rows[0] + 2} (2 row(s) differ" in text
+    ), text

@@ -1136,9 +1136,12 @@ def load_measurements(
             )
 
     # stations
-    station_ids = list(dict.fromkeys(station.tolist()))
-    lookup = {s: i for i, s in enumerate(station_ids)}
-    station_index = np.fromiter((lookup[s] for s in station), dtype=int, count=n)
+    # ids in order of first appearance and each reading's index into them, as
+    # dict.fromkeys and a lookup per reading give them (pandas' hash table, no Python
+    # per reading)
+    codes, uniques = pd.factorize(station)
+    station_ids = list(uniques.tolist())
+    station_index = codes.astype(int, copy=False)
     counts = np.bincount(station_index, minlength=len(station_ids))
     first_row = {
         s: int(rows[np.flatnonzero(station_index == i)[0]]) for i, s in enumerate(station_ids)
@@ -1182,9 +1185,9 @@ def load_measurements(
                 )
     problems.raise_if_any()
 
-    point_ids = list(dict.fromkeys(point.tolist()))
-    plookup = {p: i for i, p in enumerate(point_ids)}
-    point_index = np.fromiter((plookup[p] for p in point), dtype=int, count=n)
+    codes, uniques = pd.factorize(point)
+    point_ids = list(uniques.tolist())
+    point_index = codes.astype(int, copy=False)
     q_internal = q_file.copy()
     for j, a in enumerate(spec.axes):
         if a.is_rotary:
@@ -1360,9 +1363,8 @@ def _warn_geometry(
     # one point id should be one commanded pose
     pose = np.concatenate([q, tool], axis=1)
     first = np.full(point_index.max() + 1, -1)
-    for k, p in enumerate(point_index):
-        if first[p] < 0:
-            first[p] = k
+    seen, first_k = np.unique(point_index, return_index=True)  # each id's first reading
+    first[seen] = first_k
     ref = pose[first[point_index]]
     differ = np.flatnonzero(np.any(pose != ref, axis=1))
     if differ.size:
