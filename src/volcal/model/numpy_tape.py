@@ -117,12 +117,12 @@ class NumpyTape:
         return d
 
     # ---- forward --------------------------------------------------------------------------
-    def __call__(self, *inputs: Sequence[Any]) -> list[list[Any]]:
+    def __call__(self, *inputs: Any) -> list[list[Any]]:
         """The outputs for ``inputs`` (see the class docstring)."""
         _, out = self._forward(inputs)
         return out
 
-    def _forward(self, inputs: Sequence[Sequence[Any]]) -> tuple[list[Any], list[list[Any]]]:
+    def _forward(self, inputs: Sequence[Any]) -> tuple[list[Any], list[list[Any]]]:
         if len(inputs) != len(self.nnz_in):
             raise ValueError(f"{self.name}: {len(self.nnz_in)} inputs expected, got {len(inputs)}")
         for i, (a, nnz) in enumerate(zip(inputs, self.nnz_in)):
@@ -145,6 +145,8 @@ class NumpyTape:
             else:
                 x = v[a[0]]
                 y = v[a[1]] if len(a) > 1 else x
+                fun: Any
+                args: tuple[Any, ...]
                 if op in _BINARY:
                     fun, args = _BINARY[op], (x, y)
                 elif op == "OP_TWICE":
@@ -158,7 +160,7 @@ class NumpyTape:
 
     # ---- reverse ------------------------------------------------------------------------
     def vjp(
-        self, inputs: Sequence[Sequence[Any]], seed: Any, output: int = 0
+        self, inputs: Sequence[Any], seed: Any, output: int = 0
     ) -> tuple[list[list[Any]], list[list[Any]]]:
         """(outputs, adjoints): the outputs as :meth:`__call__` and, per input nonzero, the
         sum over evaluations of ``seed * d output[0] / d input`` reduced to the shape of
@@ -200,8 +202,8 @@ class NumpyTape:
             if op == "OP_INPUT":
                 grads[a[0]][a[1]] = g
                 continue
-            x = v[a[0]]
-            y = v[a[1]] if len(a) > 1 else None
+            x: Any = v[a[0]]
+            y: Any = v[a[1]] if len(a) > 1 else None
 
             def m(tag: str, fun, *args, _k: int = k):  # one operation, in a kept array
                 return _apply(pool, ("r", _k, tag), fun, args)

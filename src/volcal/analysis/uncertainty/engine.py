@@ -358,6 +358,11 @@ class StructuredLSQ:
         g = X[:, nt + 4 * K :]
         return th, S, g
 
+    def _tape(self) -> NumpyTape:
+        if self.reading is None:
+            raise ValueError("an engine without its reading tape (StructuredLSQ.build sets it)")
+        return self.reading
+
     def _inputs(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The reading tape's inputs at physical X (B, n), per nonzero: tool points
         (3, N, B), every reading's station (4, N, B), frame (6, 1, B)."""
@@ -370,7 +375,7 @@ class StructuredLSQ:
 
     def readings(self, X: np.ndarray) -> np.ndarray:
         """The instrument's readings (B, N), mm, at physical X (B, n)."""
-        ((v,),) = self.reading(*self._inputs(np.atleast_2d(X)))
+        ((v,),) = self._tape()(*self._inputs(np.atleast_2d(X)))
         return np.array(np.broadcast_to(v, (self.n_readings, np.atleast_2d(X).shape[0])).T)
 
     def reading_derivatives(
@@ -383,7 +388,7 @@ class StructuredLSQ:
         P, S, g = self._inputs(np.asarray(x, float)[None, :])
         N = self.n_readings
         g = np.broadcast_to(g, (g.shape[0], N, 1))
-        ((v,),), d = self.reading.vjp((P, S, g), np.ones((N, 1)))
+        ((v,),), d = self._tape().vjp((P, S, g), np.ones((N, 1)))
 
         def cols(parts):
             return np.column_stack([np.broadcast_to(c, (N, 1))[:, 0] for c in parts])
