@@ -405,26 +405,11 @@ def read_iso230_2_file(data, *, source: str | None = None) -> Iso230File:
     out = []
     deviation = np.empty(n_rows)  # per row, internal unit (filled axis by axis)
     axes_in_order = list(dict.fromkeys(axis.tolist()))
+    per_row = (cycle, direction, target, value, units, form, src, original, tcol, vcol, rownum)
     for name in axes_in_order:
         rows = np.flatnonzero(axis == name)
-        out.append(
-            _one_axis(
-                name,
-                rows,
-                cycle,
-                direction,
-                target,
-                value,
-                units,
-                form,
-                src,
-                original,
-                tcol,
-                vcol,
-                rownum,
-                deviation,
-            )
-        )
+        readings, deviation[rows] = _one_axis(name, rows, *per_row)
+        out.append(readings)
     return Iso230File(
         source=src,
         units=units,
@@ -441,23 +426,10 @@ def read_iso230_2_file(data, *, source: str | None = None) -> Iso230File:
 
 
 def _one_axis(
-    name,
-    rows,
-    cycle,
-    direction,
-    target,
-    value,
-    units,
-    form,
-    src,
-    original,
-    tcol,
-    vcol,
-    rownum,
-    deviation,
-) -> AxisReadings:
-    """Validate the readings of one axis; returns its arrays and writes the deviation of each
-    of its rows (internal unit) into ``deviation``."""
+    name, rows, cycle, direction, target, value, units, form, src, original, tcol, vcol, rownum
+) -> tuple[AxisReadings, np.ndarray]:
+    """Validate the readings of one axis: its arrays, and the deviation (internal unit) of
+    each of its rows in the order of ``rows``."""
     tu = "mm" if units is LINEAR else "deg"
     tkey = np.round(target[rows], _TARGET_DECIMALS)
     dirs = set(direction[rows])
@@ -582,6 +554,7 @@ def _one_axis(
 
     up = np.empty((m, n))
     down = np.empty((m, n))
+    row_dev: dict[int, float] = {}
     index = {t: i for i, t in enumerate(all_targets)}
     for k in rows:
         i = index[np.round(target[k], _TARGET_DECIMALS)]
@@ -593,7 +566,7 @@ def _one_axis(
             if units is ROTARY:  # wrap to (-180, 180] deg
                 dev = -((-dev + 180.0) % 360.0 - 180.0)
         (up if direction[k] == "up" else down)[i, j] = dev
-        deviation[k] = dev
+        row_dev[k] = dev
 
     # target positions: mean of the (rounded-equal) file values, converted to internal units
     tgt = np.array([target[rows][tkey == t].mean() for t in all_targets])
@@ -603,8 +576,8 @@ def _one_axis(
     else:
         targets_int = np.deg2rad(tgt)
         scale_dev = (math.pi / 180.0 / 3600.0) if form == "deviation" else math.pi / 180.0
-    deviation[rows] *= scale_dev
-    return AxisReadings(
+    dev_rows = np.array([row_dev[int(k)] for k in rows]) * scale_dev
+    readings = AxisReadings(
         axis=name,
         units=units,
         targets=targets_int,
@@ -612,3 +585,4 @@ def _one_axis(
         down=down * scale_dev,
         source=src,
     )
+    return readings, dev_rows
