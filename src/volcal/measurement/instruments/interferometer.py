@@ -112,19 +112,14 @@ class LaserInterferometer(Instrument):
         format (``axis``, ``target_mm`` or ``target_deg``, ``cycle``, ``direction``, ...) is
         recognised and read by :meth:`read_iso230_2`."""
         from volcal.measurement.iso230_2_files import is_iso230_2_table
-        from volcal.measurement.tables import read_columns
+        from volcal.measurement.tables import mm_or_um, mm_or_um_columns, read_columns
 
         if is_iso230_2_table(source):
             return self.read_iso230_2(source, spec)
         axes = [(f"{a.name}_{'deg' if a.is_rotary else 'mm'}", True, "float") for a in spec.axes]
         cols = [("setup", True, "id"), ("point", False, "id"), *axes]
         cols += [(f"tool_{c}_mm", False, "float") for c in "xyz"]
-        cols += [
-            ("displacement_mm", False, "float"),
-            ("displacement_um", False, "float"),
-            ("sigma_mm", False, "optfloat"),
-            ("sigma_um", False, "optfloat"),
-        ]
+        cols += mm_or_um_columns("displacement") + mm_or_um_columns("sigma", "optfloat")
         v, rows, label = read_columns(source, cols, what="interferometer table")
         out: dict[str, np.ndarray] = {"station": v["setup"]}
         out["point"] = v.get("point", np.array([f"r{r}" for r in rows], dtype=object))
@@ -132,8 +127,8 @@ class LaserInterferometer(Instrument):
             out[n] = v[n]
         for c in "xyz":
             out[f"tool_{c}_mm"] = v.get(f"tool_{c}_mm", np.zeros(len(rows)))
-        out["length_mm"] = _one_of(v, "displacement", label)
-        sig = _optional_one_of(v, "sigma", label)
+        out["length_mm"] = mm_or_um(v, "displacement", label, required=True)
+        sig = mm_or_um(v, "sigma", label, required=False)
         if sig is not None:
             out["sigma_mm"] = sig
         return pd.DataFrame(out)
@@ -148,6 +143,7 @@ class LaserInterferometer(Instrument):
         the optional ``tool_x_mm``, ``tool_y_mm``, ``tool_z_mm`` (default 0); optional
         ``sigma_um`` or ``sigma_mm``.  Linear axes of the model only."""
         from volcal.measurement.iso230_2_files import LINEAR, read_iso230_2_file
+        from volcal.measurement.tables import mm_or_um
 
         f = read_iso230_2_file(source)
         label = f.source
@@ -196,33 +192,7 @@ class LaserInterferometer(Instrument):
             if (x := f.number_column(k, f"a standard deviation in {k[6:]}", optional=True))
             is not None
         }
-        sig = _optional_one_of(sigma, "sigma", label)
+        sig = mm_or_um(sigma, "sigma", label, required=False)
         if sig is not None:
             out["sigma_mm"] = sig
         return pd.DataFrame(out)
-
-
-def _optional_one_of(v: dict, base: str, label: str) -> np.ndarray | None:
-    """The ``base_mm`` or ``base_um`` column in mm (at most one of them; None if
-    neither)."""
-    mm, um = v.get(f"{base}_mm"), v.get(f"{base}_um")
-    if mm is not None and um is not None:
-        raise InputError(
-            f"columns '{base}_mm' and '{base}_um' are the same quantity; keep one",
-            source=label,
-            row=1,
-            column=f"{base}_um",
-        )
-    if um is not None:
-        return um * 1e-3
-    return mm
-
-
-def _one_of(v: dict, base: str, label: str) -> np.ndarray:
-    """The ``base_mm`` or ``base_um`` column in mm (exactly one of them)."""
-    out = _optional_one_of(v, base, label)
-    if out is None:
-        raise InputError(
-            f"missing required column '{base}_mm' (or '{base}_um')", source=label, row=1
-        )
-    return out
