@@ -84,13 +84,14 @@ def _function_hits(fn: ast.FunctionDef) -> set[int]:
 
     # in-place forms: D written by np.subtract(.., out=D) or D -= ..; L by
     # np.multiply(D[i], D[i], out=L) or np.square(D[i], out=L); then np.sqrt(L, out=L)
+    nodes = list(ast.walk(fn))
+    for n in nodes:
+        if isinstance(n, ast.AugAssign) and isinstance(n.op, ast.Sub):
+            if isinstance(n.target, ast.Name):
+                diffs.add(n.target.id)
+    in_place = [(n, out) for n in nodes if isinstance(n, ast.Call) and (out := out_name(n))]
     for _ in range(3):
-        for n in ast.walk(fn):
-            if isinstance(n, ast.AugAssign) and isinstance(n.op, ast.Sub):
-                if isinstance(n.target, ast.Name):
-                    diffs.add(n.target.id)
-            if not isinstance(n, ast.Call) or (out := out_name(n)) is None:
-                continue
+        for n, out in in_place:
             name = _name(n)
             if name == "subtract" and len(n.args) >= 2 and out not in sumsq | dists:
                 if not (n.args and isinstance(n.args[0], ast.Name) and n.args[0].id in dists):
