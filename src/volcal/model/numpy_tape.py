@@ -274,7 +274,8 @@ class NumpyTape:
 def _apply(pool: dict, key: tuple, fun: Any, args: tuple) -> Any:
     """fun(*args) into the array kept under ``key`` (a new one when the shape changed);
     a float when every argument is one."""
-    shape = np.broadcast_shapes(*(np.shape(x) for x in args))
+    shapes = [x.shape if isinstance(x, np.ndarray) else np.shape(x) for x in args]
+    shape = shapes[0] if all(t == shapes[0] for t in shapes) else np.broadcast_shapes(*shapes)
     if not shape:
         return float(fun(*args))
     buf = pool.get(key)
