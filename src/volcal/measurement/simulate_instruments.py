@@ -49,6 +49,33 @@ def _actual_points(machine, em, theta, q_file, tool) -> tuple[np.ndarray, np.nda
     return machine.nominal_points(q, t), np.asarray(P, float)
 
 
+def _read(ins, P: np.ndarray, station: np.ndarray, sigma_um: float, noise: bool, rng):
+    """The instrument's readings (mm) of actual points P (N, 3) at one set-up, with normal
+    noise of standard deviation sigma_um (um) when ``noise``."""
+    m, _ = ins.evaluate(P, np.tile(station, (len(P), 1)))
+    return m + rng.normal(0.0, sigma_um * 1e-3, len(P)) if noise else m
+
+
+def _table(
+    setup: str,
+    points: list[str],
+    columns: dict[str, object],
+    tool: tuple[float, float, float],
+    reading: tuple[str, np.ndarray],
+    sigma_um: float,
+) -> pd.DataFrame:
+    """One set-up in an instrument's CSV layout: ``setup``, ``point``, the instrument's own
+    ``columns`` (in order), ``tool_*_mm``, the reading column and ``sigma_um``."""
+    df = pd.DataFrame({"setup": setup, "point": points})
+    for c, v in columns.items():
+        df[c] = v
+    for c, v in zip("xyz", tool):
+        df[f"tool_{c}_mm"] = v
+    df[reading[0]] = reading[1]
+    df["sigma_um"] = sigma_um
+    return df
+
+
 def interferometer_table(
     machine: Machine,
     em: ErrorModel,
@@ -72,18 +99,13 @@ def interferometer_table(
         P0, P = _actual_points(machine, em, theta, q, tool)
         u = (P0[-1] - P0[0]) / np.linalg.norm(P0[-1] - P0[0])
         st = np.r_[u, rng.uniform(-50e-6, 50e-6, 2), rng.uniform(-100.0, 100.0)]
-        m, _ = ins.evaluate(P, np.tile(st, (n_targets, 1)))
-        sigma = INTERFEROMETER_SIGMA_UM * 1e-3
-        if noise:
-            m = m + rng.normal(0.0, sigma, n_targets)
-        df = pd.DataFrame({"setup": f"{a.name}-line", "point": [f"t{i}" for i in range(n_targets)]})
-        for c, v in zip(_columns(machine), q.T):
-            df[c] = v
-        for c, v in zip("xyz", tool):
-            df[f"tool_{c}_mm"] = v
-        df["displacement_mm"] = m
-        df["sigma_um"] = INTERFEROMETER_SIGMA_UM
-        frames.append(df)
+        m = _read(ins, P, st, INTERFEROMETER_SIGMA_UM, noise, rng)
+        points = [f"t{i}" for i in range(n_targets)]
+        columns = dict(zip(_columns(machine), q.T))
+        reading = ("displacement_mm", m)
+        frames.append(
+            _table(f"{a.name}-line", points, columns, tool, reading, INTERFEROMETER_SIGMA_UM)
+        )
     return pd.concat(frames, ignore_index=True)
 
 
@@ -117,21 +139,14 @@ def ballbar_table(
         _, P = _actual_points(machine, em, theta, q, tool)
         C = _actual_points(machine, em, np.zeros_like(theta), mid[None], tool)[0][0]
         st = np.r_[C + rng.uniform(-0.02, 0.02, 3), radius + rng.uniform(-5e-3, 5e-3)]
-        m, _ = ins.evaluate(P, np.tile(st, (n_angles, 1)))
-        if noise:
-            m = m + rng.normal(0.0, BALLBAR_SIGMA_UM * 1e-3, n_angles)
+        m = _read(ins, P, st, BALLBAR_SIGMA_UM, noise, rng)
         plane = axes[j1].name + axes[j2].name
-        df = pd.DataFrame({"setup": f"{plane}-circle", "point": [f"a{i}" for i in range(n_angles)]})
-        df["plane"] = plane
-        for c, v in zip(_columns(machine, "centre_"), mid):
-            df[c] = v
-        df["radius_mm"] = radius
-        df["angle_deg"] = ang
-        for c, v in zip("xyz", tool):
-            df[f"tool_{c}_mm"] = v
-        df["deviation_um"] = m * 1e3
-        df["sigma_um"] = BALLBAR_SIGMA_UM
-        frames.append(df)
+        points = [f"a{i}" for i in range(n_angles)]
+        columns: dict[str, object] = {"plane": plane}
+        columns.update(zip(_columns(machine, "centre_"), mid))
+        columns.update(radius_mm=radius, angle_deg=ang)
+        reading = ("deviation_um", m * 1e3)
+        frames.append(_table(f"{plane}-circle", points, columns, tool, reading, BALLBAR_SIGMA_UM))
     return pd.concat(frames, ignore_index=True)
 
 
