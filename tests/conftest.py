@@ -2,11 +2,20 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+# Under pytest-xdist every core runs a test process: each gets one BLAS / OpenMP thread
+# (set before any test module imports numpy; the volcal programs the tests start inherit
+# it), or two processes each asking for every core make the dense algebra thrash.  A
+# test that checks thread handling sets its own variables.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
 
 
 @pytest.fixture(scope="session")
@@ -37,3 +46,12 @@ def dask_client():
         distributed.Client(cluster) as client,
     ):
         yield client
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests on the shared Dask cluster run in one xdist process (``--dist loadgroup``):
+    one cluster for the session instead of one per core, each of them starting worker
+    processes on a 2-core machine."""
+    for item in items:
+        if "dask_client" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.xdist_group("dask"))
