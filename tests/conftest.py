@@ -46,12 +46,3 @@ def dask_client():
         distributed.Client(cluster) as client,
     ):
         yield client
-
-
-def pytest_collection_modifyitems(config, items):
-    """Tests on the shared Dask cluster run in one xdist process (``--dist loadgroup``):
-    one cluster for the session instead of one per core, each of them starting worker
-    processes on a 2-core machine."""
-    for item in items:
-        if "dask_client" in getattr(item, "fixturenames", ()):
-            item.add_marker(pytest.mark.xdist_group("dask"))
