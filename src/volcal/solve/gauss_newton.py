@@ -209,6 +209,7 @@ class GaussNewtonSolver:
         f, size = float("nan"), float("inf")
         accepted = False  # whether the last trial step was taken
         taken = 0  # steps taken
+        floor: float | None = None  # size of the last step f could not rank, if it was
         for it in range(1, max_iter + 1):  # noqa: B007  (the count is reported)
             f, dx, _, pred, level = self.step(xs, p, Z, mu)
             progress.update(f"Gauss-Newton iteration {it}, cost {f:.6g}")
@@ -231,21 +232,24 @@ class GaussNewtonSolver:
             accepted = bool(
                 np.isfinite(f_new) and (f_new < f or (pred < flat and f_new <= f + flat))
             )
+            # an undamped step that promises less than the rounding level of f: f cannot
+            # rank it (lower or higher is rounding), the model still can.  It is taken
+            # unless f finds it clearly worse (the model's correction: every solver then
+            # ends at the same Gauss-Newton fixed point whatever the rounding of its
+            # evaluations); once two such steps in a row no longer shrink, the steps are
+            # the rounding of x itself: converged.
+            unrankable = mu == 0 and pred < flat
+            if accepted and unrankable and floor is not None and size >= 0.5 * floor:
+                status = "Solve_Succeeded"
+                break
             if accepted:
                 xs = xs + dx
                 taken += 1
-                converged = mu == 0 and pred < flat and not f_new < f
+                floor = size if unrankable else None
                 # Nielsen's rule: relax the damping when the model predicted well
                 rho = (f - f_new) / pred if pred > 0 else 0.0
                 mu = mu * max(1 / 3, 1 - (2 * rho - 1) ** 3) if mu else 0.0
                 f = f_new
-                if converged:
-                    # an undamped step that promised less than the rounding level of f and
-                    # that f could not rank (no lower): the model's last correction, taken;
-                    # f can tell nothing more, the iteration has converged at the
-                    # Gauss-Newton fixed point (the same for every solver that reaches it)
-                    status = "Solve_Succeeded"
-                    break
             elif mu == 0 and pred < flat:
                 # the undamped Gauss-Newton model promises less than the rounding level of
                 # f: the step only measures the rounding of the residuals (their sum
