@@ -82,10 +82,12 @@ log = logging.getLogger(__name__)
 STRATEGIES: tuple[str, ...] = tuple(strategies())
 SOLVERS: tuple[str, ...] = ("auto", "ipopt", "gauss-newton")
 #: ``solver="auto"``: IPOPT below this many readings, Gauss-Newton on the chunked
-#: evaluation from it (IPOPT needs the CasADi graph of every reading, about 3.4 kB a
-#: reading to build and hold; the chunked Gauss-Newton path needs none: README,
-#: "Identification speed", benchmarks/compare_scipy.py)
-AUTO_GAUSS_NEWTON_READINGS = 20_000
+#: evaluation from it.  IPOPT needs the CasADi graph of every reading (about 3.4 kB a
+#: reading to build and hold); the chunked Gauss-Newton path needs none.  Measured whole
+#: processes (`volcal identify --no-plots`, paired runs): equal at 2,976 readings
+#: (1.96-2.15 s IPOPT, 2.04-2.67 s Gauss-Newton), Gauss-Newton faster from 10,296
+#: (2.28-3.14 s against 3.11-3.30 s, 160 against 198 MB)
+AUTO_GAUSS_NEWTON_READINGS = 10_000
 
 
 def resolve_solver(solver: str, n_readings: int) -> str:

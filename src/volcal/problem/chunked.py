@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
@@ -89,12 +90,12 @@ class ChunkedEvaluator:
                 "read": (pr.f_read, self.read_chunk),
                 "value": (pr.f_res, self.read_chunk),
             }[kind]
-            # the chain (poses) is the expensive part: on the threads the user gives
-            mapped = (
-                f.map(n, "thread", threads)
-                if threads > 1 and kind in ("pose", "point")
-                else f.map(n)
-            )
+            # dense outputs (structural zeros stored): the numpy side then reshapes the
+            # output buffers instead of scattering their nonzeros chunk after chunk
+            sx = f.sx_in()
+            f = ca.Function(f.name() + "_dense", sx, [ca.densify(o) for o in f.call(sx)])
+            # on the threads the user gives
+            mapped = f.map(n, "thread", threads) if threads > 1 else f.map(n)
             call = self._calls[key] = NumpyCall(mapped)
         return call
 
@@ -178,10 +179,22 @@ class ChunkedEvaluator:
         r = self.residuals(xs, p)
         return 0.5 * float(r @ r)
 
-    def _rest(self, idx: np.ndarray, rows: np.ndarray) -> sp.csr_matrix:
-        """The station and global columns of the chunk's rows of J (n_r, n_x - n_theta):
-        one nonzero per reading and parameter."""
+    def _sparse(
+        self, ps: slice, idx: np.ndarray, pl: np.ndarray, rows: np.ndarray
+    ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """The chunk's rows of J in two sparse factors: D (n_r, 3 n) with each reading's
+        d(r)/d(point) in the columns of its pose (J_theta = D G_stack) and the station and
+        global columns (n_r, n_x - n_theta), one nonzero per reading and parameter."""
         nps, ng, nr = self._n_ps, self._n_g, len(idx)
+        n = ps.stop - ps.start
+        D = sp.csr_matrix(
+            (
+                rows[:3].T.ravel(),
+                (3 * pl[:, None] + np.arange(3)[None, :]).ravel(),
+                np.arange(0, 3 * nr + 1, 3),
+            ),
+            shape=(nr, 3 * n),
+        )
         cols = np.concatenate(
             [
                 nps * self._station[idx][:, None] + np.arange(nps)[None, :],
@@ -190,14 +203,18 @@ class ChunkedEvaluator:
             axis=1,
         )
         L = nps + ng
-        return sp.csr_matrix(
+        A = sp.csr_matrix(
             (rows[3 : 3 + L].T.ravel(), cols.ravel(), np.arange(0, nr * L + 1, L)),
             shape=(nr, self._n_x - self._nt),
         )
+        return D, A
 
     def gram(self, xs: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(r (N,), J^T r (n_x,), J^T J (n_x, n_x)) at scaled x: the Gauss-Newton system,
-        the same numbers as the problem's whole-graph ``gram`` to rounding."""
+        the same numbers as the problem's whole-graph ``gram`` to rounding.  With J =
+        [D G_stack | A] per chunk: J^T J = [G^T (D^T D) G, G^T (D^T A); ., A^T A], where
+        D^T D is block diagonal (3 x 3 per pose): 3 n_poses n_theta^2 flops, not N
+        n_theta^2."""
         nt, n = self._nt, self._n_x
         r = np.empty(self.n_readings)
         g = np.zeros(n)
@@ -205,22 +222,17 @@ class ChunkedEvaluator:
         with blas_threads(user_threads()):
             for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
                 r[idx] = rc
-                D = rows[:3].T  # (n_r, 3) d(r)/d(point)
-                seg = self._starts[ps.start : ps.stop] - self._starts[ps.start]
-                # per pose: D_p^T D_p (3 x 3) and D_p^T r_p (3), by segments of readings
-                DtD = np.add.reduceat(D[:, :, None] * D[:, None, :], seg, axis=0)
-                Dtr = np.add.reduceat(D * rc[:, None], seg, axis=0)
+                D, A = self._sparse(ps, idx, pl, rows)
                 Gf = G.reshape(-1, nt)  # G_stack of the chunk (3 n, n_theta)
-                g[:nt] += Gf.T @ Dtr.ravel()
-                H[:nt, :nt] += Gf.T @ np.matmul(DtD, G).reshape(-1, nt)
-                # the readings' error-parameter rows (n_r, n_theta) for the mixed block
-                Jt = np.einsum("nc,nck->nk", D, G[pl])
-                A = self._rest(idx, rows)
-                At = A.T.tocsr()
+                Dt, At = D.T.tocsr(), A.T.tocsr()
+                g[:nt] += Gf.T @ (Dt @ rc)
                 g[nt:] += At @ rc
-                H[nt:, :nt] += At @ Jt
+                H[:nt, :nt] += Gf.T @ ((Dt @ D) @ Gf)
+                H[:nt, nt:] += Gf.T @ (Dt @ A).toarray()
                 H[nt:, nt:] += (At @ A).toarray()
-        H[:nt, nt:] = H[nt:, :nt].T
+        H[nt:, :nt] = H[:nt, nt:].T
+        # G^T (D^T D G) is symmetric but for rounding; exactly so for the solvers
+        H[:nt, :nt] = 0.5 * (H[:nt, :nt] + H[:nt, :nt].T)
         return r, g, H
 
     def r_factor(self, xs: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -234,16 +246,18 @@ class ChunkedEvaluator:
         r = np.empty(self.n_readings)
         acc = [StackedQR(width) for _ in range(n_st)]
         with blas_threads(user_threads()):
-            for _, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
+            for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
                 r[idx] = rc
-                Jb = np.empty((len(idx), width))
-                np.einsum("cn,nck->nk", rows[:3], G[pl], out=Jb[:, :nt])
-                Jb[:, nt:] = rows[3 : 3 + nps + ng].T
+                D, _ = self._sparse(ps, idx, pl, rows)
                 sti = self._station[idx]
                 o = np.argsort(sti, kind="stable")
+                # the chunk's rows station by station: [D G_stack | station's, globals]
+                Jb = np.empty((len(idx), width))
+                Jb[:, :nt] = D[o] @ G.reshape(-1, nt)
+                Jb[:, nt:] = rows[3 : 3 + nps + ng, o].T
                 bounds = np.searchsorted(sti[o], np.arange(n_st + 1))
                 for k in np.flatnonzero(np.diff(bounds)):
-                    acc[k].add(Jb[o[bounds[k] : bounds[k + 1]]])
+                    acc[k].add(Jb[bounds[k] : bounds[k + 1]])
             top = StackedQR(self._n_x)
             for k in range(n_st):
                 if acc[k].rows:

@@ -174,7 +174,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "--solver",
         default="auto",
         choices=["auto", "ipopt", "gauss-newton"],
-        help="auto (default: ipopt below 20,000 readings, gauss-newton from there), "
+        help="auto (default: ipopt below 10,000 readings, gauss-newton from there), "
         "ipopt (followed by Gauss-Newton polish steps) or gauss-newton "
         "(Levenberg-Marquardt with the datum eliminated, evaluated in chunks of "
         "poses: no per-reading graph, for large tables); both reach the same minimiser",
