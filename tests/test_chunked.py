@@ -101,7 +101,6 @@ def test_gauss_newton_never_builds_the_whole_graph():
     """The Gauss-Newton path (solver "gauss-newton", or "auto" on a large table) solves
     and analyses without the CasADi graph of every reading."""
     from test_identify import simulated
-
     from volcal.analysis.identify import identify
 
     machine, em, _, sim = simulated("mcv754_wxyzt", grid=3)
