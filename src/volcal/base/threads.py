@@ -64,25 +64,6 @@ def set_blas_threads(n: int | None = 1) -> None:
         _global_limiter = threadpool_limits(limits=int(n), user_api="blas")
 
 
-def user_threads() -> int:
-    """The threads the user gives volcal's large products (chunked Gauss-Newton systems,
-    R factors of 10^5-10^6 readings, the mapped chain over their poses): the first of
-    ``VOLCAL_THREADS``, ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS``
-    set to a positive integer, at most the CPUs this process may use; 1 when none is set
-    (the policy of this module: one thread unless asked)."""
-    import os
-
-    for var in ("VOLCAL_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        value = os.environ.get(var, "").strip()
-        if value.isdigit() and int(value) > 0:
-            try:
-                cpus = len(os.sched_getaffinity(0))
-            except (AttributeError, OSError):  # pragma: no cover - not Linux
-                cpus = os.cpu_count() or 1
-            return max(1, min(int(value), cpus))
-    return 1
-
-
 @contextmanager
 def blas_threads(n: int | None = 1) -> Iterator[None]:
     """Run a block with BLAS limited to ``n`` threads (None: unchanged), then restore."""

@@ -22,8 +22,14 @@ structured products in numpy:
   together, as :meth:`volcal.problem.residuals.DenseJacobian.r_factor` does.
 
 Memory is O(N) (the data vector, r and the reading-to-pose order) plus one chunk; no
-N x n_x array is formed.  The products run with the BLAS threads the user allows
-(:func:`volcal.base.threads.user_threads`), and so does the pose function's map.
+N x n_x array is formed.
+
+Everything runs on the BLAS threads of the process (one for the CLI,
+:mod:`volcal.base.threads`): the products of a chunk are small (QRs of a few hundred
+rows of n_theta + 4 columns, n_theta x 3 n_poses products), and on the project's shared
+2-core machine two OpenBLAS threads made the R factor of 10,296 readings 20x slower
+(0.97 s against 0.05 s) and a CasADi thread map of the chain 3x slower, with the other
+core busy.
 """
 
 from __future__ import annotations
@@ -34,7 +40,6 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
-from volcal.base.threads import blas_threads, user_threads
 from volcal.model.numpy_call import NumpyCall
 
 if TYPE_CHECKING:
@@ -75,13 +80,11 @@ class ChunkedEvaluator:
         # the most readings of any chunk of poses: the size of the readings' map
         ends = self._starts[np.minimum(np.arange(0, Np, self.pose_chunk) + self.pose_chunk, Np)]
         self.read_chunk = int(max(1, np.max(ends - self._starts[0 : Np : self.pose_chunk])))
-        self._calls: dict[tuple[str, int], NumpyCall] = {}
+        self._calls: dict[str, NumpyCall] = {}
 
     # ---- the mapped functions (built once, on first use) --------------------------------
     def _call(self, kind: str) -> NumpyCall:
-        threads = user_threads()
-        key = (kind, threads)
-        call = self._calls.get(key)
+        call = self._calls.get(kind)
         if call is None:
             pr = self.problem
             f, n = {
@@ -94,9 +97,7 @@ class ChunkedEvaluator:
             # output buffers instead of scattering their nonzeros chunk after chunk
             sx = f.sx_in()
             f = ca.Function(f.name() + "_dense", sx, [ca.densify(o) for o in f.call(sx)])
-            # on the threads the user gives
-            mapped = f.map(n, "thread", threads) if threads > 1 else f.map(n)
-            call = self._calls[key] = NumpyCall(mapped)
+            call = self._calls[kind] = NumpyCall(f.map(n))
         return call
 
     # ---- the data vector ----------------------------------------------------------------
@@ -169,9 +170,8 @@ class ChunkedEvaluator:
     def residuals(self, xs: np.ndarray, p: np.ndarray) -> np.ndarray:
         """The whitened residuals r (N,) at scaled x, in the order of the readings."""
         r = np.empty(self.n_readings)
-        with blas_threads(user_threads()):
-            for _, idx, _, rc, _, _ in self._chunks(xs, p, derivatives=False):
-                r[idx] = rc
+        for _, idx, _, rc, _, _ in self._chunks(xs, p, derivatives=False):
+            r[idx] = rc
         return r
 
     def objective(self, xs: np.ndarray, p: np.ndarray) -> float:
@@ -219,17 +219,16 @@ class ChunkedEvaluator:
         r = np.empty(self.n_readings)
         g = np.zeros(n)
         H = np.zeros((n, n))
-        with blas_threads(user_threads()):
-            for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
-                r[idx] = rc
-                D, A = self._sparse(ps, idx, pl, rows)
-                Gf = G.reshape(-1, nt)  # G_stack of the chunk (3 n, n_theta)
-                Dt, At = D.T.tocsr(), A.T.tocsr()
-                g[:nt] += Gf.T @ (Dt @ rc)
-                g[nt:] += At @ rc
-                H[:nt, :nt] += Gf.T @ ((Dt @ D) @ Gf)
-                H[:nt, nt:] += Gf.T @ (Dt @ A).toarray()
-                H[nt:, nt:] += (At @ A).toarray()
+        for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
+            r[idx] = rc
+            D, A = self._sparse(ps, idx, pl, rows)
+            Gf = G.reshape(-1, nt)  # G_stack of the chunk (3 n, n_theta)
+            Dt, At = D.T.tocsr(), A.T.tocsr()
+            g[:nt] += Gf.T @ (Dt @ rc)
+            g[nt:] += At @ rc
+            H[:nt, :nt] += Gf.T @ ((Dt @ D) @ Gf)
+            H[:nt, nt:] += Gf.T @ (Dt @ A).toarray()
+            H[nt:, nt:] += (At @ A).toarray()
         H[nt:, :nt] = H[:nt, nt:].T
         # G^T (D^T D G) is symmetric but for rounding; exactly so for the solvers
         H[:nt, :nt] = 0.5 * (H[:nt, :nt] + H[:nt, :nt].T)
@@ -245,30 +244,29 @@ class ChunkedEvaluator:
         width = nt + nps + ng
         r = np.empty(self.n_readings)
         acc = [StackedQR(width) for _ in range(n_st)]
-        with blas_threads(user_threads()):
-            for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
-                r[idx] = rc
-                D, _ = self._sparse(ps, idx, pl, rows)
-                sti = self._station[idx]
-                o = np.argsort(sti, kind="stable")
-                # the chunk's rows station by station: [D G_stack | station's, globals]
-                Jb = np.empty((len(idx), width))
-                Jb[:, :nt] = D[o] @ G.reshape(-1, nt)
-                Jb[:, nt:] = rows[3 : 3 + nps + ng, o].T
-                bounds = np.searchsorted(sti[o], np.arange(n_st + 1))
-                for k in np.flatnonzero(np.diff(bounds)):
-                    acc[k].add(Jb[bounds[k] : bounds[k + 1]])
-            top = StackedQR(self._n_x)
-            for k in range(n_st):
-                if acc[k].rows:
-                    cols = np.concatenate(
-                        [
-                            np.arange(nt),
-                            nt + nps * k + np.arange(nps),
-                            nt + nps * n_st + np.arange(ng),
-                        ]
-                    )
-                    Rk = np.zeros((width, self._n_x))
-                    Rk[:, cols] = acc[k].R
-                    top.add(Rk)
+        for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
+            r[idx] = rc
+            D, _ = self._sparse(ps, idx, pl, rows)
+            sti = self._station[idx]
+            o = np.argsort(sti, kind="stable")
+            # the chunk's rows station by station: [D G_stack | station's, globals]
+            Jb = np.empty((len(idx), width))
+            Jb[:, :nt] = D[o] @ G.reshape(-1, nt)
+            Jb[:, nt:] = rows[3 : 3 + nps + ng, o].T
+            bounds = np.searchsorted(sti[o], np.arange(n_st + 1))
+            for k in np.flatnonzero(np.diff(bounds)):
+                acc[k].add(Jb[bounds[k] : bounds[k + 1]])
+        top = StackedQR(self._n_x)
+        for k in range(n_st):
+            if acc[k].rows:
+                cols = np.concatenate(
+                    [
+                        np.arange(nt),
+                        nt + nps * k + np.arange(nps),
+                        nt + nps * n_st + np.arange(ng),
+                    ]
+                )
+                Rk = np.zeros((width, self._n_x))
+                Rk[:, cols] = acc[k].R
+                top.add(Rk)
         return r, top.R
