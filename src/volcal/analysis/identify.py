@@ -1075,6 +1075,10 @@ def _identify(
     identifiable = ~ident.unidentifiable[:nt]
     datum_table = condition_table(pr.conditions, pr.datum_active, theta)
     imposed = imposed_parameters(pr.conditions, pr.datum_active, nt) & identifiable
+    # a parameter the datum alone sets to zero has no variance: exactly 0, not the
+    # rounding (1e-17) of the null-space basis the constrained covariance is taken in
+    cov_theta[imposed, :] = 0.0
+    cov_theta[:, imposed] = 0.0
     n_not = int((~datum_table["imposed"]).sum())
     if n_not:
         notes.append(

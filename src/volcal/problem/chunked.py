@@ -34,16 +34,13 @@ core busy.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
 from volcal.model.numpy_call import NumpyCall
-
-if TYPE_CHECKING:
-    from volcal.problem.residuals import IdentificationProblem
 
 __all__ = ["ChunkedEvaluator"]
 
@@ -54,11 +51,13 @@ POSE_CHUNK = 512
 
 
 class ChunkedEvaluator:
-    """r, J^T r, J^T J and R of an :class:`IdentificationProblem` at scaled x and data p,
-    evaluated in chunks of ``pose_chunk`` poses (see the module docstring).  Built once per
-    problem (its CasADi maps are built on first use and kept); not thread-safe."""
+    """r, J^T r, J^T J and R of an :class:`~volcal.problem.residuals.IdentificationProblem`
+    at scaled x and data p, evaluated in chunks of ``pose_chunk`` poses (see the module
+    docstring).  Built once per problem (its CasADi maps on first use, then kept); not
+    thread-safe.  (The problem's class is not imported here: the problem builds this
+    evaluator, and the layers check refuses an import circle.)"""
 
-    def __init__(self, problem: IdentificationProblem, pose_chunk: int = POSE_CHUNK) -> None:
+    def __init__(self, problem: Any, pose_chunk: int = POSE_CHUNK) -> None:
         self.problem = problem
         lay = problem.layout
         self.n_readings = lay.n_readings
