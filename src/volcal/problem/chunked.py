@@ -253,8 +253,8 @@ class ChunkedEvaluator:
             Jb[:, :nt] = D[o] @ G.reshape(-1, nt)
             Jb[:, nt:] = rows[3 : 3 + nps + ng, o].T
             bounds = np.searchsorted(sti[o], np.arange(n_st + 1))
-            for k in np.flatnonzero(np.diff(bounds)):
-                acc[k].add(Jb[bounds[k] : bounds[k + 1]])
+            for j in np.flatnonzero(np.diff(bounds)):
+                acc[j].add(Jb[bounds[j] : bounds[j + 1]])
         top = StackedQR(self._n_x)
         for k in range(n_st):
             if acc[k].rows:
