@@ -71,7 +71,7 @@ import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 import pandas as pd
@@ -885,6 +885,47 @@ def read_columns(
     return out, raw.rows, raw.name
 
 
+def mm_or_um_columns(base: str, kind: str = "float") -> list[tuple[str, bool, str]]:
+    """The two optional columns of one length quantity for :func:`read_columns`: ``base_mm``
+    and ``base_um`` (a table gives one of them; :func:`mm_or_um` reads it)."""
+    return [(f"{base}_mm", False, kind), (f"{base}_um", False, kind)]
+
+
+@overload
+def mm_or_um(
+    values: dict[str, np.ndarray], base: str, label: str, *, required: Literal[True]
+) -> np.ndarray: ...
+
+
+@overload
+def mm_or_um(
+    values: dict[str, np.ndarray], base: str, label: str, *, required: bool
+) -> np.ndarray | None: ...
+
+
+def mm_or_um(
+    values: dict[str, np.ndarray], base: str, label: str, *, required: bool
+) -> np.ndarray | None:
+    """The ``base_mm`` or ``base_um`` column of ``values`` (as :func:`read_columns` returns
+    them) in mm.  Both present: an :class:`InputError` (the same quantity twice); neither:
+    None, or an :class:`InputError` naming the column when ``required``."""
+    mm, um = values.get(f"{base}_mm"), values.get(f"{base}_um")
+    if mm is not None and um is not None:
+        raise InputError(
+            f"columns '{base}_mm' and '{base}_um' are the same quantity; keep one",
+            source=label,
+            row=1,
+            column=f"{base}_um",
+        )
+    if um is not None:
+        return um * 1e-3
+    if mm is None and required:
+        raise InputError(
+            f"missing required column '{base}_mm' (or '{base}_um')", source=label, row=1
+        )
+    return mm
+
+
 # --------------------------------------------------------------------------------------
 # measurements
 
@@ -1387,6 +1428,8 @@ report_rows = _report
 nominal_tool_points = _nominal_tool_points
 
 __all__ += [
+    "mm_or_um",
+    "mm_or_um_columns",
     "Column",
     "Problems",
     "read_raw",
