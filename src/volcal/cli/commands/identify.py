@@ -227,9 +227,9 @@ class _AppendData(argparse.Action):
 
 
 def _data_sets(args: argparse.Namespace) -> list:
-    """The --data tables as :class:`volcal.analysis.fusion.DataSet` (a project file's
-    single ``data`` too)."""
-    from volcal.analysis.fusion import parse_data_argument
+    """The --data tables as :class:`volcal.measurement.datasets.DataSet` (a project
+    file's single ``data`` too)."""
+    from volcal.measurement.datasets import parse_data_argument
 
     data = args.data if isinstance(args.data, list) else [args.data]
     return [parse_data_argument(str(d), args.instrument) for d in data]
