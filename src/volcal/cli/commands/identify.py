@@ -172,11 +172,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--solver",
-        default="ipopt",
-        choices=["ipopt", "gauss-newton"],
-        help="ipopt (default, followed by Gauss-Newton polish steps) or "
-        "gauss-newton (Levenberg-Marquardt with the datum eliminated); both "
-        "reach the same minimiser",
+        default="auto",
+        choices=["auto", "ipopt", "gauss-newton"],
+        help="auto (default: ipopt below 10,000 readings, gauss-newton from there), "
+        "ipopt (followed by Gauss-Newton polish steps) or gauss-newton "
+        "(Levenberg-Marquardt with the datum eliminated, evaluated in chunks of "
+        "poses: no per-reading graph, for large tables); both reach the same minimiser",
     )
     p.add_argument(
         "--instrument",
