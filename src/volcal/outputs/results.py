@@ -500,16 +500,28 @@ def write_table(table: pd.DataFrame, path: str | Path) -> None:
     joined without Python code per row.  Tables with other column types, or text that
     would need quoting, are written by pandas."""
     names = [str(c) for c in table.columns]
-    texts = _column_texts(table)
-    if texts is None or any(ch in n for n in names for ch in _CSV_SPECIAL):
+    if any(ch in n for n in names for ch in _CSV_SPECIAL) or _column_texts(table[:1]) is None:
         table.to_csv(path, index=False)
         return
     import os
 
     nl = os.linesep  # pandas' line terminator
-    body = nl.join(map(",".join, zip(*texts)))
+    # a block of rows at a time: the texts of a whole 10^6-row table are some 14 million
+    # Python strings (about 1 GB), a block's a few tens of MB
     with open(path, "w", encoding="utf-8", newline="") as fh:
-        fh.write(",".join(names) + nl + body + nl)
+        fh.write(",".join(names) + nl)
+        for start in range(0, len(table), _WRITE_BLOCK_ROWS):
+            texts = _column_texts(table[start : start + _WRITE_BLOCK_ROWS])
+            if texts is None:  # text further down needs quoting: pandas writes it all
+                break
+            fh.write(nl.join(map(",".join, zip(*texts))) + nl)
+        else:
+            return
+    table.to_csv(path, index=False)
+
+
+#: rows of a table turned into text at once by :func:`write_table`
+_WRITE_BLOCK_ROWS = 65536
 
 
 def _column_texts(table: pd.DataFrame) -> list[list[str]] | None:
