@@ -978,6 +978,7 @@ def _identify(
         instrument=instrument,
         columns=columns,
         max_memory_gb=max_memory_gb,
+        solver=solver,
     )
     machine, em, meas, ins, strat = prep.machine, prep.error_model, prep.meas, prep.ins, prep.strat
     st0, glob0, st_fixed, sigma = prep.st0, prep.glob0, prep.st_fixed, prep.sigma
@@ -1185,10 +1186,11 @@ def prepare(
     instrument: str | Instrument | None = None,
     columns: Mapping[str, str] | str | None = None,
     max_memory_gb: float | None = None,
+    solver: str = "ipopt",
 ) -> Prepared:
     """Read and check the inputs of an identification (arguments as :func:`_identify`):
-    tables, model, error model, budget, strategy, memory, start values and reading
-    uncertainties."""
+    tables, model, error model, budget, strategy, memory (estimated for the path
+    ``solver`` takes), start values and reading uncertainties."""
     # the tables are read and checked before the model is built: a bad input is reported
     # at once, not after the build
     spec = model.spec if isinstance(model, Machine) else resolve_model(model)
@@ -1233,6 +1235,8 @@ def prepare(
         + len(ins.global_param_names),
         limit_gb=max_memory_gb,
         what=meas.source,
+        # Gauss-Newton never builds the per-reading graph (problem.chunked)
+        chunked=resolve_solver(solver, len(meas)) == "gauss-newton",
     )
 
     with report_stage("start values and reading uncertainties"):
