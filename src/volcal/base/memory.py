@@ -14,7 +14,7 @@ That is the whole-graph path (IPOPT: the NLP's CasADi graph holds every reading'
 sparsity).  Gauss-Newton evaluates the problem in chunks of poses and never holds a
 Jacobian-sized array; measured the same way (``bench_memory.py --solver gauss-newton``,
 12,288 to 139,968 readings, largest residual 6.5 MB; checked at 997,536 readings x 111
-unknowns: 1.73 GB measured, 2.09 GB estimated):
+unknowns: 1.77 GB measured, 2.09 GB estimated):
 
     peak ~ 149 MB + readings x (1.86 kB + 0.8 B x unknowns)
 
