@@ -8,7 +8,11 @@ launcher (``python -S``) that reports the command's own peak resident set.  Fits
 ``peak = base + readings x (a + b x unknowns)`` by least squares and prints the factors
 next to the ones volcal uses.
 
-Run:  python benchmarks/bench_memory.py [--grids 8 14 18] [--degrees 1 5]
+With ``--solver ipopt`` every identification goes through the whole CasADi graph (the
+factors ``volcal.base.memory`` uses for IPOPT); ``--solver gauss-newton`` (and ``auto``,
+the default, at these sizes) through the chunked evaluation (``CHUNKED_FACTORS``).
+
+Run:  python benchmarks/bench_memory.py [--grids 8 14 18] [--degrees 1 5] [--solver S]
 (about two minutes on a quiet machine; memory is not timing: load does not change it.)
 """
 
@@ -49,6 +53,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--grids", type=int, nargs="+", default=[8, 14, 18])
     ap.add_argument("--degrees", type=int, nargs="+", default=[1, 5])
+    ap.add_argument("--solver", choices=["auto", "ipopt", "gauss-newton"], default="auto")
     a = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -88,15 +93,19 @@ def main() -> None:
                         "-q",
                         "--max-memory-gb",
                         "inf",
+                        "--solver",
+                        a.solver,
                     )
                 )
                 doc = json.loads((res / "result.json").read_text())
                 n = int(doc["n_readings"])
                 # unknowns as the check counts them: error parameters, 4 per station, frame 6
                 unknowns = len(doc["param_names"]) + 4 * len(doc["stations"]) + 6
-                rows.append((n, unknowns, kib * 1024))
+                # the path the run took (identify's auto: Gauss-Newton from 10,000 readings)
+                chunked = a.solver == "gauss-newton" or (a.solver == "auto" and n >= 10_000)
+                rows.append((n, unknowns, kib * 1024, chunked))
                 print(f"{n:>8} readings {unknowns:>4} unknowns  peak {kib / 1024:8.1f} MiB")
-    d = np.array(rows, float)
+    d = np.array([r[:3] for r in rows], float)
     A = np.c_[np.ones(len(d)), d[:, 0], d[:, 0] * d[:, 1]]
     c, *_ = np.linalg.lstsq(A, d[:, 2], rcond=None)
     res = A @ c - d[:, 2]
@@ -104,13 +113,19 @@ def main() -> None:
         f"fit: base {c[0] / 1e6:.0f} MB, {c[1] / 1e3:.2f} kB per reading, "
         f"{c[2]:.1f} B per reading and unknown (largest residual {abs(res).max() / 1e6:.1f} MB)"
     )
-    print(
-        f"volcal.base.memory uses: base {memory.BASE_BYTES / 1e6:.0f} MB, "
-        f"{memory.BYTES_PER_READING / 1e3:.2f} kB per reading, "
-        f"{memory.BYTES_PER_READING_UNKNOWN:.1f} B per reading and unknown"
+    chunked_all = all(r[3] for r in rows)
+    base, per_reading, per_cell = (
+        memory.CHUNKED_FACTORS
+        if chunked_all
+        else (memory.BASE_BYTES, memory.BYTES_PER_READING, memory.BYTES_PER_READING_UNKNOWN)
     )
-    for n, u, peak in rows:
-        est = memory.estimate_peak_bytes(int(n), int(u))
+    print(
+        f"volcal.base.memory uses ({'chunked' if chunked_all else 'whole graph'}): "
+        f"base {base / 1e6:.0f} MB, {per_reading / 1e3:.2f} kB per reading, "
+        f"{per_cell:.1f} B per reading and unknown"
+    )
+    for n, u, peak, chunked in rows:
+        est = memory.estimate_peak_bytes(int(n), int(u), chunked=chunked)
         print(
             f"  {int(n):>8} x {int(u):>4}: measured {peak / 1e6:7.0f} MB, "
             f"estimate {est / 1e6:7.0f} MB"

@@ -2,11 +2,20 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+# Under pytest-xdist every core runs a test process: each gets one BLAS / OpenMP thread
+# (set before any test module imports numpy; the volcal programs the tests start inherit
+# it), or two processes each asking for every core make the dense algebra thrash.  A
+# test that checks thread handling sets its own variables.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
 
 
 @pytest.fixture(scope="session")

@@ -327,7 +327,9 @@ def _start_mc(tmp_path: Path):
                          # a runner started in the background may ignore SIGINT, and the
                          # child would inherit that: Ctrl-C as in a terminal
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    for _ in range(1200):  # the identification runs first; then the pool starts
+    # guards against a hang, generous for a loaded machine (the suite runs a test process
+    # per core beside the two Monte Carlo workers), not speed limits
+    for _ in range(6000):  # the identification runs first; then the pool starts
         kids = [k for k in _children(p.pid) if _alive(k)]
         # the pool runs: two workers and a first finished chunk
         if len(kids) >= 2 and next(out.glob("samples/*/chunk*.npz"), None) is not None:
@@ -340,7 +342,7 @@ def _start_mc(tmp_path: Path):
 
 
 def _wait_gone(pids: list[int]) -> list[int]:
-    for _ in range(300):
+    for _ in range(1200):
         alive = [k for k in pids if _alive(k)]
         if not alive:
             return []

@@ -3,14 +3,11 @@
 The places in src/ that compute a distance reading are found on the AST: a distance of a
 difference (``norm(a - b)``, ``sqrt(sumsqr(a - b))``, ``sqrt(sum((a - b)**2))``,
 ``sqrt(einsum(.., d, d))``, also through local names) from which something is subtracted
-(the dead length, the reading).  Each instrument module holds exactly one; outside the
-instruments only the places listed in ``REMAINING`` may, each with the reason it is still
-there.  A new copy of the reading anywhere else fails this test.
-
-Not seen by this finder: the Monte Carlo engine's batched gradient
-(analysis/uncertainty/engine.py writes the tracker's reading in place, ``np.sqrt(L,
-out=L)``, for speed); it is compared with the problem's CasADi functions, which evaluate
-the instrument's reading, each time it is built (``StructuredLSQ.build(check=True)``)."""
+(the dead length, the reading), also written in place (``np.subtract(P, Q, out=D)``,
+``np.multiply(D[0], D[0], out=L)``, ``np.sqrt(L, out=L)``, ``np.subtract(L, d, out=r)``).
+Each instrument module holds exactly one; outside the instruments only the places listed
+in ``REMAINING`` may, each with the reason it is still there (and each is still found: a
+stale entry fails too).  A new copy of the reading anywhere else fails this test."""
 
 from __future__ import annotations
 
@@ -25,6 +22,14 @@ REMAINING = {
     # paper 002's linear and Gauss-Newton multilateration, vectorised over thousands of
     # small problems (start values of the tracker's stations, the classic pipeline)
     "measurement/multilateration.py",
+    # the Monte Carlo engine's batched gradient (StructuredLSQ._gradient_t), most of a Monte
+    # Carlo run's time: the tracker's reading in place, station by station.  Its readings,
+    # residuals and Jacobian evaluate the instrument's Function (a numpy tape); evaluating it
+    # in the gradient too cost 12-20x this time mapped by CasADi (serial), ~4x as jit-compiled
+    # C, ~2.5x replayed by the tape (measured on B = 200 trials of the bundled example, the
+    # engine's module docstring).  Compared with the problem's CasADi functions whenever an
+    # engine is built (StructuredLSQ.build(check=True))
+    "analysis/uncertainty/engine.py",
 }
 
 
@@ -64,9 +69,38 @@ def _function_hits(fn: ast.FunctionDef) -> set[int]:
     ]
     diffs: set[str] = set()
     dists: set[str] = set()
+    sumsq: set[str] = set()  # sums of squares of a difference's components, in place
 
     def is_diff(e: ast.AST) -> bool:
+        if isinstance(e, ast.Subscript):  # a component of a difference
+            e = e.value
         return _is_sub(e) or (isinstance(e, ast.Name) and e.id in diffs)
+
+    def out_name(call: ast.Call) -> str | None:
+        for kw in call.keywords:
+            if kw.arg == "out" and isinstance(kw.value, ast.Name):
+                return kw.value.id
+        return None
+
+    # in-place forms: D written by np.subtract(.., out=D) or D -= ..; L by
+    # np.multiply(D[i], D[i], out=L) or np.square(D[i], out=L); then np.sqrt(L, out=L)
+    nodes = list(ast.walk(fn))
+    for n in nodes:
+        if isinstance(n, ast.AugAssign) and isinstance(n.op, ast.Sub):
+            if isinstance(n.target, ast.Name):
+                diffs.add(n.target.id)
+    in_place = [(n, out) for n in nodes if isinstance(n, ast.Call) and (out := out_name(n))]
+    for _ in range(3):
+        for n, out in in_place:
+            name = _name(n)
+            if name == "subtract" and len(n.args) >= 2 and out not in sumsq | dists:
+                if not (n.args and isinstance(n.args[0], ast.Name) and n.args[0].id in dists):
+                    diffs.add(out)
+            elif name in ("multiply", "square") and n.args and all(map(is_diff, n.args)):
+                sumsq.add(out)
+            elif name == "sqrt" and n.args and isinstance(n.args[0], ast.Name):
+                if n.args[0].id in sumsq:
+                    dists.add(out)
 
     def is_dist(e: ast.AST) -> bool:
         if isinstance(e, ast.Name):
@@ -114,9 +148,17 @@ def test_the_finder_sees_the_forms_the_reading_was_written_in():
         "def f(P, Q, d, out):\n    D = P - Q\n    L = np.sqrt(np.einsum('ni,ni->n', D, D))\n"
         "    np.subtract(L, d, out=out)\n"
     )
+    # the Monte Carlo engine's gradient, in place (its form before and after this finder)
+    in_place = (
+        "def f(P, Q, S, D, L, t, r):\n    np.subtract(P, Q[:, None, :], out=D)\n"
+        "    np.multiply(D[0], D[0], out=L)\n    np.multiply(D[1], D[1], out=t)\n"
+        "    L += t\n    np.sqrt(L, out=L)\n    np.subtract(L, S[3][None, :], out=r)\n"
+        "    np.take(r, [0], axis=0, out=t)\n    r -= t\n"
+    )
     assert reading_lines(old_classic) == [2]
     assert reading_lines(old_solver) == [4]
     assert reading_lines(batched) == [4]
+    assert reading_lines(in_place) == [7]
     assert reading_lines("def f(u):\n    return u / ca.sqrt(ca.sumsqr(u - 1))\n") == []
 
 
@@ -141,6 +183,10 @@ def test_each_instrument_writes_its_reading_once_and_nothing_else_does():
         "a reading is written outside its instrument (evaluate the instrument's reading "
         f"Function instead): {elsewhere}"
     )
+    stale = REMAINING - set(elsewhere)
+    assert not stale, f"no reading found any more in {stale}: take it off REMAINING"
+    # in the engine only the batched gradient
+    assert len(elsewhere["analysis/uncertainty/engine.py"]) == 1, elsewhere
 
 
 def test_each_instruments_reading_is_the_length_numpy_computes():

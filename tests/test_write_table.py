@@ -62,3 +62,24 @@ def test_falls_back_where_pandas_quotes(tmp_path):
 def test_any_float_as_pandas(tmp_path_factory, values):
     tmp = tmp_path_factory.mktemp("w")
     _same_as_pandas(pd.DataFrame({"x_mm": values, "flag": [v > 0 for v in values]}), tmp)
+
+
+def test_written_in_blocks_as_pandas(tmp_path, monkeypatch):
+    """Blocks of rows (a long table's texts are not held at once): block edges anywhere,
+    and a text needing quotes only in a later block after earlier blocks were written."""
+    import volcal.outputs.results as results
+
+    monkeypatch.setattr(results, "_WRITE_BLOCK_ROWS", 3)
+    n = 11
+    df = pd.DataFrame(
+        {
+            "station": [f"LT{i % 4}" for i in range(n)],
+            "length_mm": np.linspace(-1.0, 1.0, n) ** 3 * 1e3,
+            "rejected": np.arange(n) % 2 == 0,
+        }
+    )
+    for rows in (1, 3, 4, 11):
+        _same_as_pandas(df.iloc[:rows], tmp_path)
+    late = df.copy()
+    late.loc[9, "station"] = "LT,9"
+    _same_as_pandas(late, tmp_path)

@@ -43,6 +43,7 @@ import pandas as pd
 
 from volcal.base.exceptions import InputError
 from volcal.measurement.budget import Budget, load_budget
+from volcal.measurement.datasets import DataSet, parse_data_argument
 from volcal.measurement.instruments import CombinedInstrument, Instrument, get_instrument
 from volcal.measurement.tables import DataWarning, Measurements, load_measurements
 from volcal.model.machine import Machine
@@ -55,35 +56,6 @@ log = logging.getLogger(__name__)
 
 #: instruments whose readings the default budget (a tracker's) describes
 _LENGTH_INSTRUMENTS = ("tracker", "multilaser")
-
-
-@dataclass(frozen=True)
-class DataSet:
-    """One instrument's table: the instrument (name or object), the table (CSV path or
-    DataFrame), its budget (None: the identification's budget, for a tracker or a
-    multi-laser head; other instruments' tables need sigma or a budget) and a name."""
-
-    instrument: str | Instrument
-    source: str | Path | pd.DataFrame
-    budget: str | Path | Budget | None = None
-    name: str | None = None
-
-    @property
-    def label(self) -> str:
-        if self.name:
-            return self.name
-        return str(self.source) if isinstance(self.source, (str, Path)) else "<DataFrame>"
-
-
-def parse_data_argument(text: str, default: str = "tracker") -> DataSet:
-    """``"ballbar=circles.csv"`` -> DataSet("ballbar", Path("circles.csv")); a path
-    without a registered instrument name before ``=`` is read by ``default``."""
-    from volcal.measurement.instruments import instruments
-
-    head, sep, tail = str(text).partition("=")
-    if sep and head.strip() in instruments():
-        return DataSet(head.strip(), Path(tail))
-    return DataSet(default, Path(text))
 
 
 def as_datasets(data: Any, instrument: str | Instrument | None = None) -> list[DataSet]:

@@ -10,6 +10,14 @@ benchmarks/results/memory.txt):
 
     peak ~ 151 MB + readings x (2.40 kB + 47.2 B x unknowns)
 
+That is the whole-graph path (IPOPT: the NLP's CasADi graph holds every reading's
+sparsity).  Gauss-Newton evaluates the problem in chunks of poses and never holds a
+Jacobian-sized array; measured the same way (``bench_memory.py --solver gauss-newton``,
+12,288 to 139,968 readings, largest residual 6.5 MB; checked at 997,536 readings x 111
+unknowns: 1.77 GB measured, 2.09 GB estimated):
+
+    peak ~ 149 MB + readings x (1.86 kB + 0.8 B x unknowns)
+
 :func:`check_memory` refuses a run whose estimate exceeds the memory available
 (the smaller of ``MemAvailable`` in /proc/meminfo and the room left under the control
 group's limit, plus what this process already holds) with the estimate and the limit,
@@ -25,6 +33,7 @@ from volcal.base.exceptions import InputError
 
 __all__ = [
     "BASE_BYTES",
+    "CHUNKED_FACTORS",
     "BYTES_PER_READING",
     "BYTES_PER_READING_UNKNOWN",
     "estimate_peak_bytes",
@@ -38,12 +47,18 @@ BASE_BYTES = 151e6
 BYTES_PER_READING = 2.40e3
 #: per reading and unknown (the Jacobian and the arrays of its size)
 BYTES_PER_READING_UNKNOWN = 47.2
+#: the same three factors for the chunked path (Gauss-Newton), measured likewise
+CHUNKED_FACTORS = (149e6, 1.86e3, 0.8)
 
 
-def estimate_peak_bytes(readings: int, unknowns: int) -> float:
+def estimate_peak_bytes(readings: int, unknowns: int, *, chunked: bool = False) -> float:
     """Estimated peak resident memory (bytes) of an identification of ``readings``
-    readings with ``unknowns`` unknowns (error parameters, station parameters, ...)."""
-    return BASE_BYTES + readings * (BYTES_PER_READING + BYTES_PER_READING_UNKNOWN * unknowns)
+    readings with ``unknowns`` unknowns (error parameters, station parameters, ...):
+    through the whole CasADi graph (IPOPT), or ``chunked`` (Gauss-Newton)."""
+    base, per_reading, per_cell = (
+        CHUNKED_FACTORS if chunked else (BASE_BYTES, BYTES_PER_READING, BYTES_PER_READING_UNKNOWN)
+    )
+    return base + readings * (per_reading + per_cell * unknowns)
 
 
 def _read_int(path: str) -> int | None:
@@ -106,13 +121,19 @@ def available_bytes() -> int | None:
 
 
 def check_memory(
-    readings: int, unknowns: int, *, limit_gb: float | None = None, what: str = "the data"
+    readings: int,
+    unknowns: int,
+    *,
+    limit_gb: float | None = None,
+    what: str = "the data",
+    chunked: bool = False,
 ) -> float:
     """Raise :class:`InputError` when the estimated peak of an identification
-    (:func:`estimate_peak_bytes`) does not fit: in ``limit_gb`` (GB = 1e9 bytes) when
-    given, else in what this process holds plus :func:`available_bytes`.  ``limit_gb =
-    inf`` skips the check.  Returns the estimate in bytes."""
-    need = estimate_peak_bytes(readings, unknowns)
+    (:func:`estimate_peak_bytes`, ``chunked`` for the Gauss-Newton path) does not fit:
+    in ``limit_gb`` (GB = 1e9 bytes) when given, else in what this process holds plus
+    :func:`available_bytes`.  ``limit_gb = inf`` skips the check.  Returns the estimate
+    in bytes."""
+    need = estimate_peak_bytes(readings, unknowns, chunked=chunked)
     if limit_gb is not None:
         limit = float(limit_gb) * 1e9
         source = "--max-memory-gb"

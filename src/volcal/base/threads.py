@@ -57,9 +57,13 @@ def _casadi_openblas() -> None:
 
 
 def set_blas_threads(n: int | None = 1) -> None:
-    """Limit BLAS to ``n`` threads for the rest of the process (None: leave as is)."""
+    """Limit BLAS to ``n`` threads for the rest of the process (None: leave as is): the
+    BLAS of numpy and CasADi, loaded here (threadpoolctl limits the libraries loaded when
+    it is called; a command's parser no longer imports numpy)."""
     global _global_limiter
     if n is not None:
+        import numpy  # noqa: F401
+
         _casadi_openblas()
         _global_limiter = threadpool_limits(limits=int(n), user_api="blas")
 

@@ -65,9 +65,17 @@ from pathlib import Path
 from typing import Any
 
 # names exported lazily from their submodules (PEP 562): importing the package (as the
-# command line does for `volcal --help`) must not import pandas, scipy and matplotlib
+# command line does for `volcal --help`) must not import pandas, scipy and matplotlib.
+# The file reader lives in the measurement layer (the laser interferometer reads the same
+# files through it)
 _LAZY = {
-    "data": ("LINEAR", "ROTARY", "AxisReadings", "AxisUnits", "load_readings"),
+    "volcal.measurement.iso230_2_files": (
+        "LINEAR",
+        "ROTARY",
+        "AxisReadings",
+        "AxisUnits",
+        "load_readings",
+    ),
     "evaluate": ("AxisResult", "Iso230Result", "evaluate", "mpe_to_standard_uncertainty"),
     "model": ("PolynomialModel", "fit_axis_model", "fit_polynomial", "gls", "type_a_uncertainty"),
     "parameters": ("IsoParameters", "iso230_2_parameters"),
@@ -88,7 +96,8 @@ def __getattr__(name: str) -> Any:
     mod = _WHERE.get(name)
     if mod is None:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{mod}"), name)
+    full = mod if mod.startswith("volcal.") else f"{__name__}.{mod}"
+    value = getattr(importlib.import_module(full), name)
     globals()[name] = value
     return value
 

@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from volcal.base.exceptions import InputError
+from volcal.measurement.iso230_2_files import LINEAR, AxisReadings, load_readings
 
-from .data import LINEAR, AxisReadings, load_readings
 from .model import TYPE_A_METHODS, PolynomialModel, fit_axis_model
 from .parameters import IsoParameters, iso230_2_parameters
 
@@ -109,7 +109,8 @@ def evaluate(
 
     Parameters
     ----------
-    data : path of a CSV file or a pandas DataFrame (format: :mod:`volcal.iso230_2.data`).
+    data : path of a CSV file or a pandas DataFrame (format:
+        :mod:`volcal.measurement.iso230_2_files`).
     degree : degree of the polynomial Δ(P) per approach direction (paper: 3).
     mpe_um, mpe_arcsec : maximum permissible error of the measuring instrument, a constant
         error common to all readings (linear axes in um, rotary axes in arcsec); its

@@ -8,9 +8,14 @@ at set-up parameters drawn from the seed: an interferometer beam misaligned by u
 50 urad and a dead-path offset, a ballbar's table ball up to 20 um off the nominal centre
 and a bar length up to 5 um off the nominal radius.  Noise: normal with the standard
 uncertainty written in ``sigma_um`` (``noise=False``: exact readings, the same column).
+:func:`planned_table` fills in a planned table (``volcal plan``'s ``added_*.csv``) instead
+of the fixed lines and circles.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pandas as pd
@@ -44,6 +49,33 @@ def _actual_points(machine, em, theta, q_file, tool) -> tuple[np.ndarray, np.nda
     return machine.nominal_points(q, t), np.asarray(P, float)
 
 
+def _read(ins, P: np.ndarray, station: np.ndarray, sigma_um: float, noise: bool, rng):
+    """The instrument's readings (mm) of actual points P (N, 3) at one set-up, with normal
+    noise of standard deviation sigma_um (um) when ``noise``."""
+    m, _ = ins.evaluate(P, np.tile(station, (len(P), 1)))
+    return m + rng.normal(0.0, sigma_um * 1e-3, len(P)) if noise else m
+
+
+def _table(
+    setup: str,
+    points: list[str],
+    columns: dict[str, object],
+    tool: tuple[float, float, float],
+    reading: tuple[str, np.ndarray],
+    sigma_um: float,
+) -> pd.DataFrame:
+    """One set-up in an instrument's CSV layout: ``setup``, ``point``, the instrument's own
+    ``columns`` (in order), ``tool_*_mm``, the reading column and ``sigma_um``."""
+    df = pd.DataFrame({"setup": setup, "point": points})
+    for c, v in columns.items():
+        df[c] = v
+    for c, v in zip("xyz", tool):
+        df[f"tool_{c}_mm"] = v
+    df[reading[0]] = reading[1]
+    df["sigma_um"] = sigma_um
+    return df
+
+
 def interferometer_table(
     machine: Machine,
     em: ErrorModel,
@@ -67,18 +99,13 @@ def interferometer_table(
         P0, P = _actual_points(machine, em, theta, q, tool)
         u = (P0[-1] - P0[0]) / np.linalg.norm(P0[-1] - P0[0])
         st = np.r_[u, rng.uniform(-50e-6, 50e-6, 2), rng.uniform(-100.0, 100.0)]
-        m, _ = ins.evaluate(P, np.tile(st, (n_targets, 1)))
-        sigma = INTERFEROMETER_SIGMA_UM * 1e-3
-        if noise:
-            m = m + rng.normal(0.0, sigma, n_targets)
-        df = pd.DataFrame({"setup": f"{a.name}-line", "point": [f"t{i}" for i in range(n_targets)]})
-        for c, v in zip(_columns(machine), q.T):
-            df[c] = v
-        for c, v in zip("xyz", tool):
-            df[f"tool_{c}_mm"] = v
-        df["displacement_mm"] = m
-        df["sigma_um"] = INTERFEROMETER_SIGMA_UM
-        frames.append(df)
+        m = _read(ins, P, st, INTERFEROMETER_SIGMA_UM, noise, rng)
+        points = [f"t{i}" for i in range(n_targets)]
+        columns = dict(zip(_columns(machine), q.T))
+        reading = ("displacement_mm", m)
+        frames.append(
+            _table(f"{a.name}-line", points, columns, tool, reading, INTERFEROMETER_SIGMA_UM)
+        )
     return pd.concat(frames, ignore_index=True)
 
 
@@ -112,19 +139,99 @@ def ballbar_table(
         _, P = _actual_points(machine, em, theta, q, tool)
         C = _actual_points(machine, em, np.zeros_like(theta), mid[None], tool)[0][0]
         st = np.r_[C + rng.uniform(-0.02, 0.02, 3), radius + rng.uniform(-5e-3, 5e-3)]
-        m, _ = ins.evaluate(P, np.tile(st, (n_angles, 1)))
-        if noise:
-            m = m + rng.normal(0.0, BALLBAR_SIGMA_UM * 1e-3, n_angles)
+        m = _read(ins, P, st, BALLBAR_SIGMA_UM, noise, rng)
         plane = axes[j1].name + axes[j2].name
-        df = pd.DataFrame({"setup": f"{plane}-circle", "point": [f"a{i}" for i in range(n_angles)]})
-        df["plane"] = plane
-        for c, v in zip(_columns(machine, "centre_"), mid):
-            df[c] = v
-        df["radius_mm"] = radius
-        df["angle_deg"] = ang
-        for c, v in zip("xyz", tool):
-            df[f"tool_{c}_mm"] = v
-        df["deviation_um"] = m * 1e3
-        df["sigma_um"] = BALLBAR_SIGMA_UM
-        frames.append(df)
+        points = [f"a{i}" for i in range(n_angles)]
+        columns: dict[str, object] = {"plane": plane}
+        columns.update(zip(_columns(machine, "centre_"), mid))
+        columns.update(radius_mm=radius, angle_deg=ang)
+        reading = ("deviation_um", m * 1e3)
+        frames.append(_table(f"{plane}-circle", points, columns, tool, reading, BALLBAR_SIGMA_UM))
     return pd.concat(frames, ignore_index=True)
+
+
+#: the reading column of each instrument's table (without the unit suffix)
+_READING = {"interferometer": "displacement", "ballbar": "deviation"}
+
+
+def planned_table(
+    machine: Machine,
+    em: ErrorModel,
+    theta: np.ndarray,
+    rng: np.random.Generator,
+    instrument: str,
+    source: str | Path | pd.DataFrame,
+    *,
+    noise: bool = True,
+) -> pd.DataFrame:
+    """The readings of a planned table of ``instrument`` (``interferometer`` or
+    ``ballbar``): a CSV in the instrument's own format whose reading column
+    (``displacement_um`` / ``_mm``, ``deviation_um`` / ``_mm``) may be empty or absent,
+    e.g. ``added_interferometer.csv`` of ``volcal plan --add-minutes``.  The table is read
+    (and checked, errors naming the file, row and column) by the instrument's reader, its
+    reading column filled in from the same true machine, set-up by set-up (set-up
+    parameters drawn as in :func:`interferometer_table` and :func:`ballbar_table`), with
+    noise of the table's ``sigma_um`` / ``sigma_mm`` (default
+    :data:`INTERFEROMETER_SIGMA_UM`, :data:`BALLBAR_SIGMA_UM`); every other column is
+    kept as it is."""
+    from volcal.base.exceptions import InputError
+
+    ins = {"interferometer": LaserInterferometer(), "ballbar": Ballbar()}[instrument]
+    label = str(source) if isinstance(source, (str, Path)) else "<DataFrame>"
+    if isinstance(source, pd.DataFrame):
+        df = source.copy()
+    else:
+        if not Path(source).is_file():
+            raise InputError(f"no such {instrument} table file", source=label)
+        df = pd.read_csv(source, skipinitialspace=True)
+    base = _READING[instrument]
+    col = next((c for c in (f"{base}_um", f"{base}_mm") if c in df.columns), f"{base}_um")
+    probe = df.copy()
+    probe[col] = 0.0  # the geometry only: the readings are what is simulated
+    try:
+        t = cast(pd.DataFrame, ins.read_table(probe, machine.spec))
+    except InputError as exc:  # name the file, not the DataFrame it was read into
+        text = str(exc)
+        msg = text.split(": ", 1)[1] if text.startswith("<") and ": " in text else text
+        raise InputError(msg, source=label, row=exc.row, column=exc.column) from None
+    q_file = t[_columns(machine)].to_numpy(float)
+    tool = t[["tool_x_mm", "tool_y_mm", "tool_z_mm"]].to_numpy(float)
+    q = machine.axis_to_internal(q_file)
+    from volcal.measurement.simulate import _error_values
+
+    P, _, _ = machine.evaluate(q, tool, _error_values(em, q, theta), exact=True)
+    P = np.asarray(P, float)
+    P0 = machine.nominal_points(q, tool)
+    default = INTERFEROMETER_SIGMA_UM if instrument == "interferometer" else BALLBAR_SIGMA_UM
+    sigma_mm = np.full(len(t), default * 1e-3)
+    if "sigma_mm" in t.columns:
+        given = t["sigma_mm"].to_numpy(float)
+        sigma_mm = np.where(np.isfinite(given), given, sigma_mm)
+    m = np.zeros(len(t))
+    station = t["station"].astype(str).to_numpy()
+    for sid in pd.unique(station):
+        rows = np.flatnonzero(station == sid)
+        if instrument == "interferometer":
+            u = P0[rows[-1]] - P0[rows[0]]
+            if not np.linalg.norm(u) > 0:
+                raise InputError(
+                    f"set-up {sid}: its targets do not span a line", source=label, column="setup"
+                )
+            u = u / np.linalg.norm(u)
+            st = np.r_[u, rng.uniform(-50e-6, 50e-6, 2), rng.uniform(-100.0, 100.0)]
+        else:
+            first = int(rows[0])
+            qc = machine.axis_to_internal(
+                df.loc[first, _columns(machine, "centre_")].to_numpy(float)[None]
+            )
+            C = machine.nominal_points(qc, tool[first][None])[0]
+            R = float(df.loc[first, "radius_mm"])
+            st = np.r_[C + rng.uniform(-0.02, 0.02, 3), R + rng.uniform(-5e-3, 5e-3)]
+        m[rows], _ = ins.evaluate(P[rows], np.tile(st, (len(rows), 1)))
+    if noise:
+        m = m + rng.normal(0.0, 1.0, len(m)) * sigma_mm
+    out = df.copy()
+    out[col] = m * (1e3 if col.endswith("_um") else 1.0)
+    if "sigma_um" not in out.columns and "sigma_mm" not in out.columns:
+        out["sigma_um"] = sigma_mm * 1e3
+    return out

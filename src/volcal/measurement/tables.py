@@ -71,7 +71,7 @@ import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 import pandas as pd
@@ -234,12 +234,26 @@ class _Raw:
     rows: np.ndarray  # spreadsheet row of each body row
 
 
+def _stripped(col: pd.Series) -> pd.Series:
+    """``col.str.strip()`` of a column of text, without pandas' Python call per cell when
+    no cell holds a blank (ids like ``LT1``, ``p0001``): one search of the joined text
+    (``\\s`` is what str.strip removes).  A column with a missing cell is stripped."""
+    try:
+        joined = "\x00".join(col.tolist())
+    except TypeError:  # NaN or None among the cells
+        return col.str.strip()
+    return col.str.strip() if _BLANK.search(joined) else col
+
+
+_BLANK = re.compile(r"\s")
+
+
 def _blank_cells(col: pd.Series) -> np.ndarray:
     """:func:`_is_blank` of every cell of a column read as text (strings; NaN or None where
     a short row has no cell), vectorised."""
     if col.dtype != object and not pd.api.types.is_string_dtype(col):
         return np.asarray(col.isna(), bool)
-    text = col.str.strip()  # NaN for cells that are not strings
+    text = _stripped(col)  # NaN for cells that are not strings
     return np.asarray(col.isna(), bool) | np.asarray(text.eq("").fillna(False), bool)
 
 
@@ -699,7 +713,7 @@ def _id_text(v: Any) -> str | None:
 def _parse_ids(values: pd.Series, rows: np.ndarray, column: str, problems: _Problems) -> np.ndarray:
     if pd.api.types.infer_dtype(values, skipna=False) == "string":
         # text cells (a CSV file): _id_text vectorised (stripped; blank is missing)
-        out = values.str.strip().fillna("").to_numpy(dtype=object)
+        out = _stripped(values).fillna("").to_numpy(dtype=object)
         missing = out == ""
         out[missing] = None
     else:
@@ -883,6 +897,47 @@ def read_columns(
             )
     problems.raise_if_any()
     return out, raw.rows, raw.name
+
+
+def mm_or_um_columns(base: str, kind: str = "float") -> list[tuple[str, bool, str]]:
+    """The two optional columns of one length quantity for :func:`read_columns`: ``base_mm``
+    and ``base_um`` (a table gives one of them; :func:`mm_or_um` reads it)."""
+    return [(f"{base}_mm", False, kind), (f"{base}_um", False, kind)]
+
+
+@overload
+def mm_or_um(
+    values: dict[str, np.ndarray], base: str, label: str, *, required: Literal[True]
+) -> np.ndarray: ...
+
+
+@overload
+def mm_or_um(
+    values: dict[str, np.ndarray], base: str, label: str, *, required: bool
+) -> np.ndarray | None: ...
+
+
+def mm_or_um(
+    values: dict[str, np.ndarray], base: str, label: str, *, required: bool
+) -> np.ndarray | None:
+    """The ``base_mm`` or ``base_um`` column of ``values`` (as :func:`read_columns` returns
+    them) in mm.  Both present: an :class:`InputError` (the same quantity twice); neither:
+    None, or an :class:`InputError` naming the column when ``required``."""
+    mm, um = values.get(f"{base}_mm"), values.get(f"{base}_um")
+    if mm is not None and um is not None:
+        raise InputError(
+            f"columns '{base}_mm' and '{base}_um' are the same quantity; keep one",
+            source=label,
+            row=1,
+            column=f"{base}_um",
+        )
+    if um is not None:
+        return um * 1e-3
+    if mm is None and required:
+        raise InputError(
+            f"missing required column '{base}_mm' (or '{base}_um')", source=label, row=1
+        )
+    return mm
 
 
 # --------------------------------------------------------------------------------------
@@ -1122,9 +1177,12 @@ def load_measurements(
             )
 
     # stations
-    station_ids = list(dict.fromkeys(station.tolist()))
-    lookup = {s: i for i, s in enumerate(station_ids)}
-    station_index = np.fromiter((lookup[s] for s in station), dtype=int, count=n)
+    # ids in order of first appearance and each reading's index into them, as
+    # dict.fromkeys and a lookup per reading give them (pandas' hash table, no Python
+    # per reading)
+    codes, uniques = pd.factorize(station)
+    station_ids = list(uniques.tolist())
+    station_index = codes.astype(int, copy=False)
     counts = np.bincount(station_index, minlength=len(station_ids))
     first_row = {
         s: int(rows[np.flatnonzero(station_index == i)[0]]) for i, s in enumerate(station_ids)
@@ -1168,9 +1226,9 @@ def load_measurements(
                 )
     problems.raise_if_any()
 
-    point_ids = list(dict.fromkeys(point.tolist()))
-    plookup = {p: i for i, p in enumerate(point_ids)}
-    point_index = np.fromiter((plookup[p] for p in point), dtype=int, count=n)
+    codes, uniques = pd.factorize(point)
+    point_ids = list(uniques.tolist())
+    point_index = codes.astype(int, copy=False)
     q_internal = q_file.copy()
     for j, a in enumerate(spec.axes):
         if a.is_rotary:
@@ -1346,9 +1404,8 @@ def _warn_geometry(
     # one point id should be one commanded pose
     pose = np.concatenate([q, tool], axis=1)
     first = np.full(point_index.max() + 1, -1)
-    for k, p in enumerate(point_index):
-        if first[p] < 0:
-            first[p] = k
+    seen, first_k = np.unique(point_index, return_index=True)  # each id's first reading
+    first[seen] = first_k
     ref = pose[first[point_index]]
     differ = np.flatnonzero(np.any(pose != ref, axis=1))
     if differ.size:
@@ -1387,6 +1444,8 @@ report_rows = _report
 nominal_tool_points = _nominal_tool_points
 
 __all__ += [
+    "mm_or_um",
+    "mm_or_um_columns",
     "Column",
     "Problems",
     "read_raw",

@@ -580,7 +580,7 @@ def _probe_jacobian(
 ) -> np.ndarray:
     """Jacobian (scaled variables) of readings at poses q with tools, using the structured
     first-order model (for testing hypotheses about the plan)."""
-    from volcal.analysis.uncertainty.engine import StructuredLSQ, _point_model
+    from volcal.analysis.uncertainty.engine import StructuredLSQ, _point_model, reading_tape
 
     pr = ider.problem
     P0, G = _point_model(pr.machine, pr.error_model, q, tool)
@@ -596,6 +596,7 @@ def _probe_jacobian(
         scale=pr.scale,
         Z=np.zeros((0, 0)),
         R=np.zeros((0, 0)),
+        reading=reading_tape(pr.instrument),
     )
     return eng.jacobian(np.asarray(x, float))
 

@@ -21,7 +21,17 @@ Written into a temporary folder and renamed into place (:func:`volcal.base.folde
   time; the NC programs carry the same sheet as comments before each station's first
   program stop);
 * ``plan.png`` (stations and workspace from above and from the side, the points coloured
-  by the predicted volumetric uncertainty) unless plots are off.
+  by the predicted volumetric uncertainty) unless plots are off;
+* with instruments added within a time budget (``volcal plan --add-minutes``,
+  :mod:`volcal.analysis.planning.additions`): ``added_interferometer.csv`` and
+  ``added_ballbar.csv`` (the chosen lines and circles in measuring order, in the columns
+  the instruments read, ``volcal identify --data interferometer=FILE``, with the reading
+  column ``displacement_um`` / ``deviation_um`` empty to fill, or to simulate with
+  ``volcal simulate --instruments interferometer=FILE``), ``prediction_instruments.csv``
+  (the criterion and the predicted uncertainties of the field and of the positioning
+  errors without the additions and after each one, with units) and the report's
+  "Added instruments" section (what to set up where, in what order, the time per
+  instrument).
 """
 
 from __future__ import annotations
@@ -51,6 +61,9 @@ PLAN_FILES = (
     "summary.json",
     "report.md",
     "plan.png",
+    "added_interferometer.csv",
+    "added_ballbar.csv",
+    "prediction_instruments.csv",
 )
 
 
@@ -169,7 +182,79 @@ def _slack_section(summary: dict[str, Any]) -> list[str]:
     return out
 
 
-def _report(summary: dict[str, Any], vol: pd.DataFrame, motions: pd.DataFrame) -> str:
+def _additions_section(add: dict[str, Any], pred: pd.DataFrame) -> list[str]:
+    """The report's section on the interferometer lines and ballbar circles added."""
+    c = add["costs"]
+    out = [
+        "",
+        "## Added instruments",
+        "",
+        f"Budget {add['budget_minutes']:g} min for {', '.join(add['instruments'])} on top "
+        f"of the tracker plan ({_num(add['tracker_minutes'])} min of readings); spent "
+        f"{_num(add['spent_minutes'])} min on {len(add['setups'])} set-up(s), chosen from "
+        f"{add['candidates']} candidates by the plan's criterion ({add['method']}). Costs: "
+        f"an interferometer line {c['interferometer_setup_min']:g} min to set up + "
+        f"{c['interferometer_targets']} targets x {c['interferometer_seconds_per_target']:g} s "
+        f"({c['interferometer_sigma_um']:g} um per reading); a ballbar circle "
+        f"{c['ballbar_setup_min']:g} min to set up + {c['ballbar_seconds_per_rev']:g} s per "
+        f"revolution ({c['ballbar_angles']} readings, {c['ballbar_sigma_um']:g} um each). "
+        "Optics on the table, the reflector (or the spindle ball) at the tool offset of the "
+        "files; axis positions in mm / deg.",
+        "",
+        "| instrument | set-ups | minutes |",
+        "|---|---|---|",
+    ]
+    for name, v in add["per_instrument"].items():
+        out.append(f"| {name} | {v['setups']} | {_num(v['minutes'])} |")
+    if add["setups"]:
+        out += [
+            "",
+            "In measuring order (`added_interferometer.csv`, `added_ballbar.csv`; fill "
+            "`displacement_um` / `deviation_um` with the readings and identify with "
+            "`volcal identify --data measurements.csv --data interferometer=... --data "
+            "ballbar=...`):",
+            "",
+            "| order | picked | set-up | instrument | what to set up where | readings | minutes |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for r in add["setups"]:
+            out.append(
+                f"| {r['order']} | {r['picked']} | {r['setup']} | {r['instrument']} | "
+                f"{r['what']} | {r['readings']} | {_num(r['minutes'])} |"
+            )
+    pos = [col for col in pred.columns if col.startswith("positioning_u_")]
+    out += [
+        "",
+        "Predicted (`prediction_instruments.csv`): the criterion, the field's standard "
+        "uncertainty over the workspace (RMS and max, modulo the rigid motion no "
+        "multilateration sees) and the positioning error's (along each linear axis "
+        "through the middle of the travel, relative to its start, RMS over the targets), "
+        "without the additions and after each:",
+        "",
+        "| step | added | minutes | criterion | field u RMS (um) | field u max (um) | "
+        + " | ".join(f"positioning u {p.split('_')[2]} (um)" for p in pos)
+        + " |",
+        "|---|---|---|---|---|---|" + "---|" * len(pos),
+    ]
+    for _, r in pred.iterrows():
+        out.append(
+            f"| {r['step']} | {r['added'] or 'tracker plan'} | {_num(r['minutes_added'])} | "
+            f"{r['criterion']} {_fmt(r['criterion_value'])} {r['criterion_unit']} | "
+            f"{_fmt(r['field_u_rms_um'])} | {_fmt(r['field_u_max_um'])} | "
+            + " | ".join(_fmt(r[p]) for p in pos)
+            + " |"
+        )
+    if add["notes"]:
+        out += [""] + [f"- {n}" for n in add["notes"]]
+    return out
+
+
+def _report(
+    summary: dict[str, Any],
+    vol: pd.DataFrame,
+    motions: pd.DataFrame,
+    pred: pd.DataFrame | None = None,
+) -> str:
     lines = [
         f"# Measurement plan: {summary['model']}",
         "",
@@ -189,6 +274,7 @@ def _report(summary: dict[str, Any], vol: pd.DataFrame, motions: pd.DataFrame) -
         + "; ".join(_xyz(t, 3).replace(".000", "") for t in summary["settings"]["tools_mm"]),
         *_slack_section(summary),
         *_setup_section(summary),
+        *(_additions_section(summary["additions"], pred) if pred is not None else []),
         "",
         "## Searches",
         "",
@@ -284,6 +370,10 @@ def write_plan(
     summary["settings"] = dict(result.settings, half_angle_deg=half)
     summary["setup_sheet"] = sheet
     summary["stations_mm"] = np.round(result.stations_mm, 4).tolist()
+    add = getattr(result, "additions", None)
+    pred = add.prediction() if add is not None else None
+    if add is not None:
+        summary["additions"] = add.summary()
     hist = pd.DataFrame(
         [
             {"search": f"{k + 1}:{s.method}", **h}
@@ -304,7 +394,13 @@ def write_plan(
         vol.to_csv(d / "prediction_volumetric.csv", index=False)
         hist.to_csv(d / "search_history.csv", index=False)
         (d / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-        (d / "report.md").write_text(_report(summary, vol, motions))
+        (d / "report.md").write_text(_report(summary, vol, motions, pred))
+        if add is not None and pred is not None:
+            pred.to_csv(d / "prediction_instruments.csv", index=False)
+            for name in add.instruments:
+                table = add.table(name)
+                if len(table):
+                    table.to_csv(d / f"added_{name}.csv", index=False)
         if plots:
             _plot(result, vol, d / "plan.png")
 

@@ -74,10 +74,12 @@ import json
 import logging
 import math
 import platform
+import re
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from json.encoder import encode_basestring_ascii as _encode_str
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -498,16 +500,28 @@ def write_table(table: pd.DataFrame, path: str | Path) -> None:
     joined without Python code per row.  Tables with other column types, or text that
     would need quoting, are written by pandas."""
     names = [str(c) for c in table.columns]
-    texts = _column_texts(table)
-    if texts is None or any(ch in n for n in names for ch in _CSV_SPECIAL):
+    if any(ch in n for n in names for ch in _CSV_SPECIAL) or _column_texts(table[:1]) is None:
         table.to_csv(path, index=False)
         return
     import os
 
     nl = os.linesep  # pandas' line terminator
-    body = nl.join(map(",".join, zip(*texts)))
+    # a block of rows at a time: the texts of a whole 10^6-row table are some 14 million
+    # Python strings (about 1 GB), a block's a few tens of MB
     with open(path, "w", encoding="utf-8", newline="") as fh:
-        fh.write(",".join(names) + nl + body + nl)
+        fh.write(",".join(names) + nl)
+        for start in range(0, len(table), _WRITE_BLOCK_ROWS):
+            texts = _column_texts(table[start : start + _WRITE_BLOCK_ROWS])
+            if texts is None:  # text further down needs quoting: pandas writes it all
+                break
+            fh.write(nl.join(map(",".join, zip(*texts))) + nl)
+        else:
+            return
+    table.to_csv(path, index=False)
+
+
+#: rows of a table turned into text at once by :func:`write_table`
+_WRITE_BLOCK_ROWS = 65536
 
 
 def _column_texts(table: pd.DataFrame) -> list[list[str]] | None:
@@ -530,10 +544,10 @@ def _column_texts(table: pd.DataFrame) -> list[list[str]] | None:
         elif isinstance(dt, np.dtype) and dt.kind in "iu":
             t = list(map(str, col.to_numpy().tolist()))
         elif pd.api.types.infer_dtype(col, skipna=True) == "string":
-            filled = col.astype(object).where(col.notna(), "")
-            if filled.str.contains(_CSV_QUOTED, regex=True).any():
+            t = col.astype(object).where(col.notna(), "").tolist()
+            # one search of the joined text, not one per cell (pandas' .str.contains)
+            if re.search(_CSV_QUOTED, "".join(t)):
                 return None
-            t = filled.tolist()
         else:
             return None
         texts.append(t)
@@ -560,6 +574,69 @@ def _json_safe(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     return str(obj)
+
+
+def json_text(obj: Any) -> str:
+    """``json.dumps(_json_safe(obj), indent=1, allow_nan=False)``, the same text, written
+    without json's pure-Python indenting encoder (which an indent selects) going through
+    every number of a covariance matrix one generator step at a time: float arrays are
+    turned into their texts at once (``repr``, as json writes floats; NaN / inf as
+    null).  result.json holds a few thousand numbers (cov_theta, the null space)."""
+    return _json_text(obj, 0)
+
+
+def _json_text(obj: Any, level: int) -> str:
+    if isinstance(obj, str):
+        return _encode_str(obj)
+    if obj is None:
+        return "null"
+    if isinstance(obj, (bool, np.bool_)):
+        return "true" if obj else "false"
+    if isinstance(obj, (int, np.integer)):
+        return int.__repr__(int(obj))
+    if isinstance(obj, (float, np.floating)):
+        x = float(obj)
+        return float.__repr__(x) if math.isfinite(x) else "null"
+    if isinstance(obj, np.ndarray) and obj.ndim >= 1 and obj.dtype.kind in "fiub":
+        if len(obj) == 0:
+            return "[]"
+        if obj.ndim > 1:
+            items = [_json_text(row, level + 1) for row in obj]
+        elif obj.dtype.kind == "f":
+            v = obj.astype(float, copy=False)
+            items = list(map(float.__repr__, v.tolist()))
+            for i in np.flatnonzero(~np.isfinite(v)):
+                items[i] = "null"
+        elif obj.dtype.kind == "b":
+            items = ["true" if b else "false" for b in obj.tolist()]
+        else:
+            items = list(map(int.__repr__, obj.tolist()))
+        return _json_join("[", items, "]", level)
+    if isinstance(obj, np.ndarray):
+        return _json_text(obj.tolist(), level)
+    if isinstance(obj, Mapping):
+        if not obj:
+            return "{}"
+        named = {str(k): v for k, v in obj.items()}  # keys equal as text: the last value
+        items = [_encode_str(k) + ": " + _json_text(v, level + 1) for k, v in named.items()]
+        return _json_join("{", items, "}", level)
+    if isinstance(obj, (list, tuple)):
+        if not obj:
+            return "[]"
+        if all(type(v) is float for v in obj):  # a list of numbers (an array's tolist())
+            items = list(map(float.__repr__, obj))
+            if "nan" in items or "inf" in items or "-inf" in items:
+                items = [t if math.isfinite(v) else "null" for t, v in zip(items, obj)]
+        else:
+            items = [_json_text(v, level + 1) for v in obj]
+        return _json_join("[", items, "]", level)
+    return _encode_str(str(obj))
+
+
+def _json_join(open_: str, items: list[str], close: str, level: int) -> str:
+    """Items laid out as json.dumps(..., indent=1) lays them out at depth ``level``."""
+    inner = "\n" + " " * (level + 1)
+    return open_ + inner + ("," + inner).join(items) + "\n" + " " * level + close
 
 
 def _forms(em: ErrorModel) -> list[dict[str, Any]]:
@@ -1661,9 +1738,7 @@ def save_result(
         # seconds per stage of this process so far (a benchmark takes the plots' cost
         # from a run without them)
         doc["timings_s"] = progress.timings()
-        (tmp / "result.json").write_text(
-            json.dumps(_json_safe(doc), indent=1, allow_nan=False) + "\n", encoding="utf-8"
-        )
+        (tmp / "result.json").write_text(json_text(doc) + "\n", encoding="utf-8")
         (tmp / "report.md").write_text(
             _report(
                 result,

@@ -122,14 +122,10 @@ class IdentificationProblem:
     conditions: list = field(init=False, repr=False)
     C_all: np.ndarray = field(init=False, repr=False)
     datum_active: np.ndarray = field(init=False, repr=False)
-    residual: ca.Function = field(init=False, repr=False)
-    jacobian_parts: ca.Function = field(init=False, repr=False)
-    nlp: dict = field(init=False, repr=False)
-    hess_lag: ca.Function = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         m, em, ins, lay = self.machine, self.error_model, self.instrument, self.layout
-        n_ax, N = m.n_axes, lay.n_readings
+        n_ax = m.n_axes
         n_ps, n_st, n_g = ins.n_station_params, lay.n_stations, ins.n_global_params
         self.n_theta = em.n_params
         self.n_x = em.n_params + n_ps * n_st + n_g
@@ -193,6 +189,41 @@ class IdentificationProblem:
             {"cse": True},
         )
 
+        #: the per-pose and per-reading functions, shared by the whole-graph NLP (built
+        #: on first use, :attr:`nlp`) and the chunked evaluator (:attr:`chunked`)
+        self.f_pose, self.f_point, self.f_read, self.f_res = f_pose, f_point, f_read, f_res
+
+        self.conditions = candidate_conditions(em, em.datum)
+        self.C_all = (
+            np.array([c.row for c in self.conditions]) if self.conditions else np.zeros((0, nt))
+        )
+        # until a datum is selected for the data at hand, every candidate is in force
+        self.datum_active = np.ones(len(self.conditions), bool)
+
+        self.names = list(em.param_names)
+        self.units = list(em.param_units)
+        for k in range(n_st):
+            sid = lay.station_ids[k] if lay.station_ids else f"station{k}"
+            self.names += [f"{sid}.{nm}" for nm in ins.station_param_names]
+            self.units += ["mm"] * n_ps
+        self.names += list(ins.global_param_names)
+        self.units += list(ins.global_param_units)
+
+    # ---- the whole-graph NLP (built on first use) -----------------------------------------
+    @cached_property
+    def _graph(self) -> dict:
+        """The CasADi graph of every reading: the NLP for IPOPT and the whole-problem
+        Functions.  Its sparsity and index lists are per reading (about 3.4 kB a reading
+        in CasADi's objects: 0.7 GB at 2 x 10^5 readings), so it is built only when one of
+        them is asked for (IPOPT, code generation, the planning criteria); the
+        Gauss-Newton solver and the analyses evaluate the same residuals, J^T r, J^T J and
+        R factor in fixed-size chunks of poses (:attr:`chunked`) without it."""
+        m, em, ins, lay = self.machine, self.error_model, self.instrument, self.layout
+        n_ax, N = m.n_axes, lay.n_readings
+        n_ps, n_st, n_g = ins.n_station_params, lay.n_stations, ins.n_global_params
+        nt = em.n_params
+        f_pose, f_point, f_read, f_res = self.f_pose, self.f_point, self.f_read, self.f_res
+        out: dict = {}
         # all readings in MX (x is the scaled variable vector)
         xs = ca.MX.sym("x", self.n_x)
         th = xs[:nt]
@@ -238,14 +269,14 @@ class IdentificationProblem:
             ca.vec(rows)[self._csc_order(N, self.n_x, rr, cc, src)],
         )
         Jr = J_rest[:, nt:]
-        self.residual = ca.Function("residual", [xs, p], [r_val], ["x", "p"], ["r"])
+        out["residual"] = ca.Function("residual", [xs, p], [r_val], ["x", "p"], ["r"])
         # The whole Jacobian J = [D G_stack | J_rest] is built only when asked for
         # (:attr:`jacobian`): its sparsity pattern alone holds N n_theta indices (50 MB at
         # 3 x 10^4 readings, several times over through its products and transpose).  The
         # solvers and the analyses use its factors: J^T r and J^T J below, and the dense J
         # assembled in numpy from the factors (:class:`DenseJacobian`).
-        self._jacobian_graph = (xs, p, r, D, Gs, Jr)
-        self.jacobian_parts = ca.Function(
+        out["_jacobian_graph"] = (xs, p, r, D, Gs, Jr)
+        out["jacobian_parts"] = ca.Function(
             "jacobian_parts",
             [xs, p],
             [r, ca.densify(Gs), rows],
@@ -253,21 +284,15 @@ class IdentificationProblem:
             ["r", "G", "rows"],
         )
 
-        self.conditions = candidate_conditions(em, em.datum)
-        self.C_all = (
-            np.array([c.row for c in self.conditions]) if self.conditions else np.zeros((0, nt))
-        )
-        # until a datum is selected for the data at hand, every candidate is in force
-        self.datum_active = np.ones(len(self.conditions), bool)
         Cs = self.C_all * self.scale[None, :nt]
         gvec = ca.mtimes(ca.DM(Cs), xs[: em.n_params]) if self.C_all.shape[0] else ca.MX(0, 1)
-        self.nlp = {"x": xs, "p": p, "f": 0.5 * ca.sumsqr(r_val), "g": gvec}
+        out["nlp"] = {"x": xs, "p": p, "f": 0.5 * ca.sumsqr(r_val), "g": gvec}
         # gradient of 0.5 ||r||^2 from the explicit Jacobian: J^T r, instead of reverse AD
         # through the map (which cost half of a small solve), through J's factors:
         # J^T r = [G_stack^T (D^T r); J_rest^T r]
         Dt = D.T
         Jt_r = ca.vertcat(ca.mtimes(GT, ca.mtimes(Dt, r)), ca.mtimes(Jr.T, r))
-        self.grad_f = ca.Function(
+        out["grad_f"] = ca.Function(
             "nlp_grad_f",
             [xs, p],
             [0.5 * ca.sumsqr(r), Jt_r],
@@ -289,7 +314,7 @@ class IdentificationProblem:
         H_tt, H_tr = H_top[:, :nt], H_top[:, nt:]
         H_rr = ca.mtimes(Jr.T, Jr)
         H = ca.blockcat([[H_tt, H_tr], [H_tr.T, H_rr]])
-        self.hess_lag = ca.Function(
+        out["hess_lag"] = ca.Function(
             "nlp_hess_l",
             [xs, p, lam_f, lam_g],
             [ca.triu(lam_f * ca.densify(H))],
@@ -297,18 +322,53 @@ class IdentificationProblem:
             ["triu_hess_gamma_x_x"],
         )
         #: H = J^T J alone (for the Gauss-Newton solver and the analyses)
-        self.gram = ca.Function(
+        out["gram"] = ca.Function(
             "gram", [xs, p], [r, Jt_r, ca.densify(H)], ["x", "p"], ["r", "g", "H"]
         )
+        return out
 
-        self.names = list(em.param_names)
-        self.units = list(em.param_units)
-        for k in range(n_st):
-            sid = lay.station_ids[k] if lay.station_ids else f"station{k}"
-            self.names += [f"{sid}.{nm}" for nm in ins.station_param_names]
-            self.units += ["mm"] * n_ps
-        self.names += list(ins.global_param_names)
-        self.units += list(ins.global_param_units)
+    @property
+    def residual(self) -> ca.Function:
+        """``(x, p) -> r``: the whitened residuals (whole graph, built on first use)."""
+        return self._graph["residual"]
+
+    @property
+    def jacobian_parts(self) -> ca.Function:
+        """``(x, p) -> (r, G, rows)``: J's factors (whole graph, built on first use)."""
+        return self._graph["jacobian_parts"]
+
+    @property
+    def nlp(self) -> dict:
+        """The NLP {x, p, f, g} for ``nlpsol`` (whole graph, built on first use)."""
+        return self._graph["nlp"]
+
+    @property
+    def grad_f(self) -> ca.Function:
+        """``(x, p) -> (f, J^T r)`` (whole graph, built on first use)."""
+        return self._graph["grad_f"]
+
+    @property
+    def hess_lag(self) -> ca.Function:
+        """IPOPT's Gauss-Newton Hessian of the Lagrangian (whole graph, on first use)."""
+        return self._graph["hess_lag"]
+
+    @property
+    def gram(self) -> ca.Function:
+        """``(x, p) -> (r, J^T r, J^T J)`` (whole graph, built on first use)."""
+        return self._graph["gram"]
+
+    @property
+    def n_p(self) -> int:
+        """Length of the data vector p (:meth:`pack_data`)."""
+        return (self.machine.n_axes + 5) * self.layout.n_readings
+
+    @cached_property
+    def chunked(self):
+        """The residuals, J^T r, J^T J and R factor evaluated in fixed-size chunks of poses
+        (:class:`volcal.problem.chunked.ChunkedEvaluator`), without the whole graph."""
+        from volcal.problem.chunked import ChunkedEvaluator
+
+        return ChunkedEvaluator(self)
 
     @cached_property
     def jacobian(self) -> ca.Function:
@@ -316,7 +376,7 @@ class IdentificationProblem:
         variables, as one CasADi Function (for code generation and symbolic use, e.g. the
         planning criteria); built on first use.  Numerically, :class:`DenseJacobian` gives
         the same J from :attr:`jacobian_parts` at a fraction of the memory."""
-        xs, p, r, D, Gs, Jr = self._jacobian_graph
+        xs, p, r, D, Gs, Jr = self._graph["_jacobian_graph"]
         J = ca.horzcat(ca.mtimes(D, Gs), Jr)
         return ca.Function("jacobian", [xs, p], [r, J], ["x", "p"], ["r", "J"])
 

@@ -183,6 +183,9 @@ class PlanResult:
     centre_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
     #: the margins the search kept from the declared limits: (deg, mm)
     margins: tuple[float, float] = (0.0, 0.0)
+    #: interferometer lines / ballbar circles added within a time budget
+    #: (:func:`volcal.analysis.planning.additions.add_instruments`), or None
+    additions: Any = None
 
     @property
     def planning_constraints(self) -> Constraints:
@@ -553,6 +556,9 @@ def plan(
     scheduler: Any = None,
     checkpoint_dir: str | Path | None = None,
     progress: Callable[[str, int, int, float], None] | None = None,
+    add_instruments: Sequence[str] | None = None,
+    add_minutes: float | None = None,
+    instrument_costs: Mapping[str, Any] | Any = None,
 ) -> PlanResult:
     """Plan a sequential multilateration measurement (see the module docstring).
 
@@ -575,8 +581,32 @@ def plan(
     progress(stage, step, total, best): called after every generation, start and
     exchange, e.g. ("GA round 1 of 2: generation", 5, 30, 0.29) (step 1-based, 0 when a
     search round begins; best: the criterion reached, um for I and MC, the solver's
-    scaled units for A, D and E)."""
+    scaled units for A, D and E); add_minutes: a time budget (minutes, on top of the
+    tracker plan, which stays as planned) for interferometer lines and ballbar circles
+    chosen to improve the criterion further, add_instruments: which (default both),
+    instrument_costs: their time costs and uncertainties
+    (:class:`volcal.analysis.planning.additions.InstrumentCosts` or a mapping of its
+    keys); the result's ``additions`` (see
+    :func:`volcal.analysis.planning.additions.add_instruments`)."""
     t0 = time.perf_counter()
+    from volcal.analysis.planning import additions as adds
+
+    if add_instruments is not None and add_minutes is None:
+        raise InputError(
+            "instruments to add given without a time budget for them: give add_minutes "
+            "(--add-minutes, or minutes in the setting's [instruments])",
+            source="add_minutes",
+        )
+    if add_minutes is not None:
+        adds.check_minutes(add_minutes, "add_minutes")
+        adds.check_instruments(
+            list(adds.ADDABLE if add_instruments is None else add_instruments),
+            "add_instruments",
+        )
+        if not isinstance(instrument_costs, adds.InstrumentCosts):
+            instrument_costs = adds.InstrumentCosts.from_mapping(
+                instrument_costs or {}, "instrument costs"
+            )
     if criterion not in CRITERIA:
         raise InputError(f"unknown criterion {criterion!r}; expected one of {', '.join(CRITERIA)}")
     if optimizer not in OPTIMIZERS:
@@ -786,6 +816,15 @@ def plan(
         raise RuntimeError(  # never returned: the searches only keep feasible designs
             f"internal error: the plan breaks {len(bad)} reading constraint(s):\n{bad.head()}"
         )
+    if add_minutes is not None:
+        with progress_stage("choosing interferometer lines / ballbar circles to add"):
+            adds.add_instruments(
+                result,
+                adds.ADDABLE if add_instruments is None else add_instruments,
+                add_minutes,
+                instrument_costs,
+            )
+        result.seconds = time.perf_counter() - t0
     return result
 
 

@@ -17,6 +17,10 @@ override them)::
     margin_deg = 5                  # kept off the acceptance half-angle, deg
     margin_mm = 20                  # kept inside regions, on distances and obstacles, mm
     start_stations = "S.csv"        # start or given stations (relative to the file)
+    [instruments]                   # interferometer lines / ballbar circles to add
+    add = ["interferometer", "ballbar"]
+    minutes = 60                    # their time budget, on top of the tracker plan
+    interferometer_setup_min = 15   # and the other costs of InstrumentCosts
     [travel]                        # the travel to cover, mm / deg
     X = [0, 754]
     [constraints]                   # see volcal.analysis.planning.geometry
@@ -32,6 +36,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from volcal.analysis.planning.additions import instruments_from_dict
 from volcal.analysis.planning.evaluator import CRITERIA
 from volcal.analysis.planning.geometry import constraints_from_dict
 from volcal.analysis.planning.plan import OPTIMIZERS
@@ -62,6 +67,7 @@ SETTING_KEYS = {
     "start_stations": str,
     "travel": dict,
     "constraints": dict,
+    "instruments": dict,
 }
 
 
@@ -163,6 +169,8 @@ def check_setting(doc: Mapping[str, Any], source: str) -> dict[str, Any]:
             )
     if "constraints" in out:
         constraints_from_dict(out["constraints"], where=f"{source}: [constraints]")
+    if "instruments" in out:
+        instruments_from_dict(out["instruments"], source)
     return out
 
 

@@ -29,6 +29,17 @@ readings station by station, in arrays that stay in the cache; the first iterati
 x_hat, where the residuals are linear in the readings, is one product with a matrix
 computed once (see :meth:`StructuredLSQ._first_gradient`).
 
+The readings, their residuals and the Jacobian are the instrument's own reading Function
+(:attr:`Instrument.reading_function`) replayed by numpy over all readings at once
+(:class:`volcal.model.numpy_tape.NumpyTape`, its derivatives by the tape's reverse sweep):
+one definition of the reading.  Only the batched gradient of the iterations
+(:meth:`StructuredLSQ._gradient_t`, most of a Monte Carlo run's time) writes the tracker's
+reading out in numpy, in place and station by station: evaluating the Function there, mapped
+by CasADi (serial: 12-20x this time; just-in-time compiled C: ~4x) or replayed by the tape
+(~2.5x: twice the arrays, out of the processor's cache), costs more than the 10 % a Monte
+Carlo run may lose (benchmarks/bench_montecarlo.py).  It is compared with the problem's
+CasADi functions each time an engine is built (``check``).
+
 :meth:`StructuredLSQ.linear_map` gives the linearised mode: one factorisation, the
 estimate's change as ``K @ dm`` for a matrix of reading changes (many right-hand sides).
 
@@ -42,6 +53,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
+
+from volcal.model.numpy_tape import NumpyTape
 
 __all__ = ["StructuredLSQ", "VolumetricMap", "unpack_data", "BatchSolution"]
 
@@ -227,6 +240,9 @@ class StructuredLSQ:
     #: (N,) the distinct tool point (pose and tool offset) of every reading; None: found
     #: from P0 and G
     point_index: np.ndarray | None = None
+    #: the instrument's reading (value only) as a numpy tape: the readings, residuals and
+    #: Jacobian evaluate it
+    reading: NumpyTape | None = field(default=None, repr=False)
     _J0: np.ndarray | None = field(default=None, repr=False)
 
     # ---- construction -------------------------------------------------------------------
@@ -283,6 +299,7 @@ class StructuredLSQ:
             R=np.zeros((0, 0)),
             names=list(problem.names),
             point_index=None if pose_index is None else np.asarray(pose_index, int),
+            reading=reading_tape(ins),
         )
         J0 = self.jacobian(self.x_hat)
         A = J0[:, free] @ Z
@@ -309,7 +326,7 @@ class StructuredLSQ:
         return self
 
     def __getstate__(self):
-        d = dict(self.__dict__)
+        d = dict(self.__dict__)  # the reading tape is plain numpy: it pickles
         # large and rebuilt on demand
         for k in ("_J0", "_blocks", "_at_hat"):
             d.pop(k, None)
@@ -341,22 +358,53 @@ class StructuredLSQ:
         g = X[:, nt + 4 * K :]
         return th, S, g
 
-    def _geometry(self, X: np.ndarray):
-        """Per reading (B, N, 3) beam vector D = P - Q_eff, lengths L (B, N), stations."""
+    def _tape(self) -> NumpyTape:
+        if self.reading is None:
+            raise ValueError("an engine without its reading tape (StructuredLSQ.build sets it)")
+        return self.reading
+
+    def _inputs(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The reading tape's inputs at physical X (B, n), per nonzero: tool points
+        (3, N, B), every reading's station (4, N, B), frame (6, 1, B)."""
         th, S, g = self._split(X)
-        B = X.shape[0]
+        B, N = X.shape[0], self.n_readings
+        P = self.P0.T[:, :, None] + (self.G.reshape(3 * N, -1) @ th.T).reshape(N, 3, B).transpose(
+            1, 0, 2
+        )
+        return P, S[:, self.station_index, :].transpose(2, 1, 0), g.T[:, None, :]
+
+    def readings(self, X: np.ndarray) -> np.ndarray:
+        """The instrument's readings (B, N), mm, at physical X (B, n)."""
+        ((v,),) = self._tape()(*self._inputs(np.atleast_2d(X)))
+        return np.array(np.broadcast_to(v, (self.n_readings, np.atleast_2d(X).shape[0])).T)
+
+    def reading_derivatives(
+        self, x: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """At one physical x (n,): the readings (N,) and their derivatives with respect to
+        the tool point (N, 3), the reading's station (N, 4) and the frame (N, 6), from the
+        reading tape's reverse sweep (the frame given per reading so that its derivative
+        stays per reading)."""
+        P, S, g = self._inputs(np.asarray(x, float)[None, :])
         N = self.n_readings
-        P = self.P0[None] + (th @ self.G.reshape(3 * N, -1).T).reshape(B, N, 3)
-        Qs = S[:, :, :3]
-        Qeff = Qs + g[:, None, :3] + np.cross(g[:, None, 3:6], Qs)
-        D = P - Qeff[:, self.station_index, :]
-        L = np.sqrt(np.einsum("bni,bni->bn", D, D))
-        return D, L, S
+        g = np.broadcast_to(g, (g.shape[0], N, 1))
+        ((v,),), d = self._tape().vjp((P, S, g), np.ones((N, 1)))
+
+        def cols(parts):
+            return np.column_stack([np.broadcast_to(c, (N, 1))[:, 0] for c in parts])
+
+        return np.array(np.broadcast_to(v, (N, 1))[:, 0]), cols(d[0]), cols(d[1]), cols(d[2])
+
+    def beam(self) -> tuple[np.ndarray, np.ndarray]:
+        """At x_hat: the unit beam vectors (N, 3) (the reading's derivative with respect to
+        the tool point) and the distances (N,) mm (reading + dead length)."""
+        v, dp, _, _ = self.reading_derivatives(self.x_hat)
+        _, S, _ = self._split(self.x_hat[None, :])
+        return dp, v + S[0, self.station_index, 3]
 
     def residuals(self, X: np.ndarray, M: np.ndarray) -> np.ndarray:
         """Whitened residuals (B, N) at physical X (B, n) for readings M (B, N)."""
-        D, L, S = self._geometry(np.atleast_2d(X))
-        return self.w * (L - S[:, self.station_index, 3] - M)
+        return self.w * (self.readings(X) - M)
 
     def _structure(self) -> _Blocks:
         """The readings grouped for the batched gradient (built once, not pickled)."""
@@ -449,24 +497,14 @@ class StructuredLSQ:
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         """Jacobian (N, n) of the whitened residuals wrt the scaled variables at x."""
-        x = np.asarray(x, float)[None, :]
-        D, L, S = self._geometry(x)
-        U = (D / L[:, :, None])[0] * self.w[:, None]  # (N, 3)
+        _, dp, ds, dg = self.reading_derivatives(x)
         N, nt, K = self.n_readings, self.n_theta, self.n_stations
+        w = self.w[:, None]
         J = np.zeros((N, self.n))
-        J[:, :nt] = np.einsum("ni,nip->np", U, self.G)
-        _, S_, gl = self._split(x)
-        om = gl[0, 3:6]
-        # Q_eff = S + t + om x S:  dr/dS = -U^T (I + [om]x) = -(U + U x om)^T,
-        # dr/dt = -U^T, dr/dom = U^T [S]x = (U x S)^T
-        dS = -(U + np.cross(U, om))
-        cols = nt + 4 * self.station_index
-        rows = np.arange(N)
-        for k in range(3):
-            J[rows, cols + k] = dS[:, k]
-        J[rows, cols + 3] = -self.w
-        J[:, nt + 4 * K : nt + 4 * K + 3] = -U
-        J[:, nt + 4 * K + 3 :] = -np.cross(S_[0, self.station_index, :3], U)
+        J[:, :nt] = np.einsum("ni,nip->np", dp * w, self.G)
+        rows = np.arange(N)[:, None]
+        J[rows, nt + 4 * self.station_index[:, None] + np.arange(4)] = ds * w
+        J[:, nt + 4 * K :] = dg * w
         return J * self.scale
 
     # ---- solving ------------------------------------------------------------------------------
@@ -579,3 +617,16 @@ class StructuredLSQ:
         s = 1.0 / self.w if sigma_m is None else np.asarray(sigma_m, float)
         A = Km * s[None, :]
         return A @ A.T
+
+
+def reading_tape(instrument) -> NumpyTape:
+    """The instrument's reading (its :attr:`reading_function`'s value, the same expression)
+    as a numpy tape."""
+    import casadi as ca
+
+    f = instrument.reading_function
+    p = ca.SX.sym("p", 3)
+    s = ca.SX.sym("s", instrument.n_station_params)
+    g = ca.SX.sym("g", instrument.n_global_params)
+    v = f(p, s, g)[0]
+    return NumpyTape(ca.Function(f"{instrument.name}_value", [p, s, g], [v], {"cse": True}))

@@ -292,9 +292,7 @@ def build_kernel(
     machine = pr.machine
     eng = StructuredLSQ.build(pr, x_hat, p, fixed, check=check)
     q, t, m, w = unpack_data(machine.n_axes, p)
-    D, L, _ = eng._geometry(eng.x_hat[None, :])
-    u = D[0] / L[0][:, None]
-    length = L[0]
+    u, length = eng.beam()
     sampler = InputSampler.build(
         machine,
         q,

@@ -12,8 +12,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 log = logging.getLogger(__name__)
 
 
@@ -52,6 +50,9 @@ def run_demo(
     ``out_dir`` (``simulation/``, ``identification/``, ``truth_comparison.csv``);
     ``plotter``: a :class:`volcal.outputs.plot_process.PlotProcess` that draws the plots
     (else they are drawn here)."""
+    # numpy here, not at the top: `volcal --help` imports every command's module
+    import numpy as np
+
     from volcal.analysis.identify import rigid_fit
     from volcal.base.folders import check_out_dir, write_folder
     from volcal.measurement.simulate import example, save_simulation

@@ -175,11 +175,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--solver",
-        default="ipopt",
-        choices=["ipopt", "gauss-newton"],
-        help="ipopt (default, followed by Gauss-Newton polish steps) or "
-        "gauss-newton (Levenberg-Marquardt with the datum eliminated); both "
-        "reach the same minimiser",
+        default="auto",
+        choices=["auto", "ipopt", "gauss-newton"],
+        help="auto (default: ipopt below 10,000 readings, gauss-newton from there), "
+        "ipopt (followed by Gauss-Newton polish steps) or gauss-newton "
+        "(Levenberg-Marquardt with the datum eliminated, evaluated in chunks of "
+        "poses: no per-reading graph, for large tables); both reach the same minimiser",
     )
     p.add_argument(
         "--instrument",
@@ -229,9 +230,9 @@ class _AppendData(argparse.Action):
 
 
 def _data_sets(args: argparse.Namespace) -> list:
-    """The --data tables as :class:`volcal.analysis.fusion.DataSet` (a project file's
-    single ``data`` too)."""
-    from volcal.analysis.fusion import parse_data_argument
+    """The --data tables as :class:`volcal.measurement.datasets.DataSet` (a project
+    file's single ``data`` too)."""
+    from volcal.measurement.datasets import parse_data_argument
 
     data = args.data if isinstance(args.data, list) else [args.data]
     return [parse_data_argument(str(d), args.instrument) for d in data]

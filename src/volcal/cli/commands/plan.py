@@ -11,11 +11,16 @@ Examples::
     volcal plan --setting my_machine.toml --readings 2000 --checkpoint ckpt/ --out plan/
     # NC programs for two controls
     volcal plan --setting trunnion_ac --nc fanuc,heidenhain --out plan5/
+    # and an hour of interferometer lines / ballbar circles chosen to add to the plan
+    volcal plan --setting mcv754 --add-minutes 60 --out plan/
+    volcal plan --setting mcv754 --add-minutes 40 --add-instruments interferometer \
+        --instrument-cost interferometer_setup_min=10,levels=2 --out plan_ifm/
 
 Writes stations.csv, poses.csv, measurement_plan.csv (the columns ``identify`` reads),
 program_<dialect>.nc, the predicted uncertainties (error motions, volumetric error over the
-workspace, parameters), search_history.csv, summary.json, report.md and plan.png (see
-:mod:`volcal.outputs.plan_files`).  Exit codes: 0 done, 2 bad input (the message names the
+workspace, parameters), search_history.csv, summary.json, report.md and plan.png, and with
+``--add-minutes`` added_interferometer.csv, added_ballbar.csv and prediction_instruments.csv
+(see :mod:`volcal.outputs.plan_files`).  Exit codes: 0 done, 2 bad input (the message names the
 file and key), 1 a search that found no feasible design.
 """
 
@@ -43,6 +48,26 @@ def _travel(text: str) -> dict[str, list[float]]:
             raise argparse.ArgumentTypeError(
                 f"expected AXIS=LO:HI[,AXIS=LO:HI] in mm / deg, got {text!r}"
             )
+    return out
+
+
+def _costs(text: str) -> dict[str, float | list[float]]:
+    """``KEY=VALUE[,KEY=VALUE]`` -> {key: value}; ``ballbar_radii_mm=50:100:150``."""
+    out: dict[str, float | list[float]] = {}
+    for item in str(text).split(","):
+        key, eq, val = item.partition("=")
+        try:
+            v: float | list[float] = (
+                [float(x) for x in val.split(":")] if ":" in val else float(val)
+            )
+        except ValueError:
+            v = None  # type: ignore[assignment]
+        if not eq or v is None:
+            raise argparse.ArgumentTypeError(
+                f"expected KEY=VALUE[,KEY=VALUE] (e.g. interferometer_setup_min=10, "
+                f"ballbar_radii_mm=50:100), got {text!r}"
+            )
+        out[key.strip()] = v
     return out
 
 
@@ -139,6 +164,31 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--dwell", type=float, default=2.0, metavar="S", help="dwell per point, s")
     p.add_argument("--feed", type=float, default=2000.0, metavar="MM/MIN", help="feed")
+    p.add_argument(
+        "--add-minutes",
+        type=float,
+        metavar="MIN",
+        help="time budget (minutes, on top of the tracker plan) for interferometer lines "
+        "and / or ballbar circles chosen to improve the plan's criterion; writes "
+        "added_interferometer.csv, added_ballbar.csv and prediction_instruments.csv "
+        "(see docs/instruments.md)",
+    )
+    p.add_argument(
+        "--add-instruments",
+        metavar="NAME[,NAME]",
+        help="which to add: interferometer and / or ballbar (default both)",
+    )
+    p.add_argument(
+        "--instrument-cost",
+        type=_costs,
+        metavar="KEY=VALUE,...",
+        help="time costs and uncertainties of the added instruments, e.g. "
+        "interferometer_setup_min=15, interferometer_seconds_per_target=10, "
+        "interferometer_targets=11, interferometer_sigma_um=0.1, ballbar_setup_min=5, "
+        "ballbar_seconds_per_rev=60, ballbar_angles=36, ballbar_sigma_um=0.5, "
+        "ballbar_radii_mm=50:100:150, levels=3 (the defaults; candidate positions per "
+        "other axis); override the setting's [instruments]",
+    )
     p.add_argument("--no-plots", action="store_true", help="skip plan.png")
     p.add_argument("--force", action="store_true", help="replace an earlier plan folder")
     p.set_defaults(func=run)
@@ -205,6 +255,30 @@ def run(args: argparse.Namespace) -> int:
         stations = load_instrument_stations(cfg["start_stations"], ("x_mm", "y_mm", "z_mm"))
         stations = pd.DataFrame(stations)
     quiet = getattr(args, "quiet", False)
+    from volcal.analysis.planning.additions import instruments_from_dict
+
+    inst = instruments_from_dict(cfg.get("instruments", {}), str(cfg.get("_source")))
+    if args.add_instruments is not None:
+        names = [w.strip() for w in args.add_instruments.split(",") if w.strip()]
+        from volcal.analysis.planning.additions import check_instruments
+
+        inst["add"] = check_instruments(names, "--add-instruments")
+    if args.add_minutes is not None:
+        from volcal.analysis.planning.additions import check_minutes
+
+        inst["minutes"] = check_minutes(args.add_minutes, "--add-minutes")
+    if args.add_instruments is not None and inst["minutes"] is None:
+        raise InputError(
+            "--add-instruments needs a time budget for them: --add-minutes MIN (or minutes "
+            "in the setting's [instruments])",
+            source="--add-instruments",
+        )
+    costs = dict(inst["costs"])
+    if args.instrument_cost:
+        from volcal.analysis.planning.additions import InstrumentCosts
+
+        InstrumentCosts.from_mapping(args.instrument_cost, "--instrument-cost")
+        costs.update(args.instrument_cost)
 
     from volcal.analysis.planning.plan import DEFAULT_MARGIN_DEG, DEFAULT_MARGIN_MM
     from volcal.base import progress as report
@@ -255,6 +329,9 @@ def run(args: argparse.Namespace) -> int:
             scheduler=args.dask,
             checkpoint_dir=args.checkpoint,
             progress=progress,
+            add_instruments=inst["add"] if inst["minutes"] is not None else None,
+            add_minutes=inst["minutes"],
+            instrument_costs=costs,
         )
     res.settings["setting_file"] = cfg.get("_source")
     res.settings["project_file"] = getattr(args, "project_file", None)
@@ -280,6 +357,28 @@ def run(args: argparse.Namespace) -> int:
             f"margins {s['margins']['deg']:g} deg, {s['margins']['mm']:g} mm; slack left: "
             + ", ".join(f"{r['constraint']} {r['slack']:.3g} {r['unit']}" for r in s["slack"])
             + "\n"
-            f"written to {out} in {s['seconds']:.1f} s"
+            + (_additions_lines(res.additions) if res.additions is not None else "")
+            + f"written to {out} in {s['seconds']:.1f} s"
         )
     return 0
+
+
+def _additions_lines(add) -> str:
+    """What the planner added, for the terminal."""
+    pred = add.prediction()
+    a, b = pred.iloc[0], pred.iloc[-1]
+    pos = [c for c in pred.columns if c.startswith("positioning_u_")]
+    per = ", ".join(
+        f"{k} {v['setups']} set-up(s) {v['minutes']:.1f} min"
+        for k, v in add.summary()["per_instrument"].items()
+    )
+    return (
+        f"added within {add.minutes:g} min: {per} ({add.spent_minutes:.1f} min; "
+        + (", ".join(c.setup for c in add.chosen) or "nothing")
+        + ")\n"
+        f"with the additions: criterion {a['criterion']} {a['criterion_value']:.4g} -> "
+        f"{b['criterion_value']:.4g} {b['criterion_unit']}; field u RMS "
+        f"{a['field_u_rms_um']:.3g} -> {b['field_u_rms_um']:.3g} um; positioning u "
+        + ", ".join(f"{c.split('_')[2]} {a[c]:.3g} -> {b[c]:.3g}" for c in pos)
+        + " um\n"
+    )

@@ -8,7 +8,8 @@ Examples::
 
 Writes measurements.csv, stations.csv (the true stations), true_parameters.csv (um /
 urad), true_volumetric.csv and simulation.json to ``--out`` (and with ``--instruments
-interferometer,ballbar`` interferometer.csv and ballbar.csv of the same true machine) (see
+interferometer,ballbar`` interferometer.csv and ballbar.csv of the same true machine;
+``--instruments interferometer=plan/added_interferometer.csv`` fills in a planned table) (see
 :func:`volcal.measurement.simulate.save_simulation`).
 """
 
@@ -18,6 +19,7 @@ import argparse
 import logging
 import re
 from pathlib import Path
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -112,11 +114,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--drift", action="store_true", help="add the budget's drift model")
     p.add_argument(
         "--instruments",
-        metavar="NAME,...",
+        metavar="NAME[=FILE],...",
         help="also write other instruments' readings of the same true machine: "
         "interferometer (interferometer.csv: a line along every linear axis through the "
         "middle of the travel, 0.1 um) and/or ballbar (ballbar.csv: a circle in every "
-        "plane of two linear axes, 0.5 um); first tool offset; see docs/instruments.md",
+        "plane of two linear axes, 0.5 um), first tool offset; or NAME=FILE: the lines / "
+        "circles of a planned table in the instrument's format, its reading column filled "
+        "in (e.g. interferometer=plan/added_interferometer.csv of `volcal plan "
+        "--add-minutes`); see docs/instruments.md",
     )
     p.add_argument(
         "--seed",
@@ -195,13 +200,22 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"expected a degree >= 0, got {args.degree}", source="--degree")
     # parse cheap options first: a typo fails before any model is built
     tools = parse_tools(args.tools) if args.tools is not None else None
-    extra = [w.strip() for w in (args.instruments or "").split(",") if w.strip()]
-    bad = [w for w in extra if w not in ("interferometer", "ballbar")]
-    if bad:
-        raise InputError(
-            f"unknown instrument(s) {', '.join(bad)}; expected interferometer and/or ballbar",
-            source="--instruments",
-        )
+    extra: dict[str, Path | None] = {}
+    for w in (args.instruments or "").split(","):
+        name, eq, path = (x.strip() for x in w.partition("="))
+        if not name:
+            continue
+        if name not in ("interferometer", "ballbar") or (eq and not path):
+            raise InputError(
+                f"unknown instrument {w.strip()!r}; expected interferometer and/or ballbar, "
+                "each optionally =FILE (a planned table)",
+                source="--instruments",
+            )
+        if name in extra:
+            raise InputError(f"{name} given twice", source="--instruments")
+        extra[name] = Path(path) if eq else None
+        if eq and not Path(path).is_file():
+            raise InputError(f"no such {name} table file", source=path)
     # no --plan: the default plan, or a grid when only --grid is given
     plan_kind = args.plan or ("grid" if args.grid is not None else "default")
     if plan_kind in ("default", "grid", "lines", "diagonals"):
@@ -223,7 +237,8 @@ def run(args: argparse.Namespace) -> int:
             getattr(args, k, None)
             for k in ("plan", "true_parameters", "stations", "model", "budget")
             if isinstance(getattr(args, k, None), (str, Path))
-        ],
+        ]
+        + [p for p in extra.values() if p is not None],
     )
     ex = example(args.example) if args.example else None
     machine = ex.machine if ex else Machine.from_model(args.model)
@@ -332,14 +347,19 @@ def run(args: argparse.Namespace) -> int:
         g = np.random.default_rng(np.random.SeedSequence(args.seed, spawn_key=(32,)))
         t0 = np.atleast_2d(tools)[0]
         tool = (float(t0[0]), float(t0[1]), float(t0[2]))
-        if "interferometer" in extra:
-            tables["interferometer.csv"] = si.interferometer_table(
-                machine, em, theta, g, tool=tool, noise=not args.no_noise
-            )
-        if "ballbar" in extra:
-            tables["ballbar.csv"] = si.ballbar_table(
-                machine, em, theta, g, tool=tool, noise=not args.no_noise
-            )
+        fixed: dict[str, Any] = {
+            "interferometer": si.interferometer_table,
+            "ballbar": si.ballbar_table,
+        }
+        for name, path in extra.items():
+            if path is None:
+                tables[f"{name}.csv"] = fixed[name](
+                    machine, em, theta, g, tool=tool, noise=not args.no_noise
+                )
+            else:
+                tables[f"{name}.csv"] = si.planned_table(
+                    machine, em, theta, g, name, path, noise=not args.no_noise
+                )
     out = save_simulation(sim, args.out, tables=tables)
     if not getattr(args, "quiet", False):
         print(

@@ -95,19 +95,14 @@ class Ballbar(Instrument):
     def read_table(self, source: str | Path | pd.DataFrame, spec) -> pd.DataFrame:
         """The ballbar CSV (module docstring) as volcal's measurement table: the axis
         positions of every reading on its circle, length_mm = the deviation in mm."""
-        from volcal.measurement.tables import read_columns
+        from volcal.measurement.tables import mm_or_um, mm_or_um_columns, read_columns
 
         units = {a.name: ("deg" if a.is_rotary else "mm") for a in spec.axes}
         centre = [(f"centre_{a}_{u}", True, "float") for a, u in units.items()]
         cols = [("setup", True, "id"), ("point", False, "id"), ("plane", True, "id"), *centre]
         cols += [("radius_mm", True, "float"), ("angle_deg", True, "float")]
         cols += [(f"tool_{c}_mm", False, "float") for c in "xyz"]
-        cols += [
-            ("deviation_mm", False, "float"),
-            ("deviation_um", False, "float"),
-            ("sigma_mm", False, "optfloat"),
-            ("sigma_um", False, "optfloat"),
-        ]
+        cols += mm_or_um_columns("deviation") + mm_or_um_columns("sigma", "optfloat")
         v, rows, label = read_columns(source, cols, what="ballbar table")
         n = len(rows)
         linear = [a.name for a in spec.axes if not a.is_rotary]
@@ -140,10 +135,8 @@ class Ballbar(Instrument):
             out[f"{a}_{u}"] = q[a]
         for c in "xyz":
             out[f"tool_{c}_mm"] = v.get(f"tool_{c}_mm", np.zeros(n))
-        from volcal.measurement.instruments.interferometer import _one_of, _optional_one_of
-
-        out["length_mm"] = _one_of(v, "deviation", label)
-        sig = _optional_one_of(v, "sigma", label)
+        out["length_mm"] = mm_or_um(v, "deviation", label, required=True)
+        sig = mm_or_um(v, "sigma", label, required=False)
         if sig is not None:
             out["sigma_mm"] = sig
         return pd.DataFrame(out)

@@ -109,21 +109,17 @@ class LaserInterferometer(Instrument):
         axis (``X_mm``, ``C_deg``, ...), optional ``tool_x_mm``, ``tool_y_mm``,
         ``tool_z_mm``, ``displacement_mm`` or ``displacement_um``, optional ``sigma_mm`` or
         ``sigma_um``, optional ``point`` (id; default: the row number).  The ISO 230-2
-        format (``axis, target_mm, cycle, direction, deviation_um``) is recognised and read
-        by :meth:`read_iso230_2`."""
-        from volcal.measurement.tables import read_columns
+        format (``axis``, ``target_mm`` or ``target_deg``, ``cycle``, ``direction``, ...) is
+        recognised and read by :meth:`read_iso230_2`."""
+        from volcal.measurement.iso230_2_files import is_iso230_2_table
+        from volcal.measurement.tables import mm_or_um, mm_or_um_columns, read_columns
 
-        if _is_iso230_2(source):
+        if is_iso230_2_table(source):
             return self.read_iso230_2(source, spec)
         axes = [(f"{a.name}_{'deg' if a.is_rotary else 'mm'}", True, "float") for a in spec.axes]
         cols = [("setup", True, "id"), ("point", False, "id"), *axes]
         cols += [(f"tool_{c}_mm", False, "float") for c in "xyz"]
-        cols += [
-            ("displacement_mm", False, "float"),
-            ("displacement_um", False, "float"),
-            ("sigma_mm", False, "optfloat"),
-            ("sigma_um", False, "optfloat"),
-        ]
+        cols += mm_or_um_columns("displacement") + mm_or_um_columns("sigma", "optfloat")
         v, rows, label = read_columns(source, cols, what="interferometer table")
         out: dict[str, np.ndarray] = {"station": v["setup"]}
         out["point"] = v.get("point", np.array([f"r{r}" for r in rows], dtype=object))
@@ -131,125 +127,72 @@ class LaserInterferometer(Instrument):
             out[n] = v[n]
         for c in "xyz":
             out[f"tool_{c}_mm"] = v.get(f"tool_{c}_mm", np.zeros(len(rows)))
-        out["length_mm"] = _one_of(v, "displacement", label)
-        sig = _optional_one_of(v, "sigma", label)
+        out["length_mm"] = mm_or_um(v, "displacement", label, required=True)
+        sig = mm_or_um(v, "sigma", label, required=False)
         if sig is not None:
             out["sigma_mm"] = sig
         return pd.DataFrame(out)
 
     def read_iso230_2(self, source: str | Path | pd.DataFrame, spec) -> pd.DataFrame:
-        """An ISO 230-2 data file (the format ``volcal iso230-2`` reads: ``axis``,
-        ``target_mm``, ``cycle``, ``direction``, ``deviation_um`` or ``actual_mm``; names
-        case-insensitive, other columns ignored) as interferometer readings: one set-up per
+        """An ISO 230-2 data file (the format ``volcal iso230-2`` reads, read and validated by
+        the same reader, :func:`volcal.measurement.iso230_2_files.read_iso230_2_file`: a file
+        is accepted or refused by both alike) as interferometer readings: one set-up per
         axis (``<axis>-line``), every row a reading of the actual position (target +
         deviation, mm).  The other axes stand where the optional columns ``Y_mm``, ...
         (the model's axis names) say, else at their reference positions; the reflector at
-        the optional ``tool_x_mm``, ``tool_y_mm``, ``tool_z_mm`` (default 0).  Linear
-        axes only."""
-        from volcal.measurement.tables import read_columns
+        the optional ``tool_x_mm``, ``tool_y_mm``, ``tool_z_mm`` (default 0); optional
+        ``sigma_um`` or ``sigma_mm``.  Linear axes of the model only."""
+        from volcal.measurement.iso230_2_files import LINEAR, read_iso230_2_file
+        from volcal.measurement.tables import mm_or_um
 
-        raw = source if isinstance(source, pd.DataFrame) else None
-        label = "<DataFrame>" if raw is not None else str(source)
-        if raw is None:
-            try:
-                raw = pd.read_csv(source, dtype=str, keep_default_na=False, encoding="utf-8-sig")
-            except (OSError, ValueError) as exc:
-                raise InputError(f"cannot read the ISO 230-2 file: {exc}", source=label) from None
-        axis_cols = [f"{a.name}_{'deg' if a.is_rotary else 'mm'}" for a in spec.axes]
-        known = ["axis", "target_mm", "cycle", "direction", "deviation_um", "actual_mm"]
-        known += axis_cols + [f"tool_{c}_mm" for c in "xyz"] + ["sigma_um", "sigma_mm"]
-        by_lower = {k.lower(): k for k in known}
-        # other columns are allowed and ignored (as volcal iso230-2 does); the rows stay
-        keep = {
-            c: by_lower[str(c).strip().lower()]
-            for c in raw.columns
-            if str(c).strip().lower() in by_lower
-        }
-        table = raw[list(keep)].rename(columns=keep)
-        cols = [("axis", True, "id"), ("target_mm", True, "float"), ("cycle", True, "id")]
-        cols += [("direction", True, "id"), ("deviation_um", False, "float")]
-        cols += [("actual_mm", False, "float")]
-        cols += [(c, False, "float") for c in axis_cols]
-        cols += [(f"tool_{c}_mm", False, "float") for c in "xyz"]
-        cols += [("sigma_um", False, "optfloat"), ("sigma_mm", False, "optfloat")]
-        v, rows, label = read_columns(table, cols, what="ISO 230-2 file", name=label)
-        dev, act = v.get("deviation_um"), v.get("actual_mm")
-        if (dev is None) == (act is None):
+        f = read_iso230_2_file(source)
+        label = f.source
+        linear = {a.name: a for a in spec.axes if not a.is_rotary}
+        if f.units is not LINEAR:
             raise InputError(
-                "expected exactly one of the columns 'deviation_um' and 'actual_mm'",
+                f"an interferometer reads a linear axis of the model ({', '.join(linear)}); "
+                "this file gives target_deg (a rotary axis)",
                 source=label,
                 row=1,
+                column=f.columns["target_deg"],
             )
-        actual: np.ndarray = v["target_mm"] + dev * 1e-3 if dev is not None else np.asarray(act)
-        linear = {a.name: a for a in spec.axes if not a.is_rotary}
-        n = len(rows)
+        n = len(f.row)
         out: dict[str, np.ndarray] = {}
-        out["station"] = np.array([f"{a}-line" for a in v["axis"]], dtype=object)
+        out["station"] = np.empty(n, dtype=object)
         out["point"] = np.array(
             [
-                f"{a}-c{c}{d}-r{r}"
-                for a, c, d, r in zip(v["axis"], v["cycle"], v["direction"], rows)
+                f"{a}-c{c}{'+' if d == 'up' else '-'}-r{r}"
+                for a, c, d, r in zip(f.axis, f.cycle, f.direction, f.row)
             ],
             dtype=object,
         )
-        for a, col in zip(spec.axes, axis_cols):
-            pos = v.get(col, np.full(n, float(a.reference)))
-            out[col] = pos.astype(float).copy()
+        for a in spec.axes:
+            unit = "deg" if a.is_rotary else "mm"
+            pos = f.number_column(f"{a.name}_{unit}", f"the position of axis {a.name} in {unit}")
+            out[f"{a.name}_{unit}"] = np.full(n, float(a.reference)) if pos is None else pos
         for r in range(n):
-            name = str(v["axis"][r]).strip().upper()
+            name = str(f.axis[r]).upper()
             if name not in linear:
                 raise InputError(
-                    f"axis {v['axis'][r]!r}: an interferometer reads a linear axis of the "
+                    f"axis {f.axis[r]!r}: an interferometer reads a linear axis of the "
                     f"model ({', '.join(linear)})",
                     source=label,
-                    row=int(rows[r]),
-                    column="axis",
+                    row=int(f.row[r]),
+                    column=f.columns["axis"],
                 )
             out["station"][r] = f"{name}-line"
-            out[f"{name}_mm"][r] = v["target_mm"][r]
+            out[f"{name}_mm"][r] = f.target[r]
         for c in "xyz":
-            out[f"tool_{c}_mm"] = v.get(f"tool_{c}_mm", np.zeros(n))
-        out["length_mm"] = actual
-        sig = _optional_one_of(v, "sigma", label)
+            tool = f.number_column(f"tool_{c}_mm", "the tool offset in mm")
+            out[f"tool_{c}_mm"] = np.zeros(n) if tool is None else tool
+        out["length_mm"] = f.target + f.deviation  # the actual position, mm
+        sigma = {
+            k: x
+            for k in ("sigma_mm", "sigma_um")
+            if (x := f.number_column(k, f"a standard deviation in {k[6:]}", optional=True))
+            is not None
+        }
+        sig = mm_or_um(sigma, "sigma", label, required=False)
         if sig is not None:
             out["sigma_mm"] = sig
         return pd.DataFrame(out)
-
-
-def _is_iso230_2(source) -> bool:
-    """Does the table have the ISO 230-2 columns (``target_mm`` and ``cycle``)?"""
-    if isinstance(source, pd.DataFrame):
-        names = [str(c).strip().lower() for c in source.columns]
-    else:
-        try:
-            with open(source, encoding="utf-8-sig") as f:
-                names = [c.strip().lower() for c in f.readline().split(",")]
-        except OSError:
-            return False
-    return "target_mm" in names and "cycle" in names
-
-
-def _optional_one_of(v: dict, base: str, label: str) -> np.ndarray | None:
-    """The ``base_mm`` or ``base_um`` column in mm (at most one of them; None if
-    neither)."""
-    mm, um = v.get(f"{base}_mm"), v.get(f"{base}_um")
-    if mm is not None and um is not None:
-        raise InputError(
-            f"columns '{base}_mm' and '{base}_um' are the same quantity; keep one",
-            source=label,
-            row=1,
-            column=f"{base}_um",
-        )
-    if um is not None:
-        return um * 1e-3
-    return mm
-
-
-def _one_of(v: dict, base: str, label: str) -> np.ndarray:
-    """The ``base_mm`` or ``base_um`` column in mm (exactly one of them)."""
-    out = _optional_one_of(v, base, label)
-    if out is None:
-        raise InputError(
-            f"missing required column '{base}_mm' (or '{base}_um')", source=label, row=1
-        )
-    return out

@@ -1,4 +1,7 @@
-"""Loading and validation of ISO 230-2 positioning readings.
+"""Loading and validation of ISO 230-2 positioning readings: the one reader of the file
+format, used by ``volcal iso230-2`` (:mod:`volcal.iso230_2`) and by the laser
+interferometer (:mod:`volcal.measurement.instruments.interferometer`), so that a file is
+accepted or refused by both alike, with the same numbers and the same messages.
 
 One row per reading.  Columns (names are matched case-insensitively, surrounding blanks
 ignored; other columns are allowed and ignored):
@@ -41,7 +44,16 @@ import pandas as pd
 
 from volcal.base.exceptions import InputError
 
-__all__ = ["AxisUnits", "LINEAR", "ROTARY", "AxisReadings", "load_readings"]
+__all__ = [
+    "AxisUnits",
+    "LINEAR",
+    "ROTARY",
+    "AxisReadings",
+    "Iso230File",
+    "is_iso230_2_table",
+    "load_readings",
+    "read_iso230_2_file",
+]
 
 
 @dataclass(frozen=True)
@@ -85,6 +97,66 @@ class AxisReadings:
         return int(self.up.shape[1])
 
 
+@dataclass(frozen=True)
+class Iso230File:
+    """A validated ISO 230-2 table: its readings per axis (:attr:`axes`, what the ISO
+    evaluation uses) and per row in table order (what an instrument reading the rows uses),
+    with the table's cells for further columns (:meth:`number_column`).
+
+    Per row: ``row`` the spreadsheet row (header = row 1), ``axis`` the axis name as written
+    (blanks stripped), ``cycle`` (1..n), ``direction`` (``"up"`` or ``"down"``), ``target``
+    and ``deviation`` in the internal unit (mm or rad; the deviation x_ij = actual - target,
+    whichever of the two value columns the file gives).
+    """
+
+    source: str
+    units: AxisUnits
+    axes: list[AxisReadings]
+    row: np.ndarray
+    axis: np.ndarray
+    cycle: np.ndarray
+    direction: np.ndarray
+    target: np.ndarray
+    deviation: np.ndarray
+    cells: pd.DataFrame  # the table's cells, columns named in lower case, blanks stripped
+    columns: dict[str, str]  # lower-case name -> name as written
+
+    def number_column(self, name: str, what: str, *, optional: bool = False) -> np.ndarray | None:
+        """A further numeric column (``name`` matched case-insensitively), read with the
+        rules of the ISO columns: every cell a finite number (``optional``: a blank cell is
+        NaN).  None when the table has no such column; an :class:`InputError` naming the
+        source, row and column otherwise."""
+        key = name.strip().lower()
+        if key not in self.columns:
+            return None
+        out = np.empty(len(self.row))
+        for k, raw in enumerate(self.cells[key].tolist()):
+            text = "" if raw is None else str(raw).strip()
+            if optional and (text == "" or text.lower() == "nan"):
+                out[k] = np.nan
+                continue
+            out[k] = _number(raw, self.source, int(self.row[k]), self.columns[key], what)
+        return out
+
+
+def is_iso230_2_table(source) -> bool:
+    """Is the table (CSV path or DataFrame) meant as an ISO 230-2 file: no ``setup`` column
+    and one of the columns only this format has (``cycle``, ``direction``, ``target_mm``,
+    ``target_deg``)?  Loose on purpose: a file with a misnamed ISO column is then refused
+    by this format's reader, which names the column.  False for a file that cannot be read
+    (its reader says why)."""
+    if isinstance(source, pd.DataFrame):
+        names = [str(c).strip().lower() for c in source.columns]
+    else:
+        try:
+            with open(source, newline="", encoding="utf-8-sig") as fh:
+                names = [c.strip().lower() for c in next(csv.reader(fh), [])]
+        except (OSError, UnicodeDecodeError, csv.Error):
+            return False
+    iso_only = ("cycle", "direction", *_TARGET_COLS)
+    return "setup" not in names and any(c in names for c in iso_only)
+
+
 _TARGET_COLS = {"target_mm": LINEAR, "target_deg": ROTARY}
 _VALUE_COLS = {  # name -> (units, form)
     "deviation_um": (LINEAR, "deviation"),
@@ -110,6 +182,24 @@ _TARGET_DECIMALS = 6
 
 def _fmt(v: float) -> str:
     return f"{v:.6g}"
+
+
+def _number(raw, src: str, row: int, column: str, what: str) -> float:
+    """One cell as a finite number, or an :class:`InputError` naming its row and column."""
+    text = "" if raw is None else str(raw).strip()
+    if text == "" or text.lower() == "nan":
+        raise InputError(f"empty cell; expected {what}", source=src, row=row, column=column)
+    try:
+        x = float(text)
+    except ValueError:
+        raise InputError(
+            f"'{text}' is not a number; expected {what}", source=src, row=row, column=column
+        ) from None
+    if not math.isfinite(x):
+        raise InputError(
+            f"'{text}' is not finite; expected {what}", source=src, row=row, column=column
+        )
+    return x
 
 
 def _read_csv(path: Path) -> tuple[pd.DataFrame, np.ndarray]:
@@ -160,6 +250,13 @@ def load_readings(data, *, source: str | None = None) -> list[AxisReadings]:
     Raises :class:`volcal.base.exceptions.InputError` naming the source, row and column of the
     first problem.  The input (file or DataFrame) is never modified.
     """
+    return read_iso230_2_file(data, source=source).axes
+
+
+def read_iso230_2_file(data, *, source: str | None = None) -> Iso230File:
+    """Validate a readings table (CSV path or DataFrame): its readings per axis and per row
+    (:class:`Iso230File`).  Raises :class:`volcal.base.exceptions.InputError` naming the
+    source, row and column of the first problem; the input is never modified."""
     if isinstance(data, pd.DataFrame):
         src = source or "<DataFrame>"
         df = data.copy()
@@ -260,25 +357,7 @@ def load_readings(data, *, source: str | None = None) -> list[AxisReadings]:
     value = np.empty(n_rows)
 
     def number(raw, r, col, what):
-        text = "" if raw is None else str(raw).strip()
-        if text == "" or text.lower() == "nan":
-            raise InputError(
-                f"empty cell; expected {what}", source=src, row=r, column=original[col]
-            )
-        try:
-            x = float(text)
-        except ValueError:
-            raise InputError(
-                f"'{text}' is not a number; expected {what}",
-                source=src,
-                row=r,
-                column=original[col],
-            ) from None
-        if not math.isfinite(x):
-            raise InputError(
-                f"'{text}' is not finite; expected {what}", source=src, row=r, column=original[col]
-            )
-        return x
+        return _number(raw, src, r, original[col], what)
 
     tu = "mm" if units is LINEAR else "deg"
     vu = {
@@ -324,32 +403,33 @@ def load_readings(data, *, source: str | None = None) -> list[AxisReadings]:
 
     # --- per axis ---------------------------------------------------------------------------
     out = []
+    deviation = np.empty(n_rows)  # per row, internal unit (filled axis by axis)
     axes_in_order = list(dict.fromkeys(axis.tolist()))
+    per_row = (cycle, direction, target, value, units, form, src, original, tcol, vcol, rownum)
     for name in axes_in_order:
         rows = np.flatnonzero(axis == name)
-        out.append(
-            _one_axis(
-                name,
-                rows,
-                cycle,
-                direction,
-                target,
-                value,
-                units,
-                form,
-                src,
-                original,
-                tcol,
-                vcol,
-                rownum,
-            )
-        )
-    return out
+        readings, deviation[rows] = _one_axis(name, rows, *per_row)
+        out.append(readings)
+    return Iso230File(
+        source=src,
+        units=units,
+        axes=out,
+        row=np.asarray(rownum, dtype=int),
+        axis=axis,
+        cycle=cycle,
+        direction=direction,
+        target=target if units is LINEAR else np.deg2rad(target),
+        deviation=deviation,
+        cells=df,
+        columns=original,
+    )
 
 
 def _one_axis(
     name, rows, cycle, direction, target, value, units, form, src, original, tcol, vcol, rownum
-) -> AxisReadings:
+) -> tuple[AxisReadings, np.ndarray]:
+    """Validate the readings of one axis: its arrays, and the deviation (internal unit) of
+    each of its rows in the order of ``rows``."""
     tu = "mm" if units is LINEAR else "deg"
     tkey = np.round(target[rows], _TARGET_DECIMALS)
     dirs = set(direction[rows])
@@ -474,6 +554,7 @@ def _one_axis(
 
     up = np.empty((m, n))
     down = np.empty((m, n))
+    row_dev: dict[int, float] = {}
     index = {t: i for i, t in enumerate(all_targets)}
     for k in rows:
         i = index[np.round(target[k], _TARGET_DECIMALS)]
@@ -485,6 +566,7 @@ def _one_axis(
             if units is ROTARY:  # wrap to (-180, 180] deg
                 dev = -((-dev + 180.0) % 360.0 - 180.0)
         (up if direction[k] == "up" else down)[i, j] = dev
+        row_dev[k] = dev
 
     # target positions: mean of the (rounded-equal) file values, converted to internal units
     tgt = np.array([target[rows][tkey == t].mean() for t in all_targets])
@@ -494,7 +576,8 @@ def _one_axis(
     else:
         targets_int = np.deg2rad(tgt)
         scale_dev = (math.pi / 180.0 / 3600.0) if form == "deviation" else math.pi / 180.0
-    return AxisReadings(
+    dev_rows = np.array([row_dev[int(k)] for k in rows]) * scale_dev
+    readings = AxisReadings(
         axis=name,
         units=units,
         targets=targets_int,
@@ -502,3 +585,4 @@ def _one_axis(
         down=down * scale_dev,
         source=src,
     )
+    return readings, dev_rows

@@ -1,0 +1,271 @@
+"""The identification problem evaluated in fixed-size chunks of poses, without its graph.
+
+:class:`~volcal.problem.residuals.IdentificationProblem` builds, for IPOPT, one CasADi graph
+of every reading; its sparsity patterns and index lists are per reading (about 3.4 kB a
+reading in CasADi's objects), which at 10^6 readings is several GB and minutes of set-up.
+The Gauss-Newton solver and the analyses need only numbers of size n_x or n_x^2 from the
+readings: the whitened residuals r, the gradient J^T r, the Gauss-Newton matrix J^T J and
+the R factor of J.  :class:`ChunkedEvaluator` computes them from the problem's per-pose
+function (the tool point and d(point)/d(theta)) and per-reading function (the weighted
+residual and d(r)/d(point, station, globals)), each mapped ONCE over a fixed number of
+poses / readings, called chunk by chunk on the data vector p (a last partial chunk is
+padded with copies of its last pose or reading, whose outputs are dropped), and sums the
+structured products in numpy:
+
+* J^T J's error-parameter block pose by pose, G_p^T (D_p^T D_p) G_p with D_p^T D_p the
+  3 x 3 sum over the readings of pose p of d(r)/d(point) d(r)/d(point)^T, as one dense
+  product per chunk: 3 n_poses n_theta^2 flops instead of N n_theta^2;
+* the station and global columns (one nonzero per reading and parameter) through a
+  sparse matrix per chunk;
+* R station by station on the columns a reading touches (error parameters, its station's,
+  the globals; :class:`volcal.base.linalg.StackedQR`), then the stations' triangles
+  together, as :meth:`volcal.problem.residuals.DenseJacobian.r_factor` does.
+
+Memory is O(N) (the data vector, r and the reading-to-pose order) plus one chunk; no
+N x n_x array is formed.
+
+Everything runs on the BLAS threads of the process (one for the CLI,
+:mod:`volcal.base.threads`): the products of a chunk are small (QRs of a few hundred
+rows of n_theta + 4 columns, n_theta x 3 n_poses products), and on the project's shared
+2-core machine two OpenBLAS threads made the R factor of 10,296 readings 20x slower
+(0.97 s against 0.05 s) and a CasADi thread map of the chain 3x slower, with the other
+core busy.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import scipy.sparse as sp
+
+from volcal.model.numpy_call import NumpyCall
+
+__all__ = ["ChunkedEvaluator"]
+
+#: poses per chunk: large enough that the per-chunk Python and call overhead is small
+#: against the chain's evaluation, small enough that a chunk's arrays stay in cache-sized
+#: megabytes (3 x 512 x n_theta doubles of d(point)/d(theta))
+POSE_CHUNK = 512
+
+
+class ChunkedEvaluator:
+    """r, J^T r, J^T J and R of an :class:`~volcal.problem.residuals.IdentificationProblem`
+    at scaled x and data p, evaluated in chunks of ``pose_chunk`` poses (see the module
+    docstring).  Built once per problem (its CasADi maps on first use, then kept); not
+    thread-safe.  (The problem's class is not imported here: the problem builds this
+    evaluator, and the layers check refuses an import circle.)"""
+
+    def __init__(self, problem: Any, pose_chunk: int = POSE_CHUNK) -> None:
+        self.problem = problem
+        lay = problem.layout
+        self.n_readings = lay.n_readings
+        pose, first = lay.poses
+        self.n_poses = Np = len(first)
+        self.pose_chunk = int(max(1, min(pose_chunk, Np)))
+        self._pose = np.asarray(pose, np.intp)
+        self._first = np.asarray(first, np.intp)
+        # the readings sorted by pose (stable: within a pose in table order), so that the
+        # readings of a chunk of poses are one slice and a pose's readings one segment
+        self._order = np.argsort(self._pose, kind="stable")
+        self._starts = np.searchsorted(self._pose[self._order], np.arange(Np + 1))
+        self._station = np.asarray(lay.station_index, np.intp)
+        self._n_st = lay.n_stations
+        self._nt, self._n_x = problem.n_theta, problem.n_x
+        self._n_ps = problem.instrument.n_station_params
+        self._n_g = problem.instrument.n_global_params
+        self._n_ax = problem.machine.n_axes
+        # the most readings of any chunk of poses: the size of the readings' map
+        ends = self._starts[np.minimum(np.arange(0, Np, self.pose_chunk) + self.pose_chunk, Np)]
+        self.read_chunk = int(max(1, np.max(ends - self._starts[0 : Np : self.pose_chunk])))
+        self._calls: dict[str, NumpyCall] = {}
+
+    # ---- the mapped functions (built once, on first use) --------------------------------
+    def _call(self, kind: str) -> NumpyCall:
+        call = self._calls.get(kind)
+        if call is None:
+            pr = self.problem
+            f, n = {
+                "pose": (pr.f_pose, self.pose_chunk),
+                "point": (pr.f_point, self.pose_chunk),
+                "read": (pr.f_read, self.read_chunk),
+                "value": (pr.f_res, self.read_chunk),
+            }[kind]
+            # dense outputs (structural zeros stored): the numpy side then reshapes the
+            # output buffers instead of scattering their nonzeros chunk after chunk
+            sx = f.sx_in()
+            f = ca.Function(f.name() + "_dense", sx, [ca.densify(o) for o in f.call(sx)])
+            call = self._calls[kind] = NumpyCall(f.map(n))
+        return call
+
+    # ---- the data vector ----------------------------------------------------------------
+    def _split(self, xs: np.ndarray, p: np.ndarray):
+        pr, N, n_ax = self.problem, self.n_readings, self._n_ax
+        p = np.asarray(p, float).ravel()
+        if p.shape != (pr.n_p,):
+            raise ValueError(f"p: expected {pr.n_p} values (pack_data), got {p.shape}")
+        q = p[: n_ax * N].reshape(N, n_ax)
+        t = p[n_ax * N : (n_ax + 3) * N].reshape(N, 3)
+        m = p[(n_ax + 3) * N : (n_ax + 4) * N]
+        w = p[(n_ax + 4) * N :]
+        xs = np.asarray(xs, float).ravel()
+        nt, nps = self._nt, self._n_ps
+        theta = xs[:nt]
+        st = xs[nt : nt + nps * self._n_st].reshape(self._n_st, nps)
+        glob = xs[nt + nps * self._n_st :]
+        return q, t, m, w, theta, st, glob
+
+    def readings(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(m, w): the readings (N,) and their weights 1/sigma (N,) in the data vector p."""
+        n = (self._n_ax + 3) * self.n_readings
+        p = np.asarray(p, float).ravel()
+        return p[n : n + self.n_readings], p[n + self.n_readings :]
+
+    @staticmethod
+    def _pad(a: np.ndarray, n: int) -> np.ndarray:
+        """a (k, m) with its last column repeated to n columns (a padded chunk evaluates
+        copies of a real pose or reading: no singular point; their outputs are dropped)."""
+        k = a.shape[1]
+        return a if k == n else np.concatenate([a, np.repeat(a[:, -1:], n - k, axis=1)], 1)
+
+    def _chunks(self, xs: np.ndarray, p: np.ndarray, derivatives: bool):
+        """Per chunk of poses: (slice of poses, reading indices (pose-sorted), their local
+        pose index, r, rows of d(r)/d(point, station, globals) (k, n_r) or None, G
+        (n, 3, n_theta) or None)."""
+        q, t, m, w, theta, st, glob = self._split(xs, p)
+        Bp, Br, nt = self.pose_chunk, self.read_chunk, self._nt
+        f_pose = self._call("pose" if derivatives else "point")
+        f_read = self._call("read" if derivatives else "value")
+        TH = np.repeat(theta[:, None], Bp, axis=1)
+        GL = np.repeat(glob[:, None], Br, axis=1)
+        for a in range(0, self.n_poses, Bp):
+            b = min(a + Bp, self.n_poses)
+            n = b - a
+            fr = self._first[a:b]
+            out = f_pose(self._pad(q[fr].T, Bp), self._pad(t[fr].T, Bp), TH)
+            P = out[0]
+            idx = self._order[self._starts[a] : self._starts[b]]
+            nr = len(idx)
+            pl = self._pose[idx] - a
+            sti = self._station[idx]
+            args = (
+                self._pad(P[:, pl], Br),
+                self._pad(st[sti].T, Br),
+                GL,
+                self._pad(m[idx][None, :], Br),
+                self._pad(w[idx][None, :], Br),
+            )
+            res = f_read(*args)
+            r = res[0].ravel()[:nr]
+            if derivatives:
+                # G: the transpose of (n_theta, 3 Bp) [G_0^T | G_1^T | ...]
+                G = out[1][:, : 3 * n].T.reshape(n, 3, nt)
+                yield slice(a, b), idx, pl, r, res[1][:, :nr], G
+            else:
+                yield slice(a, b), idx, pl, r, None, None
+
+    # ---- what the solvers and analyses take -----------------------------------------------
+    def residuals(self, xs: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The whitened residuals r (N,) at scaled x, in the order of the readings."""
+        r = np.empty(self.n_readings)
+        for _, idx, _, rc, _, _ in self._chunks(xs, p, derivatives=False):
+            r[idx] = rc
+        return r
+
+    def objective(self, xs: np.ndarray, p: np.ndarray) -> float:
+        """0.5 ||r||^2 at scaled x."""
+        r = self.residuals(xs, p)
+        return 0.5 * float(r @ r)
+
+    def _sparse(
+        self, ps: slice, idx: np.ndarray, pl: np.ndarray, rows: np.ndarray
+    ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """The chunk's rows of J in two sparse factors: D (n_r, 3 n) with each reading's
+        d(r)/d(point) in the columns of its pose (J_theta = D G_stack) and the station and
+        global columns (n_r, n_x - n_theta), one nonzero per reading and parameter."""
+        nps, ng, nr = self._n_ps, self._n_g, len(idx)
+        n = ps.stop - ps.start
+        D = sp.csr_matrix(
+            (
+                rows[:3].T.ravel(),
+                (3 * pl[:, None] + np.arange(3)[None, :]).ravel(),
+                np.arange(0, 3 * nr + 1, 3),
+            ),
+            shape=(nr, 3 * n),
+        )
+        cols = np.concatenate(
+            [
+                nps * self._station[idx][:, None] + np.arange(nps)[None, :],
+                np.broadcast_to(nps * self._n_st + np.arange(ng), (nr, ng)),
+            ],
+            axis=1,
+        )
+        L = nps + ng
+        A = sp.csr_matrix(
+            (rows[3 : 3 + L].T.ravel(), cols.ravel(), np.arange(0, nr * L + 1, L)),
+            shape=(nr, self._n_x - self._nt),
+        )
+        return D, A
+
+    def gram(self, xs: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(r (N,), J^T r (n_x,), J^T J (n_x, n_x)) at scaled x: the Gauss-Newton system,
+        the same numbers as the problem's whole-graph ``gram`` to rounding.  With J =
+        [D G_stack | A] per chunk: J^T J = [G^T (D^T D) G, G^T (D^T A); ., A^T A], where
+        D^T D is block diagonal (3 x 3 per pose): 3 n_poses n_theta^2 flops, not N
+        n_theta^2."""
+        nt, n = self._nt, self._n_x
+        r = np.empty(self.n_readings)
+        g = np.zeros(n)
+        H = np.zeros((n, n))
+        for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
+            r[idx] = rc
+            D, A = self._sparse(ps, idx, pl, rows)
+            Gf = G.reshape(-1, nt)  # G_stack of the chunk (3 n, n_theta)
+            Dt, At = D.T.tocsr(), A.T.tocsr()
+            g[:nt] += Gf.T @ (Dt @ rc)
+            g[nt:] += At @ rc
+            H[:nt, :nt] += Gf.T @ ((Dt @ D) @ Gf)
+            H[:nt, nt:] += Gf.T @ (Dt @ A).toarray()
+            H[nt:, nt:] += (At @ A).toarray()
+        H[nt:, :nt] = H[:nt, nt:].T
+        # G^T (D^T D G) is symmetric but for rounding; exactly so for the solvers
+        H[:nt, :nt] = 0.5 * (H[:nt, :nt] + H[:nt, :nt].T)
+        return r, g, H
+
+    def r_factor(self, xs: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(r, R)``: the whitened residuals (N,) and the R factor (n_x, n_x) of J
+        (``J = Q R`` up to row signs), accumulated station by station on the columns a
+        reading touches and then together (module docstring); J is never held."""
+        from volcal.base.linalg import StackedQR
+
+        nt, nps, ng, n_st = self._nt, self._n_ps, self._n_g, self._n_st
+        width = nt + nps + ng
+        r = np.empty(self.n_readings)
+        acc = [StackedQR(width) for _ in range(n_st)]
+        for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
+            r[idx] = rc
+            D, _ = self._sparse(ps, idx, pl, rows)
+            sti = self._station[idx]
+            o = np.argsort(sti, kind="stable")
+            # the chunk's rows station by station: [D G_stack | station's, globals]
+            Jb = np.empty((len(idx), width))
+            Jb[:, :nt] = D[o] @ G.reshape(-1, nt)
+            Jb[:, nt:] = rows[3 : 3 + nps + ng, o].T
+            bounds = np.searchsorted(sti[o], np.arange(n_st + 1))
+            for j in np.flatnonzero(np.diff(bounds)):
+                acc[j].add(Jb[bounds[j] : bounds[j + 1]])
+        top = StackedQR(self._n_x)
+        for k in range(n_st):
+            if acc[k].rows:
+                cols = np.concatenate(
+                    [
+                        np.arange(nt),
+                        nt + nps * k + np.arange(nps),
+                        nt + nps * n_st + np.arange(ng),
+                    ]
+                )
+                Rk = np.zeros((width, self._n_x))
+                Rk[:, cols] = acc[k].R
+                top.add(Rk)
+        return r, top.R

@@ -1,0 +1,114 @@
+"""Invariant: the chunked evaluation (volcal.problem.chunked) is the problem's J.
+
+The Gauss-Newton solver and the analyses take r, J^T r, J^T J and the R factor from
+fixed-size chunks of poses, without the whole-problem CasADi graph.  They must equal the
+whole graph's ``gram`` and the central differences of the residual Function (which uses
+no structure of J) on a layout where chunking can go wrong: the chunk size does not divide
+the number of poses (a padded last chunk), poses have uneven numbers of readings and are
+not contiguous in the table (rows shuffled, a third dropped), several stations, readings
+dropped with w = 0, and data from the independent rigid-body simulator (tests/indep_sim.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import indep_sim as ind
+from volcal.measurement.instruments import get_instrument
+from volcal.measurement.tables import load_measurements
+from volcal.model.errors import ErrorForm, ErrorModel
+from volcal.model.machine import Machine
+from volcal.problem.chunked import ChunkedEvaluator
+from volcal.problem.residuals import IdentificationProblem, Layout
+
+
+def _problem(model: str, instrument: str):
+    geom = ind.load_geometry(model)
+    plan = ind.grid(geom, {a.name: 3 for a in geom.axes})
+    tools = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 100.0], [80.0, 0.0, 60.0]])
+    truth = ind.draw_truth(geom, np.random.default_rng(2), "nonrep")
+    sim = ind.simulate(geom, truth, plan, tools, np.random.default_rng(4), n_stations=4)
+    machine = Machine.from_model(model)
+    em = ErrorModel(machine.spec, default=ErrorForm("poly", 2))
+    rng = np.random.default_rng(5)
+    df = sim.measurements
+    keep = rng.permutation(len(df))[: (2 * len(df)) // 3]
+    meas = load_measurements(df.iloc[keep].reset_index(drop=True), machine.spec)
+    lay = Layout.from_measurements(meas)
+    counts = np.bincount(lay.poses[0])
+    assert counts.min() < counts.max() and lay.n_stations == 4
+    pr = IdentificationProblem(machine, em, get_instrument(instrument), lay)
+    xs = 0.3 * rng.normal(size=pr.n_x)
+    st = np.zeros((lay.n_stations, pr.instrument.n_station_params))
+    true_st = sim.stations.set_index("station").loc[list(meas.station_ids)]
+    st[:, :3] = true_st[["x_mm", "y_mm", "z_mm"]].to_numpy()
+    xs[pr.station_slice()] += (st / 1e-3).ravel()  # scaled units of 1 um
+    w = 1.0 / sim.sigma_mm[keep]
+    w[rng.choice(len(w), len(w) // 7, replace=False)] = 0.0  # dropped readings
+    p = pr.pack_data(meas.q_internal, meas.tool, meas.length, w)
+    return pr, xs, p
+
+
+@pytest.mark.parametrize(
+    "model,instrument", [("mcv754_wxyzt", "tracker"), ("trunnion_ac", "multilaser")]
+)
+def test_chunked_sums_are_the_whole_graphs_and_the_residuals_derivatives(model, instrument):
+    pr, xs, p = _problem(model, instrument)
+    n_poses = len(pr.layout.poses[1])
+    chunk = 7
+    assert n_poses % chunk != 0  # a padded last chunk
+    ch = ChunkedEvaluator(pr, pose_chunk=chunk)
+
+    # the reference: the whole graph (IPOPT's) and central differences of its residual
+    r_ref, g_ref, H_ref = (np.asarray(v.full()) for v in pr.gram(xs, p))
+    r_ref, g_ref = r_ref.ravel(), g_ref.ravel()
+    J = np.empty((len(r_ref), pr.n_x))
+    for j in range(pr.n_x):
+        h = np.zeros(pr.n_x)
+        h[j] = 1e-3
+        up, down = pr.residual(xs + h, p), pr.residual(xs - h, p)
+        J[:, j] = (np.asarray(up) - np.asarray(down)).ravel() / 2e-3
+    assert np.all(J[p[-len(r_ref) :] == 0] == 0)  # dropped readings: zero rows
+
+    r, g, H = ch.gram(xs, p)
+    scale_r = max(np.abs(r_ref).max(), 1.0)
+    assert np.max(np.abs(r - r_ref)) <= 1e-12 * scale_r
+    assert np.max(np.abs(ch.residuals(xs, p) - r_ref)) <= 1e-12 * scale_r
+    assert ch.objective(xs, p) == pytest.approx(0.5 * r_ref @ r_ref, rel=1e-12)
+    assert np.max(np.abs(g - g_ref)) <= 1e-12 * np.abs(g_ref).max()
+    assert np.max(np.abs(H - H_ref)) <= 1e-12 * np.abs(H_ref).max()
+    assert np.array_equal(H, H.T)
+    # against the central differences (no structure of J used)
+    assert np.max(np.abs(H - J.T @ J)) <= 1e-6 * np.abs(H).max()
+    assert np.max(np.abs(g - J.T @ r_ref)) <= 1e-6 * np.abs(g).max()
+
+    r_f, R = ch.r_factor(xs, p)
+    assert np.array_equal(r_f, r)
+    assert R.shape == (pr.n_x, pr.n_x) and np.all(np.tril(R, -1) == 0)
+    assert np.max(np.abs(R.T @ R - H_ref)) <= 1e-12 * np.abs(H_ref).max()
+    s_ref = np.linalg.svd(J, compute_uv=False)
+    s = np.linalg.svd(R, compute_uv=False)
+    assert np.max(np.abs(s - s_ref)) <= 1e-6 * s_ref[0]
+
+    # one chunk holding every pose gives the same sums (to rounding)
+    r1, g1, H1 = ChunkedEvaluator(pr, pose_chunk=n_poses + 5).gram(xs, p)
+    assert np.array_equal(r1, r)
+    assert np.max(np.abs(H1 - H)) <= 1e-13 * np.abs(H).max()
+
+
+def test_gauss_newton_never_builds_the_whole_graph():
+    """The Gauss-Newton path (solver "gauss-newton", or "auto" on a large table) solves
+    and analyses without the CasADi graph of every reading."""
+    from test_identify import simulated
+    from volcal.analysis.identify import identify
+
+    machine, em, _, sim = simulated("mcv754_wxyzt", grid=3)
+    res = identify(machine, sim.measurements, error_model=em, solver="gauss-newton")
+    assert res.success
+    pr = res.identifier.problem
+    assert "_graph" not in pr.__dict__
+    ref = identify(machine, sim.measurements, error_model=em, solver="ipopt")
+    assert "_graph" in ref.identifier.problem.__dict__
+    assert np.max(np.abs(res.theta - ref.theta)) <= 1e-9 * np.abs(ref.theta).max()
+    assert np.allclose(res.cov_theta, ref.cov_theta, rtol=1e-6, atol=1e-18, equal_nan=True)
