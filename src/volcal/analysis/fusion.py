@@ -439,7 +439,7 @@ def identify_datasets(
     res.seconds = time.perf_counter() - t_start  # every round of the variance components
     res.stations = _stations_by_instrument(res.stations, joined.instrument)
     res.residuals.insert(0, "data", np.asarray(joined.names, dtype=object)[joined.group])
-    if len(res.rejected):
+    if len(res.rejected) and joined.rows is not None:
         # the rows of the joined table as each reading's table and its own row there
         rej = res.residuals["rejected"].to_numpy(bool)
         res.rejected = res.rejected.assign(row=joined.rows[rej])
