@@ -16,8 +16,15 @@ whitened, datum-constrained problem), its chi2/dof and whether that lies in its 
 interval.  Variance component estimation (``variance_components=True``, Helmert's method
 in Foerstner's iterative form) re-weights each instrument by the factor its chi2/dof
 gives until the factors settle, and reports each budget's scale factor (on the standard
-uncertainties) with its standard uncertainty and 95 % interval (chi2 with the
-instrument's degrees of freedom).
+uncertainties) with its standard uncertainty and 95 % interval (chi2 with Satterthwaite's
+degrees of freedom from REML's information, see :func:`identify_datasets`; coverage
+measured by studies/vce).
+
+The single table's options, per table: ``robust`` rejects each table's outliers on that
+table's own robust scale; ``stations`` (a tracker's stations table) and ``columns`` (an
+export's column mapping) apply to the tracker tables (``columns`` also to a multi-laser
+head's).  Refused, with why: ``degree="auto"`` (its criteria depend on the budgets'
+relative scale) and the classic strategy (it multilaterates points from tracker stations).
 """
 
 from __future__ import annotations
@@ -89,17 +96,23 @@ class JoinedData:
     names: list[str]
     instruments: list[str]
     sigma_sources: list[str]
+    #: every reading's row in its own table (spreadsheet numbering, header = row 1)
+    rows: np.ndarray | None = None
 
 
 def join_datasets(
     model: Machine | str | Path | MachineSpec,
     datasets: Sequence[DataSet],
     budget: str | Path | Budget = "paper002",
+    *,
+    columns: Any = None,
 ) -> tuple[Machine, JoinedData]:
     """Read and validate every table with its instrument (before the model is built: a
     bad table is reported at once), weight its readings, and join them (see the module
-    docstring).  Station ids must differ between tables.  Returns (the machine, the
-    joined data)."""
+    docstring).  Station ids must differ between tables.  ``columns``: the column mapping
+    of a tracker's or multi-laser head's export (:func:`volcal.measurement.tables.
+    parse_column_map`), applied to those instruments' tables (the other instruments read
+    their own formats).  Returns (the machine, the joined data)."""
     from volcal.analysis.identify import reading_sigma
     from volcal.base.progress import stage as report_stage
     from volcal.model.spec import resolve_model
@@ -109,7 +122,7 @@ def join_datasets(
     parts: list[Instrument] = []
     kinds: list[tuple[str, int]] = []
     held: dict[str, tuple[str, ...]] = {}
-    frames, groups, sigma_sources = [], [], []
+    frames, groups, sigma_sources, rows = [], [], [], []
     owner: dict[str, str] = {}
     seen_points: set[str] = set()
     neutral: list[tuple[float, ...]] = []
@@ -128,6 +141,7 @@ def join_datasets(
                 spec,
                 name=ds.label,
                 relative_lengths=not ins.positive_readings,
+                columns=columns if ins.name in _LENGTH_INSTRUMENTS else None,
             )
         for sid in meas.station_ids:
             if sid in owner:
@@ -185,6 +199,7 @@ def join_datasets(
         frame["sigma_mm"] = sigma
         frames.append(frame)
         groups.append(np.full(len(meas), i))
+        rows.append(np.asarray(meas.rows, int))
     joined = pd.concat(frames, ignore_index=True)
     with warnings.catch_warnings():  # every table was checked (and warned about) alone
         warnings.simplefilter("ignore", DataWarning)
@@ -207,6 +222,7 @@ def join_datasets(
         [d.label for d in datasets],
         [get_instrument(d.instrument).name for d in datasets],
         sigma_sources,
+        np.concatenate(rows),
     )
 
 
@@ -217,11 +233,42 @@ def _solved(result: IdentificationResult):
     return result.identifier, result.state
 
 
+def redundancy_traces(
+    J: np.ndarray, cov: np.ndarray, group: np.ndarray, used: np.ndarray, n_groups: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each table's redundancy number r_i = tr(R_ii) and the matrix T_ij = tr(R_ij R_ji)
+    of the residual projector R = I - J cov J' of the whitened, datum-constrained
+    problem (J: whitened Jacobian (N, n), cov: its constrained covariance, NaN where
+    fixed; ``used``: readings in the fit).  Formed from the tables' normal matrices
+    N_i = J_i' J_i (n x n, never N x N): tr(R_ii) = n_i - tr(cov N_i), T_ii = n_i -
+    2 tr(cov N_i) + tr(cov N_i cov N_i), T_ij = tr(cov N_i cov N_j) (i != j)."""
+    C = np.nan_to_num(cov)
+    n_i = np.zeros(n_groups)
+    CN = []
+    for i in range(n_groups):
+        Ji = J[(group == i) & used]
+        n_i[i] = len(Ji)
+        CN.append(C @ (Ji.T @ Ji))
+    tr1 = np.array([np.trace(a) for a in CN])
+    T = np.array([[np.sum(a * b.T) for b in CN] for a in CN])  # tr(A B)
+    T[np.diag_indices(n_groups)] += n_i - 2.0 * tr1
+    return n_i - tr1, T
+
+
 def instrument_fit(result: IdentificationResult, joined: JoinedData) -> pd.DataFrame:
     """Per data set: readings, degrees of freedom (sum of the redundancy numbers of its
     readings that were not rejected), chi2/dof, its 99.9 % interval and the verdict
     (``fits``, ``too large``: the data scatter more than its budget or the model misses
-    what it sees, ``too small``: the budget is pessimistic)."""
+    what it sees, ``too small``: the budget is pessimistic).
+
+    The interval: with the budget right, a table's sum of squared normalised residuals
+    is the quadratic form e' R S_i R e (e standard normal, S_i selecting the table) of
+    mean r_i = tr(R_ii) and variance 2 T_ii (:func:`redundancy_traces`); T_ii < r_i
+    where the other tables share the table's redundancy, so it is taken as a scaled
+    chi2, (T_ii / r_i) chi2 with r_i^2 / T_ii degrees of freedom (``dof_check``;
+    Satterthwaite's two-moment approximation, Biometrics Bulletin 2 (1946) 110-114),
+    not chi2 with r_i (too wide an interval: fewer detections and fewer false alarms
+    than stated).  Also returns T (``redundancy_t``) for the variance components."""
     from scipy.stats import chi2 as chi2_dist
 
     from volcal.analysis.covariance import constrained_covariance
@@ -232,18 +279,19 @@ def instrument_fit(result: IdentificationResult, joined: JoinedData) -> pd.DataF
     p = pr.pack_data(m.q_internal, m.tool, m.length, state.weights)
     r, J = ider.jacobian(state.x, p)
     cov = constrained_covariance(J, ider._scaled_constraints(), fixed=state.fixed)
-    cov = np.nan_to_num(cov)
-    h = np.einsum("ij,jk,ik->i", J, cov, J)  # leverage of every reading
     used = state.weights > 0
+    k = len(joined.names)
+    red, T = redundancy_traces(J, cov, joined.group, used, k)
     rows = []
     for i, name in enumerate(joined.names):
         sel = (joined.group == i) & used
-        dof = float(np.sum(1.0 - h[sel]))
+        dof = float(red[i])
         ss = float(np.sum(r[sel] ** 2))
         chi = ss / dof if dof > 0 else float("nan")
+        nu = dof**2 / T[i, i] if dof > 0 and T[i, i] > 0 else float("nan")
         lo, hi = (
-            (chi2_dist.ppf(0.0005, dof) / dof, chi2_dist.ppf(0.9995, dof) / dof)
-            if dof > 0
+            (chi2_dist.ppf(0.0005, nu) / nu, chi2_dist.ppf(0.9995, nu) / nu)
+            if nu > 0
             else (float("nan"), float("nan"))
         )
         verdict = "fits" if lo <= chi <= hi else ("too large" if chi > hi else "too small")
@@ -253,6 +301,7 @@ def instrument_fit(result: IdentificationResult, joined: JoinedData) -> pd.DataF
                 "instrument": joined.instruments[i],
                 "n_readings": int((joined.group == i).sum()),
                 "dof": dof,
+                "dof_check": nu,
                 "chi2_per_dof": chi,
                 "chi2_low": lo,
                 "chi2_high": hi,
@@ -260,7 +309,9 @@ def instrument_fit(result: IdentificationResult, joined: JoinedData) -> pd.DataF
                 "sigma_source": joined.sigma_sources[i],
             }
         )
-    return pd.DataFrame(rows)
+    out = pd.DataFrame(rows)
+    out.attrs["redundancy_t"] = T
+    return out
 
 
 def identify_datasets(
@@ -277,42 +328,56 @@ def identify_datasets(
 
     data: see :func:`as_datasets`; instrument: the instrument of bare tables;
     variance_components: estimate each instrument's budget scale factor (Helmert) and
-    weight by it; the other options are :func:`volcal.analysis.identify.identify`'s.
-    Returns the :class:`IdentificationResult` with ``instruments`` (one row per table:
-    :func:`instrument_fit`, with ``scale_factor``, ``u_scale_factor``, ``scale_low_95``,
-    ``scale_high_95`` when variance components were estimated) and a ``data`` column in
-    its residuals."""
+    weight by it; the other options are :func:`volcal.analysis.identify.identify`'s
+    (``robust``: per table; ``stations``, ``columns``: the tracker tables'; see the module
+    docstring).  Returns the :class:`IdentificationResult` with ``instruments`` (one row
+    per table: :func:`instrument_fit`, with ``chi2_per_dof_given`` and ``verdict_given``
+    (the check with the budgets as given), ``scale_factor``, ``dof_vce``,
+    ``u_scale_factor``, ``scale_low_95``, ``scale_high_95`` when variance components were
+    estimated), a ``data`` column in its residuals and, in ``rejected``, each rejected
+    reading's table (``data``) and its row there."""
     from scipy.stats import chi2 as chi2_dist
 
     from volcal.analysis.identify import _identify
     from volcal.base.progress import stage as report_stage
+    from volcal.measurement.tables import load_stations
 
-    for key in ("stations", "columns"):
-        if options.get(key) is not None:
-            raise InputError(
-                f"{key} applies to a single table; with several tables each instrument "
-                "finds its own start values",
-                source=key,
-            )
-        options.pop(key, None)
+    stations = options.pop("stations", None)
+    columns = options.pop("columns", None)
     if options.get("degree") == "auto":
         raise InputError(
-            "degree 'auto' is not available with several tables; give an integer degree",
+            "degree 'auto' is not available with several tables: its criteria (BIC, "
+            "cross-validation) weigh every reading by its budget, so with several tables "
+            "the chosen orders would depend on the budgets' relative scale, which is what "
+            "the variance components estimate; choose the orders on the tracker's table "
+            "alone (--degree auto with that table) and give them here (--degree, --basis)",
             source="degree",
         )
     if options.get("strategy") == "classic":
         raise InputError(
-            "the classic pipeline calibrates tracker stations from one table; with several "
-            "tables use joint, two-phase or points-only",
+            "the classic pipeline multilaterates every pose's point from the tracker's "
+            "stations before fitting the errors; an interferometer or ballbar reading is not "
+            "a distance from a station and has no point of its own, so it has no place in "
+            "that pipeline; with several tables use joint, two-phase or points-only",
             source="strategy",
         )
-    if options.get("robust"):
-        raise InputError("robust rejection is not available with several tables", source="robust")
     t_start = time.perf_counter()
     datasets = as_datasets(data, instrument)
-    machine, joined = join_datasets(model, datasets, budget)
+    # the stations table is read and checked before the model is built, as the tables are
+    st_table = None
+    if stations is not None:
+        st_table = load_stations(
+            stations, name=None if isinstance(stations, (str, Path)) else "<stations DataFrame>"
+        )
+    machine, joined = join_datasets(model, datasets, budget, columns=columns)
+    if st_table is not None:
+        options["stations"] = _combined_stations(st_table, joined)
+    if options.get("robust"):
+        # each table's outliers on its own robust scale (volcal.analysis.identify)
+        options["reject_groups"] = joined.group
     factor = np.ones(len(datasets))
     iterations = 0
+    given = None  # each table's check against the budgets as given (the first round)
     while True:
         sigma = joined.meas.sigma * factor[joined.group]
         meas = dataclasses.replace(joined.meas, sigma=sigma)
@@ -320,6 +385,8 @@ def identify_datasets(
         fit = instrument_fit(res, dataclasses.replace(joined, meas=meas))
         if not variance_components:
             break
+        if given is None:
+            given = fit[["chi2_per_dof", "verdict"]].copy()
         s2 = fit["chi2_per_dof"].to_numpy(float)
         poor = fit.loc[~(fit["dof"] > 1.0), "data"].tolist()
         if poor:
@@ -335,13 +402,29 @@ def identify_datasets(
         if np.max(np.abs(s2 - 1.0)) < 1e-4 or iterations >= max_vce_iterations:
             break
     if variance_components:
-        dof = fit["dof"].to_numpy(float)
-        # the last round's chi2/dof is ~1: the factor's distribution is that of the
-        # instruments' sample variance with its degrees of freedom
+        assert given is not None
+        fit.insert(fit.columns.get_loc("verdict") + 1, "verdict_given", given["verdict"])
+        fit.insert(fit.columns.get_loc("verdict"), "chi2_per_dof_given", given["chi2_per_dof"])
+        # The spread of the estimates: at convergence (every table's chi2/dof 1 with the
+        # scaled budgets) the covariance of the variance factors is REML's inverse
+        # information, 2 T^-1 with T_ij = tr(R_ij R_ji) (Koch, Parameter Estimation and
+        # Hypothesis Testing in Linear Models, 2nd ed. 1999, sec. 3.6.3; Searle, Casella
+        # & McCulloch, Variance Components 1992, sec. 6.3).  A table sharing its
+        # redundancy with the others has T_ii < r_i and the other components' estimates
+        # in its own (off-diagonal T), so its factor is less certain than chi2 with r_i
+        # says: the interval is chi2 with Satterthwaite's degrees of freedom
+        # nu_i = 2 / var(s_i^2) = 1 / (T^-1)_ii (Biometrics Bulletin 2 (1946) 110-114).
+        T = fit.attrs["redundancy_t"]
+        try:
+            nu = 1.0 / np.diag(np.linalg.inv(T))
+        except np.linalg.LinAlgError:
+            nu = np.full(len(factor), np.nan)
+        nu = np.where(nu > 0, nu, np.nan)
         fit["scale_factor"] = factor
-        fit["u_scale_factor"] = factor / np.sqrt(2.0 * dof)
-        fit["scale_low_95"] = factor * np.sqrt(dof / chi2_dist.ppf(0.975, dof))
-        fit["scale_high_95"] = factor * np.sqrt(dof / chi2_dist.ppf(0.025, dof))
+        fit["dof_vce"] = nu
+        fit["u_scale_factor"] = factor / np.sqrt(2.0 * nu)
+        fit["scale_low_95"] = factor * np.sqrt(nu / chi2_dist.ppf(0.975, nu))
+        fit["scale_high_95"] = factor * np.sqrt(nu / chi2_dist.ppf(0.025, nu))
         res.notes.append(
             f"variance components (Helmert, {iterations} rounds): standard uncertainties "
             "scaled per table by "
@@ -356,8 +439,66 @@ def identify_datasets(
     res.seconds = time.perf_counter() - t_start  # every round of the variance components
     res.stations = _stations_by_instrument(res.stations, joined.instrument)
     res.residuals.insert(0, "data", np.asarray(joined.names, dtype=object)[joined.group])
+    if len(res.rejected) and joined.rows is not None:
+        # the rows of the joined table as each reading's table and its own row there
+        rej = res.residuals["rejected"].to_numpy(bool)
+        res.rejected = res.rejected.assign(row=joined.rows[rej])
+        res.rejected.insert(0, "data", res.residuals.loc[rej, "data"].to_numpy())
     res.sigma_source = "; ".join(f"{n}: {s}" for n, s in zip(joined.names, joined.sigma_sources))
     return res
+
+
+def _combined_stations(table: pd.DataFrame, joined: JoinedData) -> pd.DataFrame:
+    """A tracker's stations table (:func:`volcal.measurement.tables.load_stations` form:
+    start values, or known positions where ``fixed``) as the combined instrument's
+    stations table: its rows whose station reads in a tracker table, the other parts'
+    columns at zero (held at a tracker's station).  A station of another instrument's
+    table is refused (its set-up parameters are not a position and a dead length); ids
+    without readings are left out (noted by the identification as for one table)."""
+    from volcal.measurement.instruments.combined import INDEX
+
+    ins = joined.instrument
+    ids = list(joined.meas.station_ids)
+    trackers = [k for k, part in enumerate(ins.parts) if part.name == "tracker"]
+    if not trackers:
+        raise InputError(
+            "the stations table gives tracker station positions, but no table is a "
+            "tracker's ("
+            + ", ".join(f"{n}: {i}" for n, i in zip(joined.names, joined.instruments))
+            + ")",
+            source="stations table",
+        )
+    rows = []
+    for _, r in table.iterrows():
+        sid = str(r["station"])
+        if sid not in ids:
+            continue
+        k = ins.part_of(sid)
+        if k not in trackers:
+            first = np.flatnonzero(np.asarray(joined.meas.station_index) == ids.index(sid))[0]
+            owner = joined.names[int(joined.group[first])]
+            raise InputError(
+                f"station {sid!r} of the stations table is a set-up of {owner} "
+                f"({ins.parts[k].name}); the stations table gives tracker stations only",
+                source="stations table",
+                column="station",
+            )
+        row = {"station": sid, INDEX: float(k)}
+        for n in ins.station_param_names[1:]:
+            row[n] = float(r[n]) if n in ins.parts[k].station_param_names else 0.0
+        row["fixed"] = bool(r["fixed"])
+        rows.append(row)
+    if not rows:
+        tracker_ids = [s for s in ids if ins.part_of(s) in trackers]
+        raise InputError(
+            "no tracker station of the data ("
+            + ", ".join(tracker_ids[:8])
+            + ") is described in the stations table ("
+            + ", ".join(map(str, table["station"][:8]))
+            + "); station ids must match exactly",
+            source="stations table",
+        )
+    return pd.DataFrame(rows, columns=["station", *ins.station_param_names, "fixed"])
 
 
 def _stations_by_instrument(st: pd.DataFrame, ins: CombinedInstrument) -> pd.DataFrame:

@@ -905,6 +905,7 @@ def _identify(
     columns: Mapping[str, str] | str | None = None,
     max_memory_gb: float | None = None,
     variance_components: bool = False,
+    reject_groups: np.ndarray | None = None,
 ) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
@@ -912,8 +913,9 @@ def _identify(
     DataFrame or validated Measurements); stations: optional stations table (start values,
     or known positions where ``fixed``). Readings without ``sigma`` are weighted by the
     budget. ``robust`` rejects readings whose normalised residual exceeds ``reject_k``
-    robust standard deviations and re-solves (the rejected readings are listed).
-    Raises SolverError when IPOPT does not succeed.
+    robust standard deviations and re-solves (the rejected readings are listed);
+    ``reject_groups`` (one label per reading, e.g. its table): the robust standard
+    deviation of each group's own readings.  Raises SolverError when IPOPT does not succeed.
 
     forms: error bases {error or axis name: ErrorForm} (:mod:`volcal.model.errors`).
     This is the single fit; ``degree="auto"`` (``order_criterion``, ``cv_folds``,
@@ -1014,6 +1016,11 @@ def _identify(
         )
 
     rejected = np.zeros(len(meas), bool)
+    groups = (
+        [np.ones(len(meas), bool)]
+        if reject_groups is None
+        else [np.asarray(reject_groups) == g for g in np.unique(reject_groups)]
+    )
     for round_ in range(12 if robust else 1):
         p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
         with report_stage(f"solving ({strategy}, {ider.solver_name})"):
@@ -1026,12 +1033,21 @@ def _identify(
         # data snooping with re-admission: a blunder spreads into its neighbours' residuals
         # while it is in the fit, so reject only the clearly worst ones per round and take
         # back readings that fit again once the blunders are out
+        # (per table with several tables, ``reject_groups``: each on its own scale, so a
+        # table whose budget is off neither hides another's blunders nor loses its own
+        # good readings to another's scale)
         ok = ~rejected
-        scale = max(1.4826 * np.median(np.abs(r[ok] - np.median(r[ok]))), 1.0)
-        limit = reject_k * scale
-        worst = np.max(np.abs(r[ok])) if ok.any() else 0.0
-        new = ok & (np.abs(r) > limit) & (np.abs(r) >= 0.5 * worst)
-        back = rejected & (np.abs(r) <= limit)
+        new = np.zeros(len(r), bool)
+        back = np.zeros(len(r), bool)
+        for g in groups:
+            okg = ok & g
+            if not okg.any():
+                continue
+            scale = max(1.4826 * np.median(np.abs(r[okg] - np.median(r[okg]))), 1.0)
+            limit = reject_k * scale
+            worst = np.max(np.abs(r[okg]))
+            new |= okg & (np.abs(r) > limit) & (np.abs(r) >= 0.5 * worst)
+            back |= rejected & g & (np.abs(r) <= limit)
         if not new.any() and not back.any():
             break
         rejected = (rejected | new) & ~back
@@ -1199,7 +1215,9 @@ def prepare(
     if stations is not None:
         # the tracker's stations table is validated by its reader; another instrument's
         # table is a DataFrame whose columns are its station parameters
-        if ins.name == "tracker":
+        # (a combined instrument of one tracker table is named "tracker" too; its table
+        # has the combined columns, volcal.analysis.fusion)
+        if ins.name == "tracker" and "instrument_index" not in ins.station_param_names:
             given = isinstance(stations, pd.DataFrame) and (
                 "x_mm" in stations and "dead_length_given" in stations
             )

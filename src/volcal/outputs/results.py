@@ -1495,17 +1495,19 @@ def _instruments_section(table: pd.DataFrame) -> str:
     lines.append(
         "One problem over every table; each table's chi2/dof is the sum of its squared "
         "normalised residuals over its share of the degrees of freedom (the sum of its "
-        "readings' redundancy numbers), checked against its own 99.9 % interval."
+        "readings' redundancy numbers), checked against its own 99.9 % interval (chi2 "
+        "with dof_check degrees of freedom, Satterthwaite's for a share of the residuals)."
     )
     lines.append("")
     cols = ["data", "instrument", "n_readings", "dof", "chi2_per_dof", "chi2_low", "chi2_high"]
     cols += ["verdict", "sigma_source"]
-    extra = ["scale_factor", "u_scale_factor", "scale_low_95", "scale_high_95"]
+    extra = ["chi2_per_dof_given", "verdict_given", "scale_factor", "dof_vce"]
+    extra += ["u_scale_factor", "scale_low_95", "scale_high_95"]
     extra += ["determined_alone", "field_u_cumulative_um"]
     cols += [c for c in extra if c in table.columns]
     t = table[cols].copy()
     for c in ("dof", "chi2_per_dof", "chi2_low", "chi2_high", *extra):
-        if c in t.columns and c != "determined_alone":
+        if c in t.columns and c not in ("determined_alone", "verdict_given"):
             t[c] = t[c].map(lambda v: f"{v:.4g}")
     lines.append(_md_table(t))
     if "undetermined_alone" in table.columns:
@@ -1526,8 +1528,11 @@ def _instruments_section(table: pd.DataFrame) -> str:
         lines.append("")
         lines.append(
             "Variance components (Helmert): each table's standard uncertainties were scaled "
-            "by its scale_factor (u: its standard uncertainty; 95 % interval from chi2 with "
-            "the table's degrees of freedom)."
+            "by its scale_factor, after which every chi2/dof is 1 (chi2_per_dof_given and "
+            "verdict_given: the check with the budgets as given); u: its standard "
+            "uncertainty, 95 % interval from chi2 with dof_vce degrees of freedom "
+            "(Satterthwaite's, from REML's information: fewer than dof where the tables "
+            "share their redundancy; coverage measured by studies/vce)."
         )
     lines.append("")
     return "\n".join(lines)

@@ -71,7 +71,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="column mapping for an instrument export: which file column holds each of "
         "volcal's columns, with the file's unit in brackets, e.g. "
         "'length=Distance[m],station=Tracker,point=Target' (units: mm, m, um, in, deg, "
-        "rad, s, ms, min)",
+        "rad, s, ms, min); with several --data tables it applies to the tracker and "
+        "multi-laser tables",
     )
     p.add_argument(
         "--max-memory-gb",
@@ -87,7 +88,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         type=Path,
         metavar="S.csv",
         help="stations table (station, x, y, z in mm, optional dead_length, "
-        "fixed): start values, or known positions where fixed",
+        "fixed): start values, or known positions where fixed; with several --data "
+        "tables it describes the tracker tables' stations",
     )
     p.add_argument(
         "--strategy",
@@ -148,7 +150,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "--robust",
         action="store_true",
         help="reject readings whose normalised residual exceeds --reject-k robust "
-        "standard deviations and re-solve",
+        "standard deviations and re-solve (with several --data tables: each table's "
+        "robust standard deviation)",
     )
     p.add_argument(
         "--reject-k",
@@ -355,9 +358,10 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
     log.info("identifying: model %s, data %s, strategy %s", args.model, data_name, args.strategy)
     meas, stations, read_s = inputs
     several = {}
-    if meas is None:  # several tables (volcal.analysis.fusion)
+    if meas is None:  # several tables (volcal.analysis.fusion), read there
         meas = [(d.instrument, d.source) for d in args.data_sets]
         several = {"variance_components": args.variance_components}
+        stations = args.stations  # the tracker tables' stations (volcal.analysis.fusion)
     res = identify(
         args.model,
         meas,
@@ -439,15 +443,20 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
         print("  model adequacy           " + adequacy.summary)
         if res.instruments is not None:
             for _, row in res.instruments.iterrows():
+                # with variance components every scaled chi2/dof is 1: the check that
+                # says something is the one with the budgets as given
+                vce = "scale_factor" in row
                 scale = (
-                    f", budget x{row['scale_factor']:.3g} (95 %: {row['scale_low_95']:.3g}"
-                    f"..{row['scale_high_95']:.3g})"
-                    if "scale_factor" in row
+                    f" with the budgets as given, budget x{row['scale_factor']:.3g} "
+                    f"(95 %: {row['scale_low_95']:.3g}..{row['scale_high_95']:.3g})"
+                    if vce
                     else ""
                 )
+                chi = row["chi2_per_dof_given"] if vce else row["chi2_per_dof"]
+                verdict = row["verdict_given"] if vce else row["verdict"]
                 print(
                     f"    {row['instrument']:<14} {row['n_readings']} readings, chi2/dof "
-                    f"{row['chi2_per_dof']:.3g} ({row['verdict']}){scale}"
+                    f"{chi:.3g} ({verdict}){scale}"
                 )
         axes = meta.get("max_volumetric_axes") or []
         fixed = [a for a in spec.axis_names if a not in axes]
