@@ -232,6 +232,11 @@ def test_core_identifier_gives_the_studys_strategies(estimator):
         np.testing.assert_allclose(got.instrument.vector, ref.instrument.vector, atol=1e-7)
         checked.add(case.name)
     assert checked == {"points-only", "two-phase", "two-phase full", "joint", "joint Marquardt"}
+    # without damping the joint keeps null directions: the core refuses the step (a
+    # status that is not success) instead of stepping by rounding over rounding
+    undamped = core.estimate(data, "joint", 0.95, weights=w, damping_rel=0.0,
+                             joint_groups=("points", "frame", "geometry"))
+    assert not undamped.success and undamped.status == ["Singular_Step"], undamped.status
     with pytest.raises(ValueError, match="damping"):
         core.identifier.gauss_newton.solve_levenberg(np.zeros(3), np.zeros(3), np.ones(2))
     with pytest.raises(ValueError, match="not run through the core"):

@@ -44,10 +44,16 @@ from volcal.problem.residuals import IdentificationProblem
 from volcal.solve.outcome import SolveOutcome
 
 
-def _qr_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _qr_solve(A: np.ndarray, b: np.ndarray, *, rank_check: bool = False) -> np.ndarray:
     """A^-1 b through a QR of A (a square system that may be badly conditioned; raises
-    LinAlgError when exactly singular)."""
+    LinAlgError when exactly singular, and with ``rank_check`` when numerically singular:
+    a diagonal of R below n eps times the largest, the rank tolerance of
+    ``numpy.linalg.matrix_rank``)."""
     Q, R = np.linalg.qr(A)
+    if rank_check and len(R):
+        d = np.abs(np.diag(R))
+        if d.min() <= len(d) * np.finfo(float).eps * d.max():
+            raise np.linalg.LinAlgError("numerically singular system")
     return sla.solve_triangular(R, Q.T @ b, check_finite=False)
 
 
@@ -169,7 +175,9 @@ class GaussNewtonSolver:
             f = 0.5 * float(r @ r)
             try:
                 A = Z.T @ (H + np.diag(d)) @ Z
-                dx = -Z @ _qr_solve(A, Z.T @ g) if Z.shape[1] else np.zeros(pr.n_x)
+                # an undamped null direction would otherwise give a step of rounding
+                # divided by rounding (the whole-graph solver refused it the same way)
+                dx = -Z @ _qr_solve(A, Z.T @ g, rank_check=True) if Z.shape[1] else np.zeros(pr.n_x)
             except np.linalg.LinAlgError:  # a singular system: no damping on a null direction
                 status = "Singular_Step"
                 break
