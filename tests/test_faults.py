@@ -519,14 +519,16 @@ def test_the_memory_estimate_covers_a_measured_peak(sim, tmp_path, solver):
     )
     peak = int(kib) * 1024
     # On this small table (3,000 readings, 111 unknowns) the estimate is mostly its base
-    # (the interpreter, CasADi, the model: 151 MB of the 174 MB) and the peak measured
-    # here was 180 MB (3.4 % over; the base was refitted when the workflow layer and the
-    # blocked R factor changed the imports and the per-reading arrays).  The base varies
-    # by a few MB between library builds and allocators; 5 % over is that, more would be
-    # an optimistic estimate (a refusal coming late).  Below: 15 % pessimistic at most
-    # (the factors fit the benchmark's tables of 12,288 to 139,968 readings within 16 MB,
-    # benchmarks/results/memory.txt).
-    assert 0.85 * est < peak < 1.05 * est, (peak, est)
+    # (the interpreter, the libraries, CasADi, the model: about 150 MB of 155-174 MB).
+    # The base's resident size depends on the installation, not only on volcal's code:
+    # the same command on the same data peaked at 159 MB from a virtual environment
+    # installed hours before and at 178-180 MB from one installed minutes before (the
+    # shared libraries' pages, numpy's 26 vs 31 MB after `import numpy`, same files).
+    # Hence 25 MB of slack over 3 % above; more would be an optimistic estimate (a
+    # refusal coming late).  Below: 15 % pessimistic at most (the factors fit the
+    # benchmark's tables of 12,288 to 139,968 readings within 16 MB,
+    # benchmarks/results/memory.txt and memory_ipopt.txt).
+    assert 0.85 * est < peak < 1.03 * est + 25e6, (peak, est)
 
 
 def test_available_memory_is_read_from_the_system():
