@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from volcal.analysis.identify import resolve_solver
 from volcal.base import memory
 
 LAUNCH = (
@@ -101,8 +102,8 @@ def main() -> None:
                 n = int(doc["n_readings"])
                 # unknowns as the check counts them: error parameters, 4 per station, frame 6
                 unknowns = len(doc["param_names"]) + 4 * len(doc["stations"]) + 6
-                # the path the run took (identify's auto: Gauss-Newton from 10,000 readings)
-                chunked = a.solver == "gauss-newton" or (a.solver == "auto" and n >= 10_000)
+                # the path the run took (identify's own rule for --solver auto)
+                chunked = resolve_solver(a.solver, n) == "gauss-newton"
                 rows.append((n, unknowns, kib * 1024, chunked))
                 print(f"{n:>8} readings {unknowns:>4} unknowns  peak {kib / 1024:8.1f} MiB")
     d = np.array([r[:3] for r in rows], float)

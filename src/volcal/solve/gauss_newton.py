@@ -47,8 +47,9 @@ from volcal.solve.outcome import SolveOutcome
 def _qr_solve(A: np.ndarray, b: np.ndarray, *, rank_check: bool = False) -> np.ndarray:
     """A^-1 b through a QR of A (a square system that may be badly conditioned; raises
     LinAlgError when exactly singular, and with ``rank_check`` when numerically singular:
-    a diagonal of R below n eps times the largest, the rank tolerance of
-    ``numpy.linalg.matrix_rank``)."""
+    a diagonal of R below n eps times the largest, the tolerance
+    ``numpy.linalg.matrix_rank`` applies to singular values, here on R's diagonal, which
+    an unpivoted QR makes a cheap indicator rather than a rank-revealing one)."""
     Q, R = np.linalg.qr(A)
     if rank_check and len(R):
         d = np.abs(np.diag(R))
