@@ -519,6 +519,10 @@ def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter, grad_
             "ipopt.print_level": 0,
             "print_time": False,
             "ipopt.hessian_approximation": "limited-memory",
+            # the quasi-Newton update inside the augmented system (one solve per step)
+            # instead of Sherman-Morrison's back-solves per stored pair: the same step,
+            # a third less of IPOPT's own time with hundreds of reading constraints
+            "ipopt.limited_memory_aug_solver": "extended",
             "ipopt.max_iter": max_iter,
             "ipopt.tol": 1e-6,
             "ipopt.acceptable_tol": 1e-4,
