@@ -334,6 +334,7 @@ class PlanEvaluator:
             i = nt + nps * st + j  # parameter j of each reading's station
             H.append(ZZ[i] * pr.scale[i][:, None])
         used = [b for b, Hb in enumerate(H) if np.any(Hb)]  # all zero: held, or unmoved
+        used = self._merge_proportional(f_V, N, H, used)
         A: ca.MX = ca.MX(N, r)
         for b in used:
             A = A + ca.repmat(V[b, :].T, 1, r) * ca.DM(H[b])
@@ -369,6 +370,36 @@ class PlanEvaluator:
             dV[b, :] = ca.sum2(GA * ca.DM(H[b])).T
         self._sym_rows = rows
         return s, w, f, f_Vt(s, w, dV)
+
+    def _merge_proportional(
+        self, f_V: ca.Function, N: int, H: list[np.ndarray], used: list[int]
+    ) -> list[int]:
+        """Fold a derivative row v_b that is a fixed multiple c of an earlier one v_a into
+        it (H_a += c H_b, b dropped): the tracker's d(reading)/d(station) is minus
+        d(reading)/d(point), which halves the N x r terms of A and of the gradient.  The
+        proportion is read off the instrument's own derivatives at two sets of stations
+        drawn around the points (seeded), exact to rounding or not taken."""
+        rng = np.random.default_rng(0)
+        c0, ext = self.points.mean(0), np.ptp(self.points, axis=0) + 1.0
+        K = self.n_stations
+        Vs = [
+            np.asarray(f_V((c0 + ext * rng.uniform(-1.5, 1.5, (K, 3))).ravel(), np.ones(N)))
+            for _ in range(2)
+        ]
+        keep: list[int] = []
+        for b in used:
+            for a in keep:
+                va, vb = np.concatenate([V[a] for V in Vs]), np.concatenate([V[b] for V in Vs])
+                big = np.abs(va) > 1e-3 * np.abs(va).max()
+                if not big.any():
+                    continue
+                c = float(np.median(vb[big] / va[big]))
+                if np.all(np.abs(vb - c * va) <= 1e-12 * (np.abs(vb) + np.abs(c * va) + 1e-300)):
+                    H[a] = H[a] + c * H[b]
+                    break
+            else:
+                keep.append(b)
+        return keep
 
     def weights(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
         """1/sigma (1/mm) of the selected readings (the ``w`` of :meth:`symbolic_criterion`)."""
