@@ -253,12 +253,6 @@ def _read_inputs(args: argparse.Namespace):
     None, seconds spent reading the measurement table)."""
     import time
 
-    from volcal.measurement.instruments import get_instrument
-    from volcal.measurement.tables import (
-        load_instrument_stations,
-        load_measurements,
-        load_stations,
-    )
     from volcal.model.spec import resolve_model
 
     sets = _data_sets(args)
@@ -268,6 +262,19 @@ def _read_inputs(args: argparse.Namespace):
         return None, None, 0.0
     args.data = Path(sets[0].source)
     spec = resolve_model(args.model)
+    if not args.columns:
+        # the header's columns from its first line, before pandas' import (0.25 s): a
+        # misnamed or missing column is reported at once; the cells need the loader
+        from volcal.measurement.header import check_header
+
+        check_header(args.data, spec)
+    from volcal.measurement.instruments import get_instrument
+    from volcal.measurement.tables import (
+        load_instrument_stations,
+        load_measurements,
+        load_stations,
+    )
+
     ins = get_instrument(args.instrument)
     stations = None
     if args.stations is not None:
@@ -290,6 +297,9 @@ def _read_inputs(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     from volcal.outputs.plot_process import plotting
 
+    # a bad input ends the program without the interpreter's teardown too: the error is
+    # raised before anything is opened that a `with` does not close (volcal.cli.main)
+    args.exit_now_on_error = True
     inputs = _read_inputs(args)
     # then, before the numerics are imported: two children that import matplotlib on the
     # other core while this process solves, then draw the plots two at a time while this
