@@ -378,8 +378,27 @@ def _os_error(exc: OSError, args: argparse.Namespace) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    """The ``volcal`` program: run the command of ``argv`` (default: ``sys.argv[1:]``, as
+    the program) and return its exit code."""
+    from volcal.base.processes import pause_gc, resume_gc
+
+    # as the program, the start-up imports run without the cyclic garbage collector (never
+    # in a caller's process): a command resumes it once its own imports are done, the
+    # others before they run (volcal.base.processes.pause_gc)
+    gc_paused = argv is None and sys.getprofile() is None and sys.gettrace() is None and pause_gc()
+    try:
+        return _main(argv, gc_paused)
+    finally:
+        resume_gc()  # whatever ended the command (a no-op once resumed)
+
+
+def _main(argv: list[str] | None, gc_paused: bool) -> int:
+    from volcal.base.processes import resume_gc
+
     as_program = argv is None
+    # a profiler or coverage writes its data at exit: never skip the teardown under one
+    untraced = as_program and sys.getprofile() is None and sys.gettrace() is None
+    parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         project = _project_defaults(parser, argv)
@@ -432,8 +451,9 @@ def main(argv: list[str] | None = None) -> int:
             handler.setFormatter(_Formatter(args.command))
     previous_show = warnings.showwarning
     warnings.showwarning = _warning_printer(args.command, bool(args.quiet))
-    # a profiler or coverage writes its data at exit: never skip the teardown under one
-    untraced = as_program and sys.getprofile() is None and sys.gettrace() is None
+    args.gc_paused = gc_paused and getattr(args, "imports_gc_paused", False)
+    if gc_paused and not args.gc_paused:
+        resume_gc()
     try:
         with output_policy(bool(getattr(args, "force", False))):
             code = int(args.func(args) or 0)

@@ -212,7 +212,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         action="store_true",
         help="skip the PNG plots (0.4 s; `volcal report` draws them later from the result)",
     )
-    p.set_defaults(func=run)
+    # the collector stays paused through this command's imports (_run resumes it)
+    p.set_defaults(func=run, imports_gc_paused=True)
     return p
 
 
@@ -364,6 +365,12 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
                 source=name,
             )
 
+    if getattr(args, "gc_paused", False):
+        # the libraries are imported (the table read, the output checked): the collector
+        # again, without walking what they allocated (volcal.base.processes.resume_gc)
+        from volcal.base.processes import resume_gc
+
+        resume_gc()
     data_name = ", ".join(str(d.source) for d in args.data_sets)
     log.info("identifying: model %s, data %s, strategy %s", args.model, data_name, args.strategy)
     meas, stations, read_s = inputs
