@@ -26,6 +26,7 @@ from volcal.base.exceptions import InputError
 __all__ = ["check_header", "measurement_schema"]
 
 _MAX_LISTED = 12  # problems listed in one message
+_MAX_HEADER_BYTES = 1 << 20  # a first line longer than this is left to the loader
 
 
 @dataclass
@@ -192,13 +193,15 @@ def resolve_columns(
 def _header_cells(path: Path) -> list[str] | None:
     """The stripped cells of the first line of a CSV file as the loader's parser reads
     them, or None when this cheap reading could differ from it (the loader then decides):
-    no such file, not UTF-8, an empty first line, quotes, a blank cell (an unnamed
+    no such file, not UTF-8, an empty or a very long first line, quotes, a blank cell (an unnamed
     column the loader drops when it is empty throughout), a single cell (perhaps another
     separator, which the loader explains)."""
     try:
         with open(path, "rb") as fh:
-            line = fh.readline(1 << 20)
+            line = fh.readline(_MAX_HEADER_BYTES)
     except OSError:
+        return None
+    if len(line) >= _MAX_HEADER_BYTES:  # perhaps cut: not a header to judge by its start
         return None
     try:
         text = line.decode("utf-8-sig").rstrip("\r\n")
