@@ -377,6 +377,30 @@ def table_residuals(
     return at_table, others
 
 
+def tool_offset_not_carried(others: list[tuple[float, np.ndarray]]) -> list[str]:
+    """The NOT CARRIED line of 1-D tables for the tool offsets other than the tables' one
+    (``others`` from :func:`table_residuals`): the worst RMS um they leave; none without
+    other tool offsets."""
+    if not others:
+        return []
+    worst, wt = max(others, key=lambda x: x[0])
+    return [
+        "the tool-length-dependent part of the angular errors (the tables know no tool "
+        f"offset): up to {worst:.3g} um RMS at tool offset ("
+        + ", ".join(f"{v:g}" for v in wt)
+        + ") mm"
+    ]
+
+
+def check_axis_names(fld: ErrorField, names: Mapping[str, Any]) -> None:
+    """Raise :class:`InputError` (source ``--axis``) if ``names`` (controller axis names by
+    model axis) names an axis the model does not have."""
+    inputs = [a.name for a in fld.axes]
+    unknown = sorted(set(names) - set(inputs))
+    if unknown:
+        raise InputError(f"unknown axis name(s) {unknown}; the model has {inputs}", source="--axis")
+
+
 def _builder(fmt: str):
     from importlib import import_module
 

@@ -449,6 +449,12 @@ class AxisTable:
     def __call__(self, x: np.ndarray) -> np.ndarray:
         return interp1(self.nodes, self.values, x, periodic=self.periodic)
 
+    def file_values(self, field, sign: float) -> np.ndarray:
+        """The values times ``sign`` in file units: mm on a linear output axis, deg on a
+        rotary one."""
+        v = sign * self.values
+        return np.rad2deg(v) if field.axis(self.output).rotary else v
+
 
 def table_corrections(field, tables: list[AxisTable], q: np.ndarray) -> np.ndarray:
     """Axis corrections (N, n_axes), internal units, that ``tables`` give at poses q."""
@@ -599,3 +605,20 @@ def correction_spacing(
         min_intervals=[8 if a.full_turn else 1 for a in axes],
     )
     return sp, S
+
+
+def axis_table_nodes(field, h: Sequence[float]) -> dict[str, np.ndarray]:
+    """Uniform nodes (internal units) of a 1-D table over each axis at spacing ``h`` (one
+    per axis, model order): over the travel, except that a full-turn axis' table spans
+    [0, 360] deg, the range the control reports it in."""
+    return {
+        a.name: uniform_nodes(*((0.0, a.hi - a.lo) if a.full_turn else (a.lo, a.hi)), h[i])
+        for i, a in enumerate(field.axes)
+    }
+
+
+def table_fit_poses(field, nodes: dict[str, np.ndarray]) -> np.ndarray:
+    """The poses (N, n_axes) the 1-D tables are fitted at: a Halton sample of the travel
+    box, 40 poses per node of the longest table, at least 6000 and at most 40000."""
+    n_fit = int(min(40000, max(6000, 40 * max(len(v) for v in nodes.values()))))
+    return workspace_sample(field.lower, field.upper, n_fit, skip=3)

@@ -54,16 +54,23 @@ import numpy as np
 
 from volcal.base.exceptions import InputError
 
-from . import Built, Context, render_template, table_residuals
+from . import (
+    Built,
+    Context,
+    check_axis_names,
+    render_template,
+    table_residuals,
+    tool_offset_not_carried,
+)
 from .grid import (
     AxisTable,
+    axis_table_nodes,
     check_limit,
     correction_residual,
     correction_spacing,
     correction_targets,
     fit_tables,
-    uniform_nodes,
-    workspace_sample,
+    table_fit_poses,
 )
 
 TARGETS = {
@@ -177,9 +184,7 @@ def machine_axis_names(ctx: Context) -> dict[str, str]:
     fld = ctx.field
     inputs = [a.name for a in fld.axes]
     names = dict(ctx.options.get("axis_names") or {})
-    unknown = sorted(set(names) - set(inputs))
-    if unknown:
-        raise InputError(f"unknown axis name(s) {unknown}; the model has {inputs}", source="--axis")
+    check_axis_names(fld, names)
     if ctx.options.get("general_axis_names"):
         order = sorted((a for a in fld.axes if not a.rotary), key=lambda a: a.dir_index) + [
             a for a in fld.axes if a.rotary
@@ -196,11 +201,7 @@ def build(ctx: Context) -> Built:
     targets = correction_targets(fld, ctx.table_tool)
     inputs = [a.name for a in fld.axes]
     sp, _ = correction_spacing(fld, targets, ctx.tolerance_um, inputs)
-    # a full-turn axis' table spans [0, 360] deg, the range the control reports it in
-    nodes = {
-        a.name: uniform_nodes(*((0.0, a.hi - a.lo) if a.full_turn else (a.lo, a.hi)), sp.h[i])
-        for i, a in enumerate(fld.axes)
-    }
+    nodes = axis_table_nodes(fld, sp.h)
     per = {a.name: a.full_turn for a in fld.axes}
     lin = targets.linear
     tables: list[AxisTable] = []
@@ -214,8 +215,7 @@ def build(ctx: Context) -> Built:
         for J in inputs:
             if J != o:
                 tables.append(AxisTable(J, o, nodes[J], np.zeros(len(nodes[J])), per[J]))
-    n_fit = int(min(40000, max(6000, 40 * max(len(v) for v in nodes.values()))))
-    Q = workspace_sample(fld.lower, fld.upper, n_fit, skip=3)
+    Q = table_fit_poses(fld, nodes)
     target = targets.linear_values(fld, Q)
 
     def fixed(tabs):
@@ -267,14 +267,7 @@ def build(ctx: Context) -> Built:
         "tables add functions of one axis each (table multiplication is not used: its "
         "factor table would hold a position, not a small correction); this leaves "
         f"{at_table:.3g} um RMS at the tables' tool offset"
-    ]
-    if others:
-        worst, wt = max(others, key=lambda x: x[0])
-        not_carried.append(
-            "the tool-length-dependent part of the angular errors (the tables know no tool "
-            "offset): up to "
-            f"{worst:.3g} um RMS at tool offset (" + ", ".join(f"{v:g}" for v in wt) + ") mm"
-        )
+    ] + tool_offset_not_carried(others)
     values = (
         "compensation values as SINUMERIK documents them (K3: a positive compensation "
         "value causes the machine axis to move in the negative direction; the same sign "
@@ -298,9 +291,7 @@ def build(ctx: Context) -> Built:
         head = comp.header() + notes
         ctab = []
         for k, t in enumerate(cec):
-            vals = sgn * t.values
-            if fld.axis(t.output).rotary:
-                vals = np.rad2deg(vals)
+            vals = t.file_values(fld, sgn)
             xs = axis_val(t.input, t.nodes)
             ctab.append(
                 dict(
@@ -318,9 +309,7 @@ def build(ctx: Context) -> Built:
         ltab = []
         for t in lec:
             a = fld.axis(t.input)
-            vals = sgn * t.values
-            if a.rotary:
-                vals = np.rad2deg(vals)
+            vals = t.file_values(fld, sgn)  # input = output: the axis' own table
             xs = axis_val(t.input, t.nodes)
             ltab.append(
                 dict(
