@@ -24,6 +24,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from volcal.cli.options import (
+    MODEL_LIST_HELP,
+    add_datum,
+    add_degree,
+    add_example_budget,
+    add_model_or_example,
+    add_result,
+)
+
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -37,23 +46,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "under the datum constraints, correlations and the uncertainty of the "
         "volumetric error over the workspace.",
     )
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument(
-        "--model", metavar="M", help="bundled model name (see `volcal models`) or model TOML file"
-    )
-    src.add_argument(
-        "--example",
-        metavar="NAME",
-        help="a bundled example (e.g. mcv754): its model, stations, plan, "
+    src = add_model_or_example(
+        p,
+        "a bundled example (e.g. mcv754): its model, stations, plan, "
         "tools and budget; the options below override parts",
+        MODEL_LIST_HELP,
     )
-    src.add_argument(
-        "--result",
-        type=Path,
-        metavar="DIR",
-        help="a result folder of `volcal identify`: its data are identified "
-        "again with its options and analysed at the solution",
-    )
+    add_result(src, " and analysed at the solution")
     p.add_argument(
         "--data",
         type=Path,
@@ -81,24 +80,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="tool (reflector) offsets in mm (default: the example's, or those of "
         "`volcal simulate`: 0,0,0;0,0,-100;80,0,-100;0,80,-100)",
     )
-    p.add_argument(
-        "--budget",
-        metavar="NAME|FILE",
-        help="uncertainty budget (default paper002, or the example's)",
-    )
-    p.add_argument(
-        "--degree",
-        type=int,
-        default=3,
-        metavar="N",
-        help="Legendre degree of the error motions (default 3)",
-    )
-    p.add_argument(
-        "--datum",
-        default="iso230",
-        choices=("iso230", "reference", "none"),
-        help="datum convention (default iso230)",
-    )
+    add_example_budget(p)
+    add_degree(p)
+    add_datum(p)
     p.add_argument(
         "--strategy",
         default="joint",

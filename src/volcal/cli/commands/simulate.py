@@ -21,6 +21,8 @@ import re
 from pathlib import Path
 from typing import Any
 
+from volcal.cli.options import MODEL_LIST_HELP, add_degree, add_model_or_example
+
 log = logging.getLogger(__name__)
 
 _DEFAULT_TOOLS = "0,0,0;0,0,-100;80,0,-100;0,80,-100"
@@ -37,15 +39,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "repeatability is drawn anew for every station visit; a seed always gives "
         "the same data.",
     )
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument(
-        "--model", metavar="M", help="bundled model name (see `volcal models`) or model TOML file"
-    )
-    src.add_argument(
-        "--example",
-        metavar="NAME",
-        help="use a bundled example (e.g. mcv754): its model, true parameters, "
+    add_model_or_example(
+        p,
+        "use a bundled example (e.g. mcv754): its model, true parameters, "
         "stations, plan, tools and budget; the options below override parts",
+        MODEL_LIST_HELP,
     )
     truth = p.add_mutually_exclusive_group()
     truth.add_argument(
@@ -62,13 +60,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="draw realistic true errors (with the seed) scaled to this maximum "
         "volumetric error over the workspace, um (default 60)",
     )
-    p.add_argument(
-        "--degree",
-        type=int,
-        default=3,
-        metavar="N",
-        help="Legendre degree of the error motions (default 3)",
-    )
+    add_degree(p)
     p.add_argument(
         "--stations",
         metavar="S.csv",
