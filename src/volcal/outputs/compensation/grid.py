@@ -607,6 +607,26 @@ def correction_spacing(
     return sp, S
 
 
+def one_axis_tables(
+    field, tool: np.ndarray, tolerance_um: float
+) -> tuple[CorrectionTargets, Spacing, dict[str, np.ndarray], list[AxisTable]]:
+    """The start of the 1-D tables of a control (siemens, heidenhain) for the tool offset
+    ``tool`` (3,) mm: the split of the correction (:func:`correction_targets`), the node
+    spacing over every axis for ``tolerance_um`` (:func:`correction_spacing`), the nodes
+    (:func:`axis_table_nodes`) and the tables of the rotary axes' own angular positioning
+    corrections (kind ``"own"``, values set)."""
+    targets = correction_targets(field, tool)
+    sp, _ = correction_spacing(field, targets, tolerance_um, [a.name for a in field.axes])
+    nodes = axis_table_nodes(field, sp.h)
+    own = [
+        AxisTable(
+            r, r, nodes[r], targets.own_value(field, r, nodes[r]), field.axis(r).full_turn, "own"
+        )
+        for r in targets.own
+    ]
+    return targets, sp, nodes, own
+
+
 def axis_table_nodes(field, h: Sequence[float]) -> dict[str, np.ndarray]:
     """Uniform nodes (internal units) of a 1-D table over each axis at spacing ``h`` (one
     per axis, model order): over the travel, except that a full-turn axis' table spans

@@ -51,12 +51,10 @@ from . import (
 )
 from .grid import (
     AxisTable,
-    axis_table_nodes,
     check_limit,
     correction_residual,
-    correction_spacing,
-    correction_targets,
     fit_tables,
+    one_axis_tables,
     table_fit_poses,
 )
 
@@ -69,15 +67,10 @@ def build(ctx: Context) -> Built:
     fld = ctx.field
     max_points = int(ctx.options.get("max_points") or MAX_POINTS)
     max_tables = int(ctx.options.get("max_tables") or MAX_TABLES)
-    targets = correction_targets(fld, ctx.table_tool)
+    targets, sp, nodes, tables = one_axis_tables(fld, ctx.table_tool, ctx.tolerance_um)
     inputs = [a.name for a in fld.axes]
-    sp, _ = correction_spacing(fld, targets, ctx.tolerance_um, inputs)
-    nodes = axis_table_nodes(fld, sp.h)
     per = {a.name: a.full_turn for a in fld.axes}
     lin = targets.linear
-    tables: list[AxisTable] = []
-    for r in targets.own:
-        tables.append(AxisTable(r, r, nodes[r], targets.own_value(fld, r, nodes[r]), per[r], "own"))
     for J in inputs:
         for o in lin:
             tables.append(AxisTable(J, o, nodes[J], np.zeros(len(nodes[J])), per[J]))

@@ -64,12 +64,10 @@ from . import (
 )
 from .grid import (
     AxisTable,
-    axis_table_nodes,
     check_limit,
     correction_residual,
-    correction_spacing,
-    correction_targets,
     fit_tables,
+    one_axis_tables,
     table_fit_poses,
 )
 
@@ -198,17 +196,13 @@ def machine_axis_names(ctx: Context) -> dict[str, str]:
 def build(ctx: Context) -> Built:
     fld = ctx.field
     lim = _limits(ctx)
-    targets = correction_targets(fld, ctx.table_tool)
+    targets, sp, nodes, own = one_axis_tables(fld, ctx.table_tool, ctx.tolerance_um)
     inputs = [a.name for a in fld.axes]
-    sp, _ = correction_spacing(fld, targets, ctx.tolerance_um, inputs)
-    nodes = axis_table_nodes(fld, sp.h)
     per = {a.name: a.full_turn for a in fld.axes}
     lin = targets.linear
-    tables: list[AxisTable] = []
-    for o in lin:  # LEC: own position
-        tables.append(AxisTable(o, o, nodes[o], np.zeros(len(nodes[o])), False, "lec"))
-    for r in targets.own:
-        tables.append(AxisTable(r, r, nodes[r], targets.own_value(fld, r, nodes[r]), per[r], "own"))
+    # LEC: own position, then the rotary axes' own tables
+    tables = [AxisTable(o, o, nodes[o], np.zeros(len(nodes[o])), False, "lec") for o in lin]
+    tables += own
     # CEC: one table per other input axis and output axis; no table multiplication (a
     # factor table would hold a position, see the module docstring)
     for o in lin:
