@@ -123,14 +123,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from volcal.base.exceptions import InputError
     from volcal.base.threads import blas_threads
-    from volcal.cli.commands.simulate import _DEFAULT_TOOLS, _grid_counts
-    from volcal.measurement.plans import (
-        default_plan,
-        diagonal_plan,
-        grid_plan,
-        line_plan,
-        plan_from_csv,
+    from volcal.cli.commands.simulate import (
+        _DEFAULT_TOOLS,
+        PLAN_KINDS,
+        _grid_counts,
+        _named_plan,
     )
+    from volcal.measurement.plans import grid_plan, plan_from_csv
     from volcal.measurement.simulate import example, parse_tools
     from volcal.model.errors import ErrorForm, ErrorModel
     from volcal.model.machine import Machine
@@ -196,17 +195,12 @@ def run(args: argparse.Namespace) -> int:
             kind = args.plan or ("grid" if args.grid is not None else "default")
             if args.plan is None and ex is not None and args.grid is None:
                 plan = ex.plan
-            elif kind == "default":
-                if args.grid is not None:
+            elif kind in PLAN_KINDS:
+                if kind == "default" and args.grid is not None:
                     raise InputError(
                         "--grid applies to --plan grid, lines or diagonals", source="--grid"
                     )
-                plan = default_plan(spec, args.degree)
-            elif kind in ("grid", "lines", "diagonals"):
-                counts = _grid_counts(args.grid, kind)
-                plan = {"grid": grid_plan, "lines": line_plan, "diagonals": diagonal_plan}[kind](
-                    spec, counts
-                )
+                plan = _named_plan(kind, spec, _grid_counts(args.grid, kind), args.degree)
             else:
                 if args.grid is not None:
                     raise InputError(
