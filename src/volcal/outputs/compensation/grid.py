@@ -627,14 +627,15 @@ def one_axis_tables(
     return targets, sp, nodes, own
 
 
-def axis_table_nodes(field, h: Sequence[float]) -> dict[str, np.ndarray]:
+def axis_table_nodes(field, h: Sequence[float] | np.ndarray) -> dict[str, np.ndarray]:
     """Uniform nodes (internal units) of a 1-D table over each axis at spacing ``h`` (one
     per axis, model order): over the travel, except that a full-turn axis' table spans
     [0, 360] deg, the range the control reports it in."""
-    return {
-        a.name: uniform_nodes(*((0.0, a.hi - a.lo) if a.full_turn else (a.lo, a.hi)), h[i])
-        for i, a in enumerate(field.axes)
-    }
+    nodes = {}
+    for i, a in enumerate(field.axes):
+        lo, hi = (0.0, a.hi - a.lo) if a.full_turn else (a.lo, a.hi)
+        nodes[a.name] = uniform_nodes(lo, hi, h[i])
+    return nodes
 
 
 def table_fit_poses(field, nodes: dict[str, np.ndarray]) -> np.ndarray:

@@ -45,6 +45,7 @@ from . import (
     Context,
     check_axis_names,
     control_path,
+    one_axis_built,
     render_template,
     table_residuals,
     tool_offset_not_carried,
@@ -52,7 +53,6 @@ from . import (
 from .grid import (
     AxisTable,
     check_limit,
-    correction_residual,
     fit_tables,
     one_axis_tables,
     table_fit_poses,
@@ -121,9 +121,6 @@ def build(ctx: Context) -> Built:
         ),
     ]
 
-    def residual(q, t):
-        return correction_residual(fld, tables, q, t)
-
     at_table, others = table_residuals(fld, tables, ctx)
     not_carried = [
         "products of an axis position and a function of another axis (an angular error "
@@ -181,16 +178,4 @@ def build(ctx: Context) -> Built:
         "tables": f"{len(by_input)} of {max_tables}",
         "points per table": f"{max(len(nodes[J]) for J in by_input)} of {max_points}",
     }
-    return Built(
-        residual,
-        render,
-        values,
-        {a: sp.h[i] for i, a in enumerate(inputs)},
-        sp.bound_um,
-        None,
-        not_carried,
-        summary,
-        limits,
-        notes,
-        table_tool=np.asarray(ctx.table_tool, float),
-    )
+    return one_axis_built(ctx, tables, sp, render, values, not_carried, summary, limits, notes)

@@ -58,6 +58,7 @@ from . import (
     Built,
     Context,
     check_axis_names,
+    one_axis_built,
     render_template,
     table_residuals,
     tool_offset_not_carried,
@@ -65,7 +66,6 @@ from . import (
 from .grid import (
     AxisTable,
     check_limit,
-    correction_residual,
     fit_tables,
     one_axis_tables,
     table_fit_poses,
@@ -251,9 +251,6 @@ def build(ctx: Context) -> Built:
     # the negative direction": the value is the negative of the axis motion wanted
     sgn = -1.0
 
-    def residual(q, t):
-        return correction_residual(fld, tables, q, t)
-
     at_table, others = table_residuals(fld, tables, ctx)
     not_carried = [
         "the lever-arm products (an angular error of one axis times the position of "
@@ -354,16 +351,4 @@ def build(ctx: Context) -> Built:
         "LEC points per axis": f"{max((len(t.nodes) for t in lec), default=0)} of "
         f"{lim['max_lec_points']}",
     }
-    return Built(
-        residual,
-        render,
-        values,
-        {a: sp.h[i] for i, a in enumerate(inputs)},
-        sp.bound_um,
-        None,
-        not_carried,
-        summary,
-        limits,
-        notes,
-        table_tool=np.asarray(ctx.table_tool, float),
-    )
+    return one_axis_built(ctx, tables, sp, render, values, not_carried, summary, limits, notes)
