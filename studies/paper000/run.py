@@ -569,20 +569,17 @@ def _plot(st: pd.DataFrame, pt: pd.DataFrame, out: Path, name: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
-    methods = list(dict.fromkeys(st["method"]))
-    ax[0].boxplot([st.loc[st.method == m, "error_rigid_removed_um"] for m in methods],
-                  showfliers=False)
-    ax[0].set_xticks(range(1, len(methods) + 1), methods, rotation=30)
-    ax[0].set_yscale("log")
-    ax[0].set_ylabel("station error (um)")
-    ax[0].set_title("stations vs truth (rigid motion removed)")
-    methods = list(dict.fromkeys(pt["method"]))
-    ax[1].boxplot([pt.loc[pt.method == m, "rms_rigid_removed_um"] for m in methods],
-                  showfliers=False)
-    ax[1].set_xticks(range(1, len(methods) + 1), methods, rotation=30)
-    ax[1].set_yscale("log")
-    ax[1].set_ylabel("point error RMS per trial (um)")
-    ax[1].set_title("points vs truth (rigid motion removed)")
+    panels = ((st, "error_rigid_removed_um", "station error (um)",
+               "stations vs truth (rigid motion removed)"),
+              (pt, "rms_rigid_removed_um", "point error RMS per trial (um)",
+               "points vs truth (rigid motion removed)"))
+    for a, (df, col, ylabel, title) in zip(ax, panels):
+        methods = list(dict.fromkeys(df["method"]))
+        a.boxplot([df.loc[df.method == m, col] for m in methods], showfliers=False)
+        a.set_xticks(range(1, len(methods) + 1), methods, rotation=30)
+        a.set_yscale("log")
+        a.set_ylabel(ylabel)
+        a.set_title(title)
     fig.tight_layout()
     fig.savefig(out / name, dpi=120)
     plt.close(fig)
