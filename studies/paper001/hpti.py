@@ -1040,6 +1040,8 @@ class CoreEstimator:
         # joint: (held mask with the gauge pivots, rank deficient after them) per free set;
         # decided once, at the structural point (nominal points), as the study does
         self._joint_cache: dict[tuple, tuple[np.ndarray, bool]] = {}
+        # points-only / two-phase: the strategy's plan (datum, pivots) per strategy
+        self._plans: dict[tuple, Any] = {}
 
     def data(self, data: HPTIData, weights: np.ndarray | float) -> np.ndarray:
         """The problem's data vector p: pose index, nominal point as tool offset, readings
@@ -1147,9 +1149,17 @@ class CoreEstimator:
         return out.x, [out]
 
     def _phased(self, strategy: str, x0, p, phase1: Sequence[str]):
-        """points-only and two-phase as core strategies run by ``Identifier.run``."""
+        """points-only and two-phase as core strategies run by ``Identifier.run``, on a
+        plan (:meth:`volcal.analysis.identify.Identifier.plan`) made at the first call per
+        strategy: the datum and the held pivots are structural, decided once as the
+        study's estimator does, not per trial."""
         from volcal.problem.strategies import POINTS_ONLY, Phase, PhasedStrategy
 
+        key = (strategy, tuple(phase1) if strategy == "two-phase" else ())
+        plan = self._plans.get(key)
+        if plan is not None:
+            x, outs, _, _ = self.identifier.run(plan, x0, p)
+            return x, outs
         held = self._icrs.copy()
         if strategy == "points-only":
             strat = POINTS_ONLY
@@ -1169,7 +1179,8 @@ class CoreEstimator:
                     Phase(hold=frozenset({"stations", "frame"})),
                 ),
             )
-        x, outs, _, _ = self.identifier.run(strat, x0, p, user_fixed=held)
+        plan = self._plans[key] = self.identifier.plan(strat, x0, p, user_fixed=held)
+        x, outs, _, _ = self.identifier.run(plan, x0, p)
         return x, outs
 
 

@@ -15,8 +15,8 @@ structured products in numpy:
 * J^T J's error-parameter block pose by pose, G_p^T (D_p^T D_p) G_p with D_p^T D_p the
   3 x 3 sum over the readings of pose p of d(r)/d(point) d(r)/d(point)^T, as one dense
   product per chunk: 3 n_poses n_theta^2 flops instead of N n_theta^2;
-* the station and global columns (one nonzero per reading and parameter) through a
-  sparse matrix per chunk;
+* the station and global columns (one nonzero per reading and parameter) by bincounts
+  into dense arrays of the chunk's size;
 * R station by station on the columns a reading touches (error parameters, its station's,
   the globals; :class:`volcal.base.linalg.StackedQR`), then the stations' triangles
   together, as :meth:`volcal.problem.residuals.DenseJacobian.r_factor` does.
@@ -38,7 +38,6 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
-import scipy.sparse as sp
 
 from volcal.model.numpy_call import NumpyCall
 
@@ -178,56 +177,58 @@ class ChunkedEvaluator:
         r = self.residuals(xs, p)
         return 0.5 * float(r @ r)
 
-    def _sparse(
-        self, ps: slice, idx: np.ndarray, pl: np.ndarray, rows: np.ndarray
-    ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
-        """The chunk's rows of J in two sparse factors: D (n_r, 3 n) with each reading's
-        d(r)/d(point) in the columns of its pose (J_theta = D G_stack) and the station and
-        global columns (n_r, n_x - n_theta), one nonzero per reading and parameter."""
-        nps, ng, nr = self._n_ps, self._n_g, len(idx)
-        n = ps.stop - ps.start
-        D = sp.csr_matrix(
-            (
-                rows[:3].T.ravel(),
-                (3 * pl[:, None] + np.arange(3)[None, :]).ravel(),
-                np.arange(0, 3 * nr + 1, 3),
-            ),
-            shape=(nr, 3 * n),
-        )
-        cols = np.concatenate(
+    def _rest_columns(self, idx: np.ndarray) -> np.ndarray:
+        """(n_r, n_ps + n_g): each reading's columns among the station and global ones
+        (counted from the first of them), in the order of its derivative rows 3.."""
+        nps, ng = self._n_ps, self._n_g
+        return np.concatenate(
             [
                 nps * self._station[idx][:, None] + np.arange(nps)[None, :],
-                np.broadcast_to(nps * self._n_st + np.arange(ng), (nr, ng)),
+                np.broadcast_to(nps * self._n_st + np.arange(ng), (len(idx), ng)),
             ],
             axis=1,
         )
-        L = nps + ng
-        A = sp.csr_matrix(
-            (rows[3 : 3 + L].T.ravel(), cols.ravel(), np.arange(0, nr * L + 1, L)),
-            shape=(nr, self._n_x - self._nt),
-        )
-        return D, A
 
     def gram(self, xs: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(r (N,), J^T r (n_x,), J^T J (n_x, n_x)) at scaled x: the Gauss-Newton system,
         the same numbers as the problem's whole-graph ``gram`` to rounding.  With J =
         [D G_stack | A] per chunk: J^T J = [G^T (D^T D) G, G^T (D^T A); ., A^T A], where
         D^T D is block diagonal (3 x 3 per pose): 3 n_poses n_theta^2 flops, not N
-        n_theta^2."""
+        n_theta^2.  The sums over a chunk's readings of the few nonzeros each reading has
+        (its 3 point derivatives, its station's and the global ones) are bincounts into
+        dense arrays of the chunk's size: for the small chunks of a Monte Carlo trial a
+        sparse matrix product costs more in its construction than in its arithmetic."""
         nt, n = self._nt, self._n_x
+        L = self._n_ps + self._n_g
+        n_rest = n - nt
         r = np.empty(self.n_readings)
         g = np.zeros(n)
         H = np.zeros((n, n))
         for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
             r[idx] = rc
-            D, A = self._sparse(ps, idx, pl, rows)
-            Gf = G.reshape(-1, nt)  # G_stack of the chunk (3 n, n_theta)
-            Dt, At = D.T.tocsr(), A.T.tocsr()
-            g[:nt] += Gf.T @ (Dt @ rc)
-            g[nt:] += At @ rc
-            H[:nt, :nt] += Gf.T @ ((Dt @ D) @ Gf)
-            H[:nt, nt:] += Gf.T @ (Dt @ A).toarray()
-            H[nt:, nt:] += (At @ A).toarray()
+            k = ps.stop - ps.start
+            d, a = rows[:3], rows[3 : 3 + L]  # (3, n_r) d(r)/d(point); (L, n_r) the rest
+            cols = self._rest_columns(idx)  # (n_r, L)
+            Gf = G.reshape(-1, nt)  # G_stack of the chunk (3 k, n_theta)
+            # D^T r (3 k,) and D^T D (k, 3, 3): per pose, sums over its readings
+            Dr = np.stack([np.bincount(pl, d[c] * rc, k) for c in range(3)], axis=1)
+            M = np.empty((k, 3, 3))
+            for c1 in range(3):
+                for c2 in range(c1, 3):
+                    M[:, c1, c2] = M[:, c2, c1] = np.bincount(pl, d[c1] * d[c2], k)
+            # D^T A (3 k, n_rest): reading i adds d_c(i) a_j(i) at (3 pose + c, column j)
+            at = (3 * pl[:, None, None] + np.arange(3)[None, :, None]) * n_rest + cols[:, None, :]
+            DtA = np.bincount(
+                at.ravel(), (d.T[:, :, None] * a.T[:, None, :]).ravel(), 3 * k * n_rest
+            ).reshape(3 * k, n_rest)
+            g[:nt] += Gf.T @ Dr.ravel()
+            g[nt:] += np.bincount(cols.ravel(), (a * rc[None, :]).T.ravel(), n_rest)
+            H[:nt, :nt] += Gf.T @ (M @ G).reshape(-1, nt)
+            H[:nt, nt:] += Gf.T @ DtA
+            aa = cols[:, :, None] * n_rest + cols[:, None, :]
+            H[nt:, nt:] += np.bincount(
+                aa.ravel(), (a.T[:, :, None] * a.T[:, None, :]).ravel(), n_rest * n_rest
+            ).reshape(n_rest, n_rest)
         H[nt:, :nt] = H[:nt, nt:].T
         # G^T (D^T D G) is symmetric but for rounding; exactly so for the solvers
         H[:nt, :nt] = 0.5 * (H[:nt, :nt] + H[:nt, :nt].T)
@@ -243,14 +244,14 @@ class ChunkedEvaluator:
         width = nt + nps + ng
         r = np.empty(self.n_readings)
         acc = [StackedQR(width) for _ in range(n_st)]
-        for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
+        for _ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
             r[idx] = rc
-            D, _ = self._sparse(ps, idx, pl, rows)
             sti = self._station[idx]
             o = np.argsort(sti, kind="stable")
-            # the chunk's rows station by station: [D G_stack | station's, globals]
+            # the chunk's rows station by station: [D G_stack | station's, globals], a
+            # reading's theta row being sum_c d(r)/d(p_c) d(p_c)/d(theta) of its pose
             Jb = np.empty((len(idx), width))
-            Jb[:, :nt] = D[o] @ G.reshape(-1, nt)
+            Jb[:, :nt] = np.einsum("cr,rct->rt", rows[:3, o], G[pl[o]])
             Jb[:, nt:] = rows[3 : 3 + nps + ng, o].T
             bounds = np.searchsorted(sti[o], np.arange(n_st + 1))
             for j in np.flatnonzero(np.diff(bounds)):

@@ -49,13 +49,39 @@ def _qr_solve(A: np.ndarray, b: np.ndarray, *, rank_check: bool = False) -> np.n
     LinAlgError when exactly singular, and with ``rank_check`` when numerically singular:
     a diagonal of R below n eps times the largest, the tolerance
     ``numpy.linalg.matrix_rank`` applies to singular values, here on R's diagonal, which
-    an unpivoted QR makes a cheap indicator rather than a rank-revealing one)."""
-    Q, R = np.linalg.qr(A)
-    if rank_check and len(R):
-        d = np.abs(np.diag(R))
-        if d.min() <= len(d) * np.finfo(float).eps * d.max():
-            raise np.linalg.LinAlgError("numerically singular system")
-    return sla.solve_triangular(R, Q.T @ b, check_finite=False)
+    an unpivoted QR makes a cheap indicator rather than a rank-revealing one).  Q^T b is
+    applied from the Householder reflectors (LAPACK ormqr) without forming Q."""
+    if A.shape[0] == 0:
+        return np.zeros(0)
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+        return np.full(len(b), np.nan)  # the caller reports the invalid number
+    qtb, R = sla.qr_multiply(A, b, mode="right")
+    d = np.abs(np.diag(R))
+    if d.min() == 0.0 or (rank_check and d.min() <= len(d) * np.finfo(float).eps * d.max()):
+        raise np.linalg.LinAlgError(
+            "singular system" if d.min() == 0.0 else "numerically singular system"
+        )
+    return sla.solve_triangular(R, qtb, check_finite=False)
+
+
+def _selection(Z: np.ndarray) -> np.ndarray | None:
+    """The indices of the variables Z (n_x, n_z) selects when it is a selection (no datum
+    condition on the free variables: Z's columns are unit vectors in increasing order),
+    else None; the reduced system is then a sub-matrix, not two products with Z."""
+    n_z = Z.shape[1]
+    rows = np.flatnonzero(np.any(Z != 0, axis=1))
+    if len(rows) != n_z or not np.array_equal(Z[rows, np.arange(n_z)], np.ones(n_z)):
+        return None
+    return rows if np.count_nonzero(Z) == n_z else None
+
+
+def _expand(Z: np.ndarray, sel: np.ndarray | None, dz: np.ndarray) -> np.ndarray:
+    """dx = Z dz (n_x,), by placing dz at the selected variables when Z is a selection."""
+    if sel is None:
+        return Z @ dz
+    dx = np.zeros(Z.shape[0])
+    dx[sel] = dz
+    return dx
 
 
 def feasible_basis(problem: IdentificationProblem, fixed: np.ndarray | None) -> np.ndarray:
@@ -131,15 +157,16 @@ class GaussNewtonSolver:
         level = float(np.finfo(float).eps * (np.abs(r) @ (np.abs(w * m) + np.abs(r))))
         if Z.shape[1] == 0:
             return f, np.zeros(self.problem.n_x), 0.0, 0.0, level
-        Hz = Z.T @ H @ Z
-        gz = Z.T @ g
+        sel = _selection(Z)
+        Hz = H[np.ix_(sel, sel)] if sel is not None else Z.T @ H @ Z
+        gz = g[sel] if sel is not None else Z.T @ g
         A = Hz + mu * np.diag(np.fmax(np.diag(Hz), 1e-12))
         try:
             dz = -_qr_solve(A, gz)
         except np.linalg.LinAlgError:
             dz = np.full(len(gz), np.nan)
         pred = -(float(gz @ dz) + 0.5 * float(dz @ (Hz @ dz)))
-        return f, Z @ dz, float(np.max(np.abs(gz))), pred, level
+        return f, _expand(Z, sel, dz), float(np.max(np.abs(gz))), pred, level
 
     def solve_levenberg(
         self,
@@ -168,6 +195,7 @@ class GaussNewtonSolver:
             raise ValueError(f"damping: expected {pr.n_x} finite values >= 0, got {d.shape}")
         t0 = time.perf_counter()
         Z = feasible_basis(pr, fixed)
+        sel = _selection(Z)
         xs = project_feasible(pr, pr.to_scaled(x0), fixed)
         max_iter = self.max_iter if max_iter is None else max_iter
         status, it, f = "Maximum_Iterations_Exceeded", 0, float("nan")
@@ -175,10 +203,12 @@ class GaussNewtonSolver:
             r, g, H = pr.chunked.gram(xs, p)
             f = 0.5 * float(r @ r)
             try:
-                A = Z.T @ (H + np.diag(d)) @ Z
+                Hd = H + np.diag(d)
+                A = Hd[np.ix_(sel, sel)] if sel is not None else Z.T @ Hd @ Z
+                gz = g[sel] if sel is not None else Z.T @ g
                 # an undamped null direction would otherwise give a step of rounding
                 # divided by rounding (the whole-graph solver refused it the same way)
-                dx = -Z @ _qr_solve(A, Z.T @ g, rank_check=True) if Z.shape[1] else np.zeros(pr.n_x)
+                dx = -_expand(Z, sel, _qr_solve(A, gz, rank_check=True))
             except np.linalg.LinAlgError:  # a singular system: no damping on a null direction
                 status = "Singular_Step"
                 break
