@@ -128,15 +128,17 @@ class ChunkedEvaluator:
         k = a.shape[1]
         return a if k == n else np.concatenate([a, np.repeat(a[:, -1:], n - k, axis=1)], 1)
 
-    def _chunks(self, xs: np.ndarray, p: np.ndarray, derivatives: bool):
+    def _chunks(self, xs: np.ndarray, p: np.ndarray, derivatives: bool, theta: bool = True):
         """Per chunk of poses: (slice of poses, reading indices (pose-sorted), their local
         pose index, r, rows of d(r)/d(point, station, globals) (k, n_r) or None, G
-        (n, 3, n_theta) or None)."""
-        q, t, m, w, theta, st, glob = self._split(xs, p)
+        (n, 3, n_theta) or None).  ``theta=False``: no G (d(point)/d(theta) is not
+        evaluated) even with ``derivatives``."""
+        q, t, m, w, theta_v, st, glob = self._split(xs, p)
         Bp, Br, nt = self.pose_chunk, self.read_chunk, self._nt
-        f_pose = self._call("pose" if derivatives else "point")
+        with_g = derivatives and theta
+        f_pose = self._call("pose" if with_g else "point")
         f_read = self._call("read" if derivatives else "value")
-        TH = np.repeat(theta[:, None], Bp, axis=1)
+        TH = np.repeat(theta_v[:, None], Bp, axis=1)
         GL = np.repeat(glob[:, None], Br, axis=1)
         for a in range(0, self.n_poses, Bp):
             b = min(a + Bp, self.n_poses)
@@ -157,10 +159,12 @@ class ChunkedEvaluator:
             )
             res = f_read(*args)
             r = res[0].ravel()[:nr]
-            if derivatives:
+            if with_g:
                 # G: the transpose of (n_theta, 3 Bp) [G_0^T | G_1^T | ...]
                 G = out[1][:, : 3 * n].T.reshape(n, 3, nt)
                 yield slice(a, b), idx, pl, r, res[1][:, :nr], G
+            elif derivatives:
+                yield slice(a, b), idx, pl, r, res[1][:, :nr], None
             else:
                 yield slice(a, b), idx, pl, r, None, None
 
@@ -189,7 +193,9 @@ class ChunkedEvaluator:
             axis=1,
         )
 
-    def gram(self, xs: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def gram(
+        self, xs: np.ndarray, p: np.ndarray, *, theta: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(r (N,), J^T r (n_x,), J^T J (n_x, n_x)) at scaled x: the Gauss-Newton system,
         the same numbers as the problem's whole-graph ``gram`` to rounding.  With J =
         [D G_stack | A] per chunk: J^T J = [G^T (D^T D) G, G^T (D^T A); ., A^T A], where
@@ -197,18 +203,29 @@ class ChunkedEvaluator:
         n_theta^2.  The sums over a chunk's readings of the few nonzeros each reading has
         (its 3 point derivatives, its station's and the global ones) are bincounts into
         dense arrays of the chunk's size: for the small chunks of a Monte Carlo trial a
-        sparse matrix product costs more in its construction than in its arithmetic."""
+        sparse matrix product costs more in its construction than in its arithmetic.
+
+        ``theta=False`` (a solve that holds every error parameter, e.g. a strategy's
+        station phase): the error-parameter rows and columns of J^T r and J^T J are left
+        at zero and d(point)/d(theta) is not evaluated, the costly part of a chunk."""
         nt, n = self._nt, self._n_x
         L = self._n_ps + self._n_g
         n_rest = n - nt
         r = np.empty(self.n_readings)
         g = np.zeros(n)
         H = np.zeros((n, n))
-        for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
+        for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True, theta=theta):
             r[idx] = rc
             k = ps.stop - ps.start
             d, a = rows[:3], rows[3 : 3 + L]  # (3, n_r) d(r)/d(point); (L, n_r) the rest
             cols = self._rest_columns(idx)  # (n_r, L)
+            g[nt:] += np.bincount(cols.ravel(), (a * rc[None, :]).T.ravel(), n_rest)
+            aa = cols[:, :, None] * n_rest + cols[:, None, :]
+            H[nt:, nt:] += np.bincount(
+                aa.ravel(), (a.T[:, :, None] * a.T[:, None, :]).ravel(), n_rest * n_rest
+            ).reshape(n_rest, n_rest)
+            if G is None:
+                continue
             Gf = G.reshape(-1, nt)  # G_stack of the chunk (3 k, n_theta)
             # D^T r (3 k,) and D^T D (k, 3, 3): per pose, sums over its readings
             Dr = np.stack([np.bincount(pl, d[c] * rc, k) for c in range(3)], axis=1)
@@ -222,13 +239,8 @@ class ChunkedEvaluator:
                 at.ravel(), (d.T[:, :, None] * a.T[:, None, :]).ravel(), 3 * k * n_rest
             ).reshape(3 * k, n_rest)
             g[:nt] += Gf.T @ Dr.ravel()
-            g[nt:] += np.bincount(cols.ravel(), (a * rc[None, :]).T.ravel(), n_rest)
             H[:nt, :nt] += Gf.T @ (M @ G).reshape(-1, nt)
             H[:nt, nt:] += Gf.T @ DtA
-            aa = cols[:, :, None] * n_rest + cols[:, None, :]
-            H[nt:, nt:] += np.bincount(
-                aa.ravel(), (a.T[:, :, None] * a.T[:, None, :]).ravel(), n_rest * n_rest
-            ).reshape(n_rest, n_rest)
         H[nt:, :nt] = H[:nt, nt:].T
         # G^T (D^T D G) is symmetric but for rounding; exactly so for the solvers
         H[:nt, :nt] = 0.5 * (H[:nt, :nt] + H[:nt, :nt].T)

@@ -64,15 +64,31 @@ def _qr_solve(A: np.ndarray, b: np.ndarray, *, rank_check: bool = False) -> np.n
     return sla.solve_triangular(R, qtb, check_finite=False)
 
 
+def _spd_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """A^-1 b for a symmetric Gauss-Newton matrix A: by Cholesky (a third of a QR's
+    work) when A is numerically positive definite, else by :func:`_qr_solve` (which
+    raises LinAlgError when A is exactly singular)."""
+    if A.shape[0] and np.all(np.isfinite(A)) and np.all(np.isfinite(b)):
+        try:
+            c = sla.cho_factor(A, check_finite=False)
+        except np.linalg.LinAlgError:
+            pass
+        else:
+            return sla.cho_solve(c, b, check_finite=False)
+    return _qr_solve(A, b)
+
+
 def _selection(Z: np.ndarray) -> np.ndarray | None:
     """The indices of the variables Z (n_x, n_z) selects when it is a selection (no datum
     condition on the free variables: Z's columns are unit vectors in increasing order),
     else None; the reduced system is then a sub-matrix, not two products with Z."""
     n_z = Z.shape[1]
-    rows = np.flatnonzero(np.any(Z != 0, axis=1))
-    if len(rows) != n_z or not np.array_equal(Z[rows, np.arange(n_z)], np.ones(n_z)):
+    if np.count_nonzero(Z) != n_z:
         return None
-    return rows if np.count_nonzero(Z) == n_z else None
+    rows, cols = np.nonzero(Z)
+    if not (np.array_equal(cols, np.arange(n_z)) and np.all(Z[rows, cols] == 1.0)):
+        return None
+    return rows
 
 
 def _expand(Z: np.ndarray, sel: np.ndarray | None, dz: np.ndarray) -> np.ndarray:
@@ -139,6 +155,15 @@ class GaussNewtonSolver:
         #: the steps the last :meth:`solve` took (an iteration may end without one)
         self.steps_taken = 0
 
+    def _basis_kind(self, Z: np.ndarray) -> tuple[np.ndarray | None, bool]:
+        """(the selection Z makes or None (:func:`_selection`), whether Z moves any error
+        parameter: a step that holds them all needs no d(point)/d(theta)), kept for the
+        last Z (one per solve, not modified)."""
+        last = self.__dict__.get("_basis_last")
+        if last is None or last[0] is not Z:
+            last = self._basis_last = (Z, _selection(Z), bool(np.any(Z[: self.problem.n_theta])))
+        return last[1], last[2]
+
     def step(
         self, xs: np.ndarray, p: np.ndarray, Z: np.ndarray, mu: float
     ) -> tuple[float, np.ndarray, float, float, float]:
@@ -147,7 +172,8 @@ class GaussNewtonSolver:
         of f the local model predicts for dx and the rounding level of f (below it two
         evaluations of f cannot rank two points).  A singular system gives a NaN step."""
         ch = self.problem.chunked
-        r, g, H = ch.gram(xs, p)
+        sel, theta = self._basis_kind(Z)
+        r, g, H = ch.gram(xs, p, theta=theta)
         f = 0.5 * float(r @ r)
         # each residual w (reading - m) carries the rounding of a reading of size |m| (or
         # |m + r / w|), eps |w m| + eps |r|; f = 0.5 sum r^2 then moves by up to their sum
@@ -157,12 +183,11 @@ class GaussNewtonSolver:
         level = float(np.finfo(float).eps * (np.abs(r) @ (np.abs(w * m) + np.abs(r))))
         if Z.shape[1] == 0:
             return f, np.zeros(self.problem.n_x), 0.0, 0.0, level
-        sel = _selection(Z)
         Hz = H[np.ix_(sel, sel)] if sel is not None else Z.T @ H @ Z
         gz = g[sel] if sel is not None else Z.T @ g
         A = Hz + mu * np.diag(np.fmax(np.diag(Hz), 1e-12))
         try:
-            dz = -_qr_solve(A, gz)
+            dz = -_spd_solve(A, gz)
         except np.linalg.LinAlgError:
             dz = np.full(len(gz), np.nan)
         pred = -(float(gz @ dz) + 0.5 * float(dz @ (Hz @ dz)))
@@ -195,12 +220,12 @@ class GaussNewtonSolver:
             raise ValueError(f"damping: expected {pr.n_x} finite values >= 0, got {d.shape}")
         t0 = time.perf_counter()
         Z = feasible_basis(pr, fixed)
-        sel = _selection(Z)
+        sel, theta = self._basis_kind(Z)
         xs = project_feasible(pr, pr.to_scaled(x0), fixed)
         max_iter = self.max_iter if max_iter is None else max_iter
         status, it, f = "Maximum_Iterations_Exceeded", 0, float("nan")
         for it in range(1, max_iter + 1):  # noqa: B007  (the count is reported)
-            r, g, H = pr.chunked.gram(xs, p)
+            r, g, H = pr.chunked.gram(xs, p, theta=theta)
             f = 0.5 * float(r @ r)
             try:
                 Hd = H + np.diag(d)
