@@ -637,6 +637,64 @@ def _core_rows(runner: hpti.StudyRunner, keys: list, trials: int, scenario: str)
             for (c, d), r in zip(keys, acc.values())]
 
 
+def _cells(md: str) -> tuple[list[str], list[list[str]]]:
+    """(header, rows) of a markdown table's cells, as printed."""
+    rows = [[c.strip() for c in line.strip().strip("|").split("|")]
+            for line in md.splitlines() if line.startswith("|")]
+    return rows[0], rows[2:]
+
+
+def _number(cell: str) -> float | None:
+    """The value of a printed cell (before a '±'), None for text."""
+    try:
+        return float(cell.split("±")[0].strip())
+    except ValueError:
+        return None
+
+
+def compare_tables(old: Path, new: Path) -> str:
+    """Where two runs' tables (``tables.json`` files or the folders holding them) differ in
+    their printed digits: per table and column, the cells that differ and the largest
+    relative difference, with the row where it is largest (markdown)."""
+    def load(path: Path) -> dict:
+        f = path / "tables.json" if path.is_dir() else path
+        if not f.is_file():
+            raise SystemExit(f"{f}: no tables.json (a folder written by run.py, or the file)")
+        return json.loads(f.read_text(encoding="utf-8"))
+
+    a, b = load(old), load(new)
+    rows = []
+    for name in a:
+        if name not in b:
+            continue
+        head, ra = _cells(a[name])
+        head_b, rb = _cells(b[name])
+        if head != head_b or len(ra) != len(rb):
+            rows.append({"table": name, "column": "(layout)", "n": "-", "rel": "-",
+                         "where": "headers or row count differ"})
+            continue
+        for j, col in enumerate(head):
+            diff = []
+            for x, y in zip(ra, rb):
+                if x[j] == y[j]:
+                    continue
+                u, v = _number(x[j]), _number(y[j])
+                d = abs(v - u) if u is not None and v is not None else np.inf
+                diff.append((d / abs(u) if u else np.inf, d, x, y))
+            if not diff:
+                continue
+            r, d, x, y = max(diff, key=lambda t: (t[0], t[1]))
+            rows.append({"table": name, "column": col, "n": f"{len(diff)} of {len(ra)}",
+                         "rel": f"{r:.3g}", "abs": f"{max(t[1] for t in diff):.3g}",
+                         "where": f"{' / '.join(x[:2])}: {x[j]} -> {y[j]}"})
+    if not rows:
+        return "every printed cell of every table is the same"
+    return rt.markdown(rows, ["table", "column", "n", "rel", "abs", "where"],
+                       ["table", "column", "cells that differ", "largest relative difference",
+                        "largest absolute difference", "where the relative one is (first "
+                        "columns: old -> new)"])
+
+
 def core_check(cfg: dict, trials: int, scenarios: list[str]) -> str:
     """Every NLP case (points-only, two-phase, joint) of the first ``trials`` trials of
     every scenario, and the damping sweep on its scenario, solved by the study's estimator
@@ -692,12 +750,19 @@ def main(argv: list[str] | None = None) -> int:
                     help="print how far volcal's core (identify's problem and solvers) "
                          "agrees with the study's estimator on the points-only and two-phase "
                          "cases of trials 0..N-1; compute nothing else")
+    ap.add_argument("--compare-tables", nargs=2, type=Path, default=None,
+                    metavar=("OLD", "NEW"),
+                    help="print where two runs' tables (tables.json or its folder) differ "
+                         "in their printed digits; compute nothing")
     ap.add_argument("--estimator", choices=hpti.ESTIMATORS, default=None,
                     help="who solves the NLP strategies: volcal's core (default, config "
                          "study.estimator) or the study's own IPOPT problem; the chunks "
                          "record it")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
+    if args.compare_tables is not None:
+        print(compare_tables(*args.compare_tables))
+        return 0
     if args.core_check is not None:
         if args.core_check < 1:
             ap.error("--core-check: expected a number of trials >= 1")
