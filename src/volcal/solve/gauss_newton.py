@@ -64,18 +64,21 @@ def _qr_solve(A: np.ndarray, b: np.ndarray, *, rank_check: bool = False) -> np.n
     return sla.solve_triangular(R, qtb, check_finite=False)
 
 
-def _spd_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """A^-1 b for a symmetric Gauss-Newton matrix A: by Cholesky (a third of a QR's
-    work) when A is numerically positive definite, else by :func:`_qr_solve` (which
-    raises LinAlgError when A is exactly singular)."""
+def _spd_solve(A: np.ndarray, b: np.ndarray, *, rank_check: bool = False) -> np.ndarray:
+    """A^-1 b for a symmetric Gauss-Newton matrix A: by Cholesky (a third of a QR's work)
+    when its pivots show A well conditioned (the smallest squared diagonal of the factor
+    above sqrt(eps) times the largest), else by :func:`_qr_solve` with ``rank_check``, so
+    that a nearly singular system is solved, or refused, exactly as before."""
     if A.shape[0] and np.all(np.isfinite(A)) and np.all(np.isfinite(b)):
         try:
             c = sla.cho_factor(A, check_finite=False)
         except np.linalg.LinAlgError:
             pass
         else:
-            return sla.cho_solve(c, b, check_finite=False)
-    return _qr_solve(A, b)
+            d = np.diag(c[0]) ** 2
+            if d.min() > np.sqrt(np.finfo(float).eps) * d.max():
+                return sla.cho_solve(c, b, check_finite=False)
+    return _qr_solve(A, b, rank_check=rank_check)
 
 
 def _selection(Z: np.ndarray) -> np.ndarray | None:
@@ -233,7 +236,7 @@ class GaussNewtonSolver:
                 gz = g[sel] if sel is not None else Z.T @ g
                 # an undamped null direction would otherwise give a step of rounding
                 # divided by rounding (the whole-graph solver refused it the same way)
-                dx = -_expand(Z, sel, _qr_solve(A, gz, rank_check=True))
+                dx = -_expand(Z, sel, _spd_solve(A, gz, rank_check=True))
             except np.linalg.LinAlgError:  # a singular system: no damping on a null direction
                 status = "Singular_Step"
                 break
