@@ -684,7 +684,7 @@ class Identifier:
         solve: bool,
     ) -> tuple[np.ndarray, list[SolveOutcome], StrategyPlan]:
         given = strategy if isinstance(strategy, StrategyPlan) else None
-        strat = given.strategy if given is not None else get_strategy(strategy)
+        strat = strategy.strategy if isinstance(strategy, StrategyPlan) else get_strategy(strategy)
         if not isinstance(strat, PhasedStrategy):
             raise InputError(
                 f"the {strat.name} strategy does not solve the joint problem; "
