@@ -193,6 +193,29 @@ class ChunkedEvaluator:
             axis=1,
         )
 
+    def _gram_index(self, start: int, idx: np.ndarray, pl: np.ndarray) -> dict[str, np.ndarray]:
+        """The bins of :meth:`gram`'s bincounts for the chunk of poses from ``start`` (they
+        depend on the layout only: made once per chunk and kept): a reading's station and
+        global columns (``a``) and their pairs (``aa``), its pose's 3 point rows (``d``),
+        their pairs (``dd``, the pose's 3 x 3 block) and the point rows times the columns
+        (``da``)."""
+        cache: dict = self.__dict__.setdefault("_gram_bins", {})
+        ix = cache.get(start)
+        if ix is None:
+            n_rest = self._n_x - self._nt
+            cols = self._rest_columns(idx)  # (n_r, L)
+            c3 = np.arange(3)
+            ix = cache[start] = {
+                "a": cols.ravel(),
+                "aa": (cols[:, :, None] * n_rest + cols[:, None, :]).ravel(),
+                "d": (3 * pl[:, None] + c3[None, :]).ravel(),
+                "dd": (9 * pl[:, None, None] + 3 * c3[None, :, None] + c3[None, None, :]).ravel(),
+                "da": (
+                    (3 * pl[:, None, None] + c3[None, :, None]) * n_rest + cols[:, None, :]
+                ).ravel(),
+            }
+        return ix
+
     def gram(
         self, xs: np.ndarray, p: np.ndarray, *, theta: bool = True
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -218,28 +241,24 @@ class ChunkedEvaluator:
             r[idx] = rc
             k = ps.stop - ps.start
             d, a = rows[:3], rows[3 : 3 + L]  # (3, n_r) d(r)/d(point); (L, n_r) the rest
-            cols = self._rest_columns(idx)  # (n_r, L)
-            g[nt:] += np.bincount(cols.ravel(), (a * rc[None, :]).T.ravel(), n_rest)
-            aa = cols[:, :, None] * n_rest + cols[:, None, :]
+            ix = self._gram_index(ps.start, idx, pl)
+            g[nt:] += np.bincount(ix["a"], (a * rc[None, :]).T.ravel(), n_rest)
             H[nt:, nt:] += np.bincount(
-                aa.ravel(), (a.T[:, :, None] * a.T[:, None, :]).ravel(), n_rest * n_rest
+                ix["aa"], (a.T[:, :, None] * a.T[:, None, :]).ravel(), n_rest * n_rest
             ).reshape(n_rest, n_rest)
             if G is None:
                 continue
             Gf = G.reshape(-1, nt)  # G_stack of the chunk (3 k, n_theta)
+            dT = d.T
             # D^T r (3 k,) and D^T D (k, 3, 3): per pose, sums over its readings
-            Dr = np.stack([np.bincount(pl, d[c] * rc, k) for c in range(3)], axis=1)
-            M = np.empty((k, 3, 3))
-            for c1 in range(3):
-                for c2 in range(c1, 3):
-                    M[:, c1, c2] = M[:, c2, c1] = np.bincount(pl, d[c1] * d[c2], k)
+            Dr = np.bincount(ix["d"], (dT * rc[:, None]).ravel(), 3 * k)
+            M = np.bincount(ix["dd"], (dT[:, :, None] * dT[:, None, :]).ravel(), 9 * k)
             # D^T A (3 k, n_rest): reading i adds d_c(i) a_j(i) at (3 pose + c, column j)
-            at = (3 * pl[:, None, None] + np.arange(3)[None, :, None]) * n_rest + cols[:, None, :]
             DtA = np.bincount(
-                at.ravel(), (d.T[:, :, None] * a.T[:, None, :]).ravel(), 3 * k * n_rest
+                ix["da"], (dT[:, :, None] * a.T[:, None, :]).ravel(), 3 * k * n_rest
             ).reshape(3 * k, n_rest)
-            g[:nt] += Gf.T @ Dr.ravel()
-            H[:nt, :nt] += Gf.T @ (M @ G).reshape(-1, nt)
+            g[:nt] += Gf.T @ Dr
+            H[:nt, :nt] += Gf.T @ (M.reshape(k, 3, 3) @ G).reshape(-1, nt)
             H[:nt, nt:] += Gf.T @ DtA
         H[nt:, :nt] = H[:nt, nt:].T
         # G^T (D^T D G) is symmetric but for rounding; exactly so for the solvers
