@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 import tempfile
 from pathlib import Path
 
@@ -102,6 +103,23 @@ def update_readme(readme: Path, tables: dict[str, str]) -> list[str]:
     if new != text:
         readme.write_text(new, encoding="utf-8")
     return done
+
+
+def print_and_publish(
+    tables: dict[str, str], last_line: str, readme: Path, update: bool, smoke: bool
+) -> None:
+    """The end of a study's run: print every table under a ``## name`` heading, then
+    ``last_line`` (where the results are); with ``update`` (``--update-readme``) copy the
+    tables into ``readme`` (:func:`update_readme`) and say on stderr which it replaced,
+    refused (SystemExit) for a smoke run, whose figures are not the README's."""
+    for name, tab in tables.items():
+        print(f"\n## {name}\n\n{tab}")
+    print(last_line)
+    if update:
+        if smoke:
+            raise SystemExit("--update-readme with --smoke would put smoke figures in the README")
+        done = update_readme(readme, tables)
+        print(f"{Path(readme).name}: updated {', '.join(done) or 'nothing'}", file=sys.stderr)
 
 
 def _cells(line: str) -> list[str]:

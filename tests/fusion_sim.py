@@ -18,6 +18,18 @@ LINE_SIGMA_MM = 0.05e-3  # interferometer: 0.05 um per reading
 CIRCLE_SIGMA_MM = 0.5e-3  # ballbar: 0.5 um per reading
 
 
+def tracker_readings(geom, truth, tools, rng, n_stations: int) -> pd.DataFrame:
+    """The tracker's table beside the other instruments: indep_sim's multilateration over
+    a 4 x 4 x 4 grid of the linear axes with tool offsets ``tools`` (K, 3) mm from
+    ``n_stations`` stations (random numbers from ``rng``), with the readings' standard
+    uncertainty as its ``sigma`` column (mm)."""
+    poses = ind.grid(geom, {"X": 4, "Y": 4, "Z": 4})
+    sim = ind.simulate(geom, truth, poses, tools, rng, n_stations=n_stations)
+    trk = sim.measurements.copy()
+    trk["sigma"] = sim.sigma_mm
+    return trk
+
+
 def interferometer_lines(
     geom: ind.Geometry,
     truth: ind.Truth,

@@ -90,10 +90,7 @@ def one(seed: int) -> list[dict]:
     geom = ind.load_geometry(MODEL)
     rng = np.random.default_rng(seed)
     truth = ind.draw_truth(geom, rng, "representable")
-    poses = ind.grid(geom, {"X": 4, "Y": 4, "Z": 4})
-    sim = ind.simulate(geom, truth, poses, TOOLS, rng, n_stations=5)
-    trk = sim.measurements.copy()
-    trk["sigma"] = sim.sigma_mm
+    trk = fs.tracker_readings(geom, truth, TOOLS, rng, n_stations=5)
     ifm = fs.interferometer_lines(geom, truth, LINES, rng)
     bb = fs.ballbar_circles(geom, truth, CIRCLES, rng)
     q, t = ind.measurement_arrays(geom, trk)

@@ -142,6 +142,23 @@ def representation_floor_um(ex, cfg: dict, truth: NonRepTruth | None) -> float:
 # one trial
 
 
+def reading_layout(meas, stations):
+    """The true stations of ``meas`` and the layout of its readings: true positions (K, 3)
+    mm and dead lengths (K,) mm in the order of ``meas.station_ids`` (from ``stations``),
+    the station id of every reading, the index of every point's first reading and the
+    point x station matrix of the lengths (mm, NaN where a station did not measure)."""
+    true_st = stations.set_index("station").loc[meas.station_ids]
+    S_true = true_st[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
+    d_true = true_st["dead_length_mm"].to_numpy(float)
+    ids = np.asarray(meas.station_ids, dtype=object)[meas.station_index]
+    n_pts = len(meas.point_ids)
+    first = np.zeros(n_pts, int)
+    first[meas.point_index[::-1]] = np.arange(len(meas))[::-1]
+    L = np.full((n_pts, len(meas.station_ids)), np.nan)
+    L[meas.point_index, meas.station_index] = meas.length
+    return S_true, d_true, ids, first, L
+
+
 def one_trial(ex, seed: int, cfg: dict, truth: NonRepTruth | None = None):
     from volcal.analysis.identify import identify, rigid_fit
     from volcal.measurement.multilateration import calibrate_stations, multilaterate
@@ -169,14 +186,8 @@ def one_trial(ex, seed: int, cfg: dict, truth: NonRepTruth | None = None):
     meas = load_measurements(table, m.spec)
     zeros = np.zeros(m.n_errors)
     p_nom, _, _ = m.evaluate(meas.q_internal, meas.tool, zeros)
-    true_st = ex.stations.set_index("station").loc[meas.station_ids]
-    S_true = true_st[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
-    d_true = true_st["dead_length_mm"].to_numpy(float)
-    ids = np.asarray(meas.station_ids, dtype=object)[meas.station_index]
+    S_true, d_true, ids, first, L = reading_layout(meas, ex.stations)
     # true actual points at the commanded axes (the repeatability is noise)
-    n_pts = len(meas.point_ids)
-    first = np.zeros(n_pts, int)
-    first[meas.point_index[::-1]] = np.arange(len(meas))[::-1]
     q_pts = meas.q_internal[first]
     if truth is None:
         p_true, _, _ = m.evaluate(q_pts, tool[0], ex.error_model.values(q_pts, ex.theta_true),
@@ -184,8 +195,6 @@ def one_trial(ex, seed: int, cfg: dict, truth: NonRepTruth | None = None):
     else:
         p_true = p_nom[first] + truth.error_mm(table[truth.geom.axis_names].to_numpy(float)
                                                [first], tool[0])
-    L = np.full((n_pts, len(meas.station_ids)), np.nan)
-    L[meas.point_index, meas.station_index] = meas.length
 
     st_rows, pt_rows = [], []
     cal_by_method = {}
@@ -281,18 +290,10 @@ def subsets(ex, cfg: dict, n_seeds: int) -> pd.DataFrame:
                        ex.budget, seed)
         meas = load_measurements(sim.measurements, m.spec)
         p_nom = m.evaluate(meas.q_internal, meas.tool, np.zeros(m.n_errors))[0]
-        true_st = ex.stations.set_index("station").loc[meas.station_ids]
-        S_true = true_st[["x_mm", "y_mm", "z_mm"]].to_numpy(float)
-        d_true = true_st["dead_length_mm"].to_numpy(float)
-        ids = np.asarray(meas.station_ids, dtype=object)[meas.station_index]
-        n_pts = len(meas.point_ids)
-        first = np.zeros(n_pts, int)
-        first[meas.point_index[::-1]] = np.arange(len(meas))[::-1]
+        S_true, d_true, ids, first, L = reading_layout(meas, ex.stations)
         q_pts = meas.q_internal[first]
         p_true = m.evaluate(q_pts, tool[0], ex.error_model.values(q_pts, ex.theta_true),
                             exact=True)[0]
-        L = np.full((n_pts, len(meas.station_ids)), np.nan)
-        L[meas.point_index, meas.station_index] = meas.length
         cal = calibrate_stations(ids, p_nom, meas.length, method="linear", sigma=meas.sigma)
         order = [list(map(str, cal.stations)).index(s) for s in meas.station_ids]
         S_b, d_b = cal.positions[order], cal.dead_lengths[order]
@@ -568,20 +569,17 @@ def _plot(st: pd.DataFrame, pt: pd.DataFrame, out: Path, name: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
-    methods = list(dict.fromkeys(st["method"]))
-    ax[0].boxplot([st.loc[st.method == m, "error_rigid_removed_um"] for m in methods],
-                  showfliers=False)
-    ax[0].set_xticks(range(1, len(methods) + 1), methods, rotation=30)
-    ax[0].set_yscale("log")
-    ax[0].set_ylabel("station error (um)")
-    ax[0].set_title("stations vs truth (rigid motion removed)")
-    methods = list(dict.fromkeys(pt["method"]))
-    ax[1].boxplot([pt.loc[pt.method == m, "rms_rigid_removed_um"] for m in methods],
-                  showfliers=False)
-    ax[1].set_xticks(range(1, len(methods) + 1), methods, rotation=30)
-    ax[1].set_yscale("log")
-    ax[1].set_ylabel("point error RMS per trial (um)")
-    ax[1].set_title("points vs truth (rigid motion removed)")
+    panels = ((st, "error_rigid_removed_um", "station error (um)",
+               "stations vs truth (rigid motion removed)"),
+              (pt, "rms_rigid_removed_um", "point error RMS per trial (um)",
+               "points vs truth (rigid motion removed)"))
+    for a, (df, col, ylabel, title) in zip(ax, panels):
+        methods = list(dict.fromkeys(df["method"]))
+        a.boxplot([df.loc[df.method == m, col] for m in methods], showfliers=False)
+        a.set_xticks(range(1, len(methods) + 1), methods, rotation=30)
+        a.set_yscale("log")
+        a.set_ylabel(ylabel)
+        a.set_title(title)
     fig.tight_layout()
     fig.savefig(out / name, dpi=120)
     plt.close(fig)
@@ -664,15 +662,9 @@ def main(argv: list[str] | None = None) -> int:
     tables["runinfo"] = rt.markdown(runinfo, ["part", "n", "seconds"],
                                     ["part", "trials / seeds", "seconds"])
     rt.write_tables(out, tables)
-    for name, tab in tables.items():
-        print(f"\n## {name}\n\n{tab}")
-    print(f"\n{trials} trials per truth in {time.perf_counter() - t_all:.1f} s; "
-          f"results in {out}")
-    if args.update_readme:
-        if args.smoke:
-            raise SystemExit("--update-readme with --smoke would put smoke figures in the README")
-        done = rt.update_readme(HERE / "README.md", tables)
-        print(f"README.md: updated {', '.join(done) or 'nothing'}", file=sys.stderr)
+    rt.print_and_publish(tables, f"\n{trials} trials per truth in "
+                         f"{time.perf_counter() - t_all:.1f} s; results in {out}",
+                         HERE / "README.md", args.update_readme, args.smoke)
     return 0
 
 

@@ -324,14 +324,9 @@ def main(argv: list[str] | None = None) -> int:
          {"part": "seconds", "n": f"{time.perf_counter() - t0:.1f}"}],
         ["part", "n"], ["part", "n"])
     rt.write_tables(out, tables)
-    for name, tab in tables.items():
-        print(f"\n## {name}\n\n{tab}")
-    print(f"\nresults in {out}")
-    if args.update_readme:
-        if args.smoke:
-            raise SystemExit("--update-readme with --smoke would put smoke figures in the README")
-        done = rt.update_readme(HERE / "README.md", tables)
-        print(f"README.md: updated {', '.join(done) or 'nothing'}", file=sys.stderr)
+    rt.print_and_publish(
+        tables, f"\nresults in {out}", HERE / "README.md", args.update_readme, args.smoke
+    )
     return 0
 
 

@@ -387,14 +387,9 @@ def main(argv: list[str] | None = None) -> int:
     rt.write_tables(out, tables)
     np.savetxt(out / "stations_optimised.csv", S_opt, delimiter=",", header="x_mm,y_mm,z_mm",
                comments="")
-    for name, tab in tables.items():
-        print(f"\n## {name}\n\n{tab}")
-    print(f"\nresults in {out}")
-    if args.update_readme:
-        if args.smoke:
-            raise SystemExit("--update-readme with --smoke would put smoke figures in the README")
-        done = rt.update_readme(HERE / "README.md", tables)
-        print(f"README.md: updated {', '.join(done) or 'nothing'}", file=sys.stderr)
+    rt.print_and_publish(
+        tables, f"\nresults in {out}", HERE / "README.md", args.update_readme, args.smoke
+    )
     return 0
 
 

@@ -73,10 +73,7 @@ def tables(seed: int) -> dict[str, pd.DataFrame]:
     geom = ind.load_geometry(MODEL)
     rng = np.random.default_rng(seed)
     truth = ind.draw_truth(geom, rng, "representable")
-    poses = ind.grid(geom, {"X": 4, "Y": 4, "Z": 4})
-    sim = ind.simulate(geom, truth, poses, TOOLS, rng, n_stations=4)
-    trk = sim.measurements.copy()
-    trk["sigma"] = sim.sigma_mm
+    trk = fs.tracker_readings(geom, truth, TOOLS, rng, n_stations=4)
     ifm = fs.interferometer_lines(geom, truth, LINES, rng)
     return {"tracker": trk, "interferometer": ifm}
 

@@ -78,7 +78,9 @@ class Iso230Result:
         return correction_table(self, spacing_mm=spacing_mm, spacing_deg=spacing_deg)
 
 
-def _check_option(name: str, value, *, minimum: float = 0.0, strict: bool = False):
+def check_option(name: str, value, *, minimum: float = 0.0, strict: bool = False) -> None:
+    """Raise :class:`InputError` (source ``option <name>``) unless ``value`` is a finite
+    number >= ``minimum`` (> with ``strict``)."""
     ok = (
         value is not None
         and math.isfinite(value)
@@ -89,6 +91,25 @@ def _check_option(name: str, value, *, minimum: float = 0.0, strict: bool = Fals
         raise InputError(
             f"{value!r} is not allowed; expected a number {rel} {minimum:g}",
             source=f"option {name}",
+        )
+
+
+def check_degree(name: str, degree) -> None:
+    """Raise :class:`InputError` (source ``option <name>``) unless ``degree`` is an integer
+    >= 0."""
+    if int(degree) != degree or degree < 0:
+        raise InputError(
+            f"{degree!r} is not allowed; expected an integer >= 0", source=f"option {name}"
+        )
+
+
+def check_type_a(type_a: str) -> None:
+    """Raise :class:`InputError` (source ``option --type-a``) unless ``type_a`` is one of
+    :data:`~volcal.iso230_2.model.TYPE_A_METHODS`."""
+    if type_a not in TYPE_A_METHODS:
+        raise InputError(
+            f"{type_a!r} is not allowed; expected one of {', '.join(TYPE_A_METHODS)}",
+            source="option --type-a",
         )
 
 
@@ -124,10 +145,7 @@ def evaluate(
         sqrt((n-1)/(n-3)) s_i / sqrt(n), JCGM 101 6.4.9; needs n >= 4) or "paper"
         (s_i / sqrt(n), paper 003 eq. 10, which understates the band for small n).
     """
-    if int(degree) != degree or degree < 0:
-        raise InputError(
-            f"{degree!r} is not allowed; expected an integer >= 0", source="option --degree"
-        )
+    check_degree("--degree", degree)
     for name, v in (
         ("--mpe-um", mpe_um),
         ("--mpe-ppm", mpe_ppm),
@@ -135,13 +153,9 @@ def evaluate(
         ("--resolution-um", resolution_um),
         ("--resolution-arcsec", resolution_arcsec),
     ):
-        _check_option(name, v)
-    _check_option("--k", k, strict=True)
-    if type_a not in TYPE_A_METHODS:
-        raise InputError(
-            f"{type_a!r} is not allowed; expected one of {', '.join(TYPE_A_METHODS)}",
-            source="option --type-a",
-        )
+        check_option(name, v)
+    check_option("--k", k, strict=True)
+    check_type_a(type_a)
     axes_readings = load_readings(data, source=source)
     src = axes_readings[0].source
     results, warnings = [], []

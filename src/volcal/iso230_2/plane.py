@@ -25,7 +25,8 @@ import pandas as pd
 from volcal.base.exceptions import InputError
 from volcal.base.folders import check_out_dir, write_folder
 
-from .model import TYPE_A_METHODS, gls, to_raw_matrix, type_a_uncertainty
+from .evaluate import check_degree, check_option, check_type_a
+from .model import gls, to_raw_matrix, type_a_uncertainty
 
 __all__ = [
     "PlaneModel",
@@ -408,26 +409,12 @@ def evaluate_plane(
     """Load a plane table and fit eq. (13); the instrument MPE [um] enters as MPE/sqrt(3).
 
     ``type_a`` as in :func:`volcal.iso230_2.evaluate` ("gum-s1" or "paper")."""
-    if type_a not in TYPE_A_METHODS:
-        raise InputError(
-            f"{type_a!r} is not allowed; expected one of {', '.join(TYPE_A_METHODS)}",
-            source="option --type-a",
-        )
-    for name, v, strict in (
-        ("--mpe-um", mpe_um, False),
-        ("--resolution-um", resolution_um, False),
-        ("--k", k, True),
-    ):
-        if not (math.isfinite(v) and (v > 0 if strict else v >= 0)):
-            raise InputError(
-                f"{v!r} is not allowed; expected a number {'>' if strict else '>='} 0",
-                source=f"option {name}",
-            )
-    for name, d in (("--degree", degree_p), ("--degree-r", degree_r)):
-        if int(d) != d or d < 0:
-            raise InputError(
-                f"{d!r} is not allowed; expected an integer >= 0", source=f"option {name}"
-            )
+    check_type_a(type_a)
+    check_option("--mpe-um", mpe_um)
+    check_option("--resolution-um", resolution_um)
+    check_option("--k", k, strict=True)
+    check_degree("--degree", degree_p)
+    check_degree("--degree-r", degree_r)
     rd = load_plane(data, source=source)
     n = rd.readings.shape[1]
     if type_a == "gum-s1" and n < 4:

@@ -344,6 +344,52 @@ def _plane(anchors: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return c, vt[:, -1, :]
 
 
+def _taylor_refine(
+    x: np.ndarray,
+    idx: np.ndarray,
+    diff: np.ndarray,
+    w: np.ndarray,
+    ranges: np.ndarray,
+    cond_t: np.ndarray,
+    iters: np.ndarray,
+    conv: np.ndarray,
+    status: np.ndarray,
+) -> None:
+    """One Taylor step (:func:`_taylor_step`) from the linear solutions ``x[idx]`` (mm), in
+    place: ``diff`` (n, K, 3) mm from the anchors to them, ``w`` (n, K) weights, ``ranges``
+    (n, K) mm the distances they must have.  Records the step's condition in ``cond_t``
+    and one iteration; a singular step un-converges its entry."""
+    dx, ct, gt = _taylor_step(diff, w, ranges)
+    cond_t[idx] = ct
+    x[idx[gt]] = x[idx[gt]] + dx[gt]
+    iters[idx[gt]] = 1
+    conv[idx[~gt]] = False
+    for j in np.flatnonzero(~gt):
+        status[idx[j]] = f"Taylor system singular (condition {ct[j]:.3g})"
+    for k in idx[gt]:
+        status[k] = "solved (linear normal equations + one Taylor step)"
+
+
+def _reject_misfits(
+    conv: np.ndarray,
+    status: np.ndarray,
+    rms: np.ndarray,
+    max_residual_rms: float | None,
+    what: str,
+) -> None:
+    """Un-converge (in place) every solution whose geometric residual RMS ``rms`` (mm)
+    exceeds ``max_residual_rms`` (mm; None: no limit), saying so in ``status``: a local
+    minimum or inconsistent ``what``."""
+    if max_residual_rms is None:
+        return
+    for k in np.flatnonzero(conv & ~(rms <= max_residual_rms)):
+        conv[k] = False
+        status[k] = (
+            f"residual RMS {rms[k]:.3g} mm > max_residual_rms = "
+            f"{max_residual_rms:g} mm (local minimum or inconsistent {what})"
+        )
+
+
 def _geometric_rms(
     X: np.ndarray, anchors: np.ndarray, ranges: np.ndarray, mask: np.ndarray
 ) -> np.ndarray:
@@ -762,19 +808,17 @@ def calibrate_stations(
             status[k] = "solved (linear normal equations)"
         if method == "linear_taylor" and np.any(good):
             idx = np.flatnonzero(good)
-            Q0 = pos[idx]
-            dQ, ct, gt = _taylor_step(
-                Q0[:, None, :] - P[idx], W[idx] * mask[idx], dl[idx][:, None] + L[idx]
+            _taylor_refine(
+                pos,
+                idx,
+                pos[idx][:, None, :] - P[idx],
+                W[idx] * mask[idx],
+                dl[idx][:, None] + L[idx],
+                cond_t,
+                iters,
+                conv,
+                status,
             )
-            cond_t[idx] = ct
-            pos[idx[gt]] = Q0[gt] + dQ[gt]
-            iters[idx[gt]] = 1
-            for j in np.flatnonzero(~gt):
-                k = idx[j]
-                status[k] = f"Taylor system singular (condition {ct[j]:.3g})"
-                conv[k] = False
-            for k in idx[gt]:
-                status[k] = "solved (linear normal equations + one Taylor step)"
     elif method == "paper002":
         x, good, (c, lb, cs) = linear("paper002")
         cond[:], cond_lb[:], cond_s[:] = c, lb, cs
@@ -838,13 +882,7 @@ def calibrate_stations(
     # geometric residual RMS (for every method)
     rng = L + np.where(np.isfinite(dl), dl, 0.0)[:, None]
     rms = _geometric_rms(pos, P, rng, mask)
-    if max_residual_rms is not None:
-        for k in np.flatnonzero(conv & ~(rms <= max_residual_rms)):
-            conv[k] = False
-            status[k] = (
-                f"residual RMS {rms[k]:.3g} mm > max_residual_rms = "
-                f"{max_residual_rms:g} mm (local minimum or inconsistent data)"
-            )
+    _reject_misfits(conv, status, rms, max_residual_rms, "data")
     pos[~conv] = np.nan
     dl[~conv] = np.nan
     return StationCalibrations(
@@ -1184,15 +1222,17 @@ def multilaterate(
             pstat[n] = f"too few readings: {cnt[n]} < 4 needed by method {method!r}"
         if method == "linear_taylor" and np.any(conv):
             idx = np.flatnonzero(conv)
-            P0 = pts[idx]
-            dP, ct, gt = _taylor_step(P0[:, None, :] - Q[None], W[idx], rho[idx])
-            cond_t[idx] = ct
-            pts[idx[gt]] = P0[gt] + dP[gt]
-            iters[idx[gt]] = 1
-            conv[idx[~gt]] = False
-            for j in np.flatnonzero(~gt):
-                pstat[idx[j]] = f"Taylor system singular (condition {ct[j]:.3g})"
-            pstat[idx[gt]] = "solved (linear normal equations + one Taylor step)"
+            _taylor_refine(
+                pts,
+                idx,
+                pts[idx][:, None, :] - Q[None],
+                W[idx],
+                rho[idx],
+                cond_t,
+                iters,
+                conv,
+                pstat,
+            )
     elif method == "sphere":
         P, used, z2, roots, ok, why, _ = _sphere(Q, rho, mask, side, side_type)
         pts[ok] = P[ok]
@@ -1282,13 +1322,7 @@ def multilaterate(
                 "converged (stations coplanar: kept the mirror root nearest the initial point)"
             )
     rms = _geometric_rms(pts, anchors, rho, mask)
-    if max_residual_rms is not None:
-        for n in np.flatnonzero(conv & ~(rms <= max_residual_rms)):
-            conv[n] = False
-            pstat[n] = (
-                f"residual RMS {rms[n]:.3g} mm > max_residual_rms = "
-                f"{max_residual_rms:g} mm (local minimum or inconsistent readings)"
-            )
+    _reject_misfits(conv, pstat, rms, max_residual_rms, "readings")
     pts[~conv] = np.nan
     rms[~conv] = np.nan
     n_ok = int(conv.sum())

@@ -24,6 +24,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from volcal.cli.options import (
+    MODEL_LIST_HELP,
+    add_datum,
+    add_degree,
+    add_example_budget,
+    add_model_or_example,
+    add_result,
+)
+
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -37,23 +46,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "under the datum constraints, correlations and the uncertainty of the "
         "volumetric error over the workspace.",
     )
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument(
-        "--model", metavar="M", help="bundled model name (see `volcal models`) or model TOML file"
-    )
-    src.add_argument(
-        "--example",
-        metavar="NAME",
-        help="a bundled example (e.g. mcv754): its model, stations, plan, "
+    src = add_model_or_example(
+        p,
+        "a bundled example (e.g. mcv754): its model, stations, plan, "
         "tools and budget; the options below override parts",
+        MODEL_LIST_HELP,
     )
-    src.add_argument(
-        "--result",
-        type=Path,
-        metavar="DIR",
-        help="a result folder of `volcal identify`: its data are identified "
-        "again with its options and analysed at the solution",
-    )
+    add_result(src, " and analysed at the solution")
     p.add_argument(
         "--data",
         type=Path,
@@ -81,24 +80,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="tool (reflector) offsets in mm (default: the example's, or those of "
         "`volcal simulate`: 0,0,0;0,0,-100;80,0,-100;0,80,-100)",
     )
-    p.add_argument(
-        "--budget",
-        metavar="NAME|FILE",
-        help="uncertainty budget (default paper002, or the example's)",
-    )
-    p.add_argument(
-        "--degree",
-        type=int,
-        default=3,
-        metavar="N",
-        help="Legendre degree of the error motions (default 3)",
-    )
-    p.add_argument(
-        "--datum",
-        default="iso230",
-        choices=("iso230", "reference", "none"),
-        help="datum convention (default iso230)",
-    )
+    add_example_budget(p)
+    add_degree(p)
+    add_datum(p)
     p.add_argument(
         "--strategy",
         default="joint",
@@ -139,14 +123,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from volcal.base.exceptions import InputError
     from volcal.base.threads import blas_threads
-    from volcal.cli.commands.simulate import _DEFAULT_TOOLS, _grid_counts
-    from volcal.measurement.plans import (
-        default_plan,
-        diagonal_plan,
-        grid_plan,
-        line_plan,
-        plan_from_csv,
+    from volcal.cli.commands.simulate import (
+        _DEFAULT_TOOLS,
+        PLAN_KINDS,
+        _grid_counts,
+        _named_plan,
     )
+    from volcal.measurement.plans import grid_plan, plan_from_csv
     from volcal.measurement.simulate import example, parse_tools
     from volcal.model.errors import ErrorForm, ErrorModel
     from volcal.model.machine import Machine
@@ -212,17 +195,12 @@ def run(args: argparse.Namespace) -> int:
             kind = args.plan or ("grid" if args.grid is not None else "default")
             if args.plan is None and ex is not None and args.grid is None:
                 plan = ex.plan
-            elif kind == "default":
-                if args.grid is not None:
+            elif kind in PLAN_KINDS:
+                if kind == "default" and args.grid is not None:
                     raise InputError(
                         "--grid applies to --plan grid, lines or diagonals", source="--grid"
                     )
-                plan = default_plan(spec, args.degree)
-            elif kind in ("grid", "lines", "diagonals"):
-                counts = _grid_counts(args.grid, kind)
-                plan = {"grid": grid_plan, "lines": line_plan, "diagonals": diagonal_plan}[kind](
-                    spec, counts
-                )
+                plan = _named_plan(kind, spec, _grid_counts(args.grid, kind), args.degree)
             else:
                 if args.grid is not None:
                     raise InputError(

@@ -18,6 +18,9 @@ import argparse
 import logging
 import sys
 from pathlib import Path
+from typing import Any
+
+from volcal.cli.options import add_datum, add_degree
 
 log = logging.getLogger(__name__)
 
@@ -63,19 +66,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         choices=["joint", "two-phase", "points-only"],
         help="identification strategy (default joint)",
     )
-    p.add_argument(
-        "--degree",
-        type=int,
-        default=3,
-        metavar="N",
-        help="Legendre degree of the error motions (default 3)",
-    )
-    p.add_argument(
-        "--datum",
-        default="iso230",
-        choices=["iso230", "reference", "none"],
-        help="datum convention (default iso230)",
-    )
+    add_degree(p)
+    add_datum(p)
     p.add_argument(
         "--budget",
         default="paper002",
@@ -132,23 +124,23 @@ def run(args: argparse.Namespace) -> int:
     if args.degree < 0:
         raise InputError(f"expected a degree >= 0, got {args.degree}", source="--degree")
     _check_out(args)
+    # the options both exports take
+    common: dict[str, Any] = dict(
+        degree=args.degree,
+        datum=args.datum,
+        exact=args.exact,
+        name=args.name,
+        build_it=not args.no_build,
+        force=args.force,
+        cc=args.cc,
+    )
     try:
         if args.model_only:
             if args.stations is not None:
                 raise InputError(
                     "--stations applies to a solver export, not --model-only", source="--stations"
                 )
-            info = export_model(
-                args.model,
-                args.out,
-                degree=args.degree,
-                datum=args.datum,
-                exact=args.exact,
-                name=args.name,
-                build_it=not args.no_build,
-                force=args.force,
-                cc=args.cc,
-            )
+            info = export_model(args.model, args.out, **common)
         else:
             info = export_solver(
                 args.model,
@@ -156,15 +148,9 @@ def run(args: argparse.Namespace) -> int:
                 args.out,
                 stations=args.stations,
                 strategy=args.strategy,
-                degree=args.degree,
-                datum=args.datum,
                 budget=args.budget,
-                exact=args.exact,
-                name=args.name,
                 linsol=args.linsol,
-                build_it=not args.no_build,
-                force=args.force,
-                cc=args.cc,
+                **common,
             )
     except RuntimeError as exc:  # the C build failed: report, exit 1
         print(f"volcal codegen: {exc}", file=sys.stderr)

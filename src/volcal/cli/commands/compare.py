@@ -25,6 +25,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from volcal.cli.options import add_datum, add_example_budget, add_model_or_example, add_sim_seed
+
 # kept here (not imported from volcal.analysis) so that `volcal --help` stays light
 from volcal.problem.strategies import strategies as _strategies
 
@@ -42,12 +44,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "truth; with --trials mean and spread over seeded simulated data.  Writes a "
         "table, a plot and a Markdown / HTML section `volcal report` embeds.",
     )
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--model", metavar="M", help="bundled model name or model TOML file")
-    src.add_argument(
-        "--example",
-        metavar="NAME",
-        help="a bundled example (e.g. mcv754): its simulated data (seed --sim-seed), "
+    add_model_or_example(
+        p,
+        "a bundled example (e.g. mcv754): its simulated data (seed --sim-seed), "
         "its true errors as the truth and its stations as the trials' true stations",
     )
     p.add_argument("--data", type=Path, metavar="D.csv", help="measurement table (with --model)")
@@ -57,13 +56,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         metavar="S.csv",
         help="stations table (start values, or known positions where fixed)",
     )
-    p.add_argument(
-        "--sim-seed",
-        type=int,
-        default=None,
-        metavar="N",
-        help="with --example: seed of the simulated data (default: the example's)",
-    )
+    add_sim_seed(p)
     p.add_argument(
         "--strategies",
         default=_DEFAULT,
@@ -87,12 +80,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         metavar="NAME=KIND[:N]",
         help="error basis of an axis or error motion, repeatable (as `volcal identify`)",
     )
-    p.add_argument("--datum", default="iso230", choices=("iso230", "reference", "none"))
-    p.add_argument(
-        "--budget",
-        metavar="NAME|FILE",
-        help="uncertainty budget (default paper002, or the example's)",
-    )
+    add_datum(p, described=False)
+    add_example_budget(p)
     p.add_argument(
         "--solver", default="ipopt", choices=("ipopt", "gauss-newton"), help="(default ipopt)"
     )

@@ -23,6 +23,15 @@ import argparse
 import logging
 from pathlib import Path
 
+from volcal.cli.options import (
+    add_datum,
+    add_degree,
+    add_example_budget,
+    add_model_or_example,
+    add_result,
+    add_sim_seed,
+)
+
 log = logging.getLogger(__name__)
 
 MC_FILES = (
@@ -87,43 +96,18 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "Local worker processes by default, a Dask cluster with --scheduler; "
         "resumable from --out.",
     )
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--model", metavar="M", help="bundled model name or model TOML file")
-    src.add_argument(
-        "--example",
-        metavar="NAME",
-        help="a bundled example (e.g. mcv754): simulate it (seed --sim-seed), "
+    src = add_model_or_example(
+        p,
+        "a bundled example (e.g. mcv754): simulate it (seed --sim-seed), "
         "identify, then Monte Carlo",
     )
-    src.add_argument(
-        "--result",
-        type=Path,
-        metavar="DIR",
-        help="a result folder of `volcal identify`: its data are identified "
-        "again with its options, then Monte Carlo",
-    )
+    add_result(src, ", then Monte Carlo")
     p.add_argument("--data", type=Path, metavar="D.csv", help="measurement table (with --model)")
     p.add_argument("--stations", type=Path, metavar="S.csv", help="stations table")
-    p.add_argument(
-        "--sim-seed",
-        type=int,
-        default=None,
-        metavar="N",
-        help="with --example: seed of the simulated data (default: the example's)",
-    )
-    p.add_argument(
-        "--budget",
-        metavar="NAME|FILE",
-        help="uncertainty budget (default paper002, or the example's)",
-    )
-    p.add_argument(
-        "--degree",
-        type=int,
-        default=3,
-        metavar="N",
-        help="Legendre degree of the error motions (default 3)",
-    )
-    p.add_argument("--datum", default="iso230", choices=("iso230", "reference", "none"))
+    add_sim_seed(p)
+    add_example_budget(p)
+    add_degree(p)
+    add_datum(p, described=False)
     p.add_argument("--strategy", default="joint", choices=("joint", "two-phase", "points-only"))
     p.add_argument(
         "--trials",

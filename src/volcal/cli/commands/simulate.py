@@ -21,6 +21,8 @@ import re
 from pathlib import Path
 from typing import Any
 
+from volcal.cli.options import MODEL_LIST_HELP, add_degree, add_model_or_example
+
 log = logging.getLogger(__name__)
 
 _DEFAULT_TOOLS = "0,0,0;0,0,-100;80,0,-100;0,80,-100"
@@ -37,15 +39,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "repeatability is drawn anew for every station visit; a seed always gives "
         "the same data.",
     )
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument(
-        "--model", metavar="M", help="bundled model name (see `volcal models`) or model TOML file"
-    )
-    src.add_argument(
-        "--example",
-        metavar="NAME",
-        help="use a bundled example (e.g. mcv754): its model, true parameters, "
+    add_model_or_example(
+        p,
+        "use a bundled example (e.g. mcv754): its model, true parameters, "
         "stations, plan, tools and budget; the options below override parts",
+        MODEL_LIST_HELP,
     )
     truth = p.add_mutually_exclusive_group()
     truth.add_argument(
@@ -62,13 +60,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="draw realistic true errors (with the seed) scaled to this maximum "
         "volumetric error over the workspace, um (default 60)",
     )
-    p.add_argument(
-        "--degree",
-        type=int,
-        default=3,
-        metavar="N",
-        help="Legendre degree of the error motions (default 3)",
-    )
+    add_degree(p)
     p.add_argument(
         "--stations",
         metavar="S.csv",
@@ -141,6 +133,21 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+#: the plans --plan names (anything else is a file)
+PLAN_KINDS = ("default", "grid", "lines", "diagonals")
+
+
+def _named_plan(kind: str, spec, counts, degree: int):
+    """The plan of a kind in :data:`PLAN_KINDS` for machine ``spec``: ``counts`` from
+    :func:`_grid_counts` (positions per axis or points per line), ``degree`` the error
+    motions' degree the default plan is made for."""
+    from volcal.measurement.plans import default_plan, diagonal_plan, grid_plan, line_plan
+
+    if kind == "default":
+        return default_plan(spec, degree)
+    return {"grid": grid_plan, "lines": line_plan, "diagonals": diagonal_plan}[kind](spec, counts)
+
+
 def _grid_counts(text: str | None, plan: str):
     from volcal.base.exceptions import InputError
 
@@ -174,12 +181,8 @@ def run(args: argparse.Namespace) -> int:
 
     from volcal.base.exceptions import InputError
     from volcal.measurement.plans import (
-        default_plan,
         default_stations,
-        diagonal_plan,
-        grid_plan,
         is_measurement_plan,
-        line_plan,
         measurement_plan_from_csv,
         plan_from_csv,
     )
@@ -218,7 +221,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"no such {name} table file", source=path)
     # no --plan: the default plan, or a grid when only --grid is given
     plan_kind = args.plan or ("grid" if args.grid is not None else "default")
-    if plan_kind in ("default", "grid", "lines", "diagonals"):
+    if plan_kind in PLAN_KINDS:
         counts = _grid_counts(args.grid, plan_kind)
     elif args.grid is not None:
         raise InputError(
@@ -269,9 +272,7 @@ def run(args: argparse.Namespace) -> int:
     # offsets and station ids; the positions come from --stations or the stations.csv
     # written beside it
     plan_stations: list[str] = []
-    if plan_kind not in ("default", "grid", "lines", "diagonals") and is_measurement_plan(
-        plan_kind
-    ):
+    if plan_kind not in PLAN_KINDS and is_measurement_plan(plan_kind):
         plan, plan_tools, plan_stations = measurement_plan_from_csv(plan_kind, spec)
         if tools is not None and not (
             tools.shape == plan_tools.shape and np.allclose(tools, plan_tools)
@@ -312,14 +313,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.plan is None and ex is not None and args.grid is None:
         plan = ex.plan
-    elif plan_kind == "default":
-        plan = default_plan(spec, args.degree)
-    elif plan_kind == "grid":
-        plan = grid_plan(spec, counts)
-    elif plan_kind == "lines":
-        plan = line_plan(spec, counts)
-    elif plan_kind == "diagonals":
-        plan = diagonal_plan(spec, counts)
+    elif plan_kind in PLAN_KINDS:
+        plan = _named_plan(plan_kind, spec, counts, args.degree)
     else:
         plan = plan_from_csv(plan_kind, spec) if not plan_stations else plan
     if tools is None:

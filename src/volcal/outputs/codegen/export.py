@@ -276,8 +276,14 @@ def _generate_casadi(functions: list[ca.Function], name: str) -> dict[str, str]:
         }
 
 
-def _common(machine: Machine, em: ErrorModel, name: str) -> dict[str, str]:
+def _common(machine: Machine, em: ErrorModel, name: str, model) -> dict[str, str]:
+    """The template values both exports fill: names, sizes, versions and the model
+    (``model`` as the caller gave it, for its label)."""
     return {
+        "volcal_version": __version__,
+        "casadi_version": ca.CasadiMeta.version(),
+        "model": _model_label(model, machine.spec),
+        "fingerprint": machine.spec.fingerprint(),
         "NAME": name,
         "UNAME": name.upper(),
         "n_axes": str(machine.n_axes),
@@ -290,6 +296,58 @@ def _common(machine: Machine, em: ErrorModel, name: str) -> dict[str, str]:
         "error_names": _c_list([s.name for s in em.errors], _c_str),
         "error_basis": em.summary(),
     }
+
+
+def _manifest_model(model, machine: Machine) -> dict[str, Any]:
+    """The manifest's description of the exported model."""
+    spec = machine.spec
+    return {
+        "name": spec.name,
+        "source": _model_label(model, spec),
+        "fingerprint": spec.fingerprint(),
+        "axes": machine.axis_names,
+        "rotary": [bool(a.is_rotary) for a in spec.axes],
+    }
+
+
+def _reused(
+    out: Path,
+    name: str,
+    kind: str,
+    input_hash: str,
+    build_it: bool,
+    cc: str,
+    cflags: str | None,
+) -> ExportInfo | None:
+    """The unchanged export of ``kind`` in ``out`` with this input hash (built again if
+    asked, which ``make`` makes cheap), or None when there is none."""
+    man = _reuse(out, input_hash)
+    if man is None:
+        return None
+    info = ExportInfo(out, name, kind, man, True, 0.0)
+    if build_it:
+        info.build_seconds = build(out, cc=cc, cflags=cflags)
+    return info
+
+
+def _written(
+    out: Path,
+    name: str,
+    kind: str,
+    files: Mapping[str, str | bytes],
+    manifest: dict,
+    t0: float,
+    build_it: bool,
+    cc: str,
+    cflags: str | None,
+) -> ExportInfo:
+    """Write the export's files and manifest (:func:`_write_files`), build if asked; ``t0``
+    the export's start (``time.perf_counter``)."""
+    manifest = _write_files(out, files, manifest)
+    info = ExportInfo(out, name, kind, manifest, False, time.perf_counter() - t0)
+    if build_it:
+        info.build_seconds = build(out, cc=cc, cflags=cflags)
+    return info
 
 
 def _render(template: str, mapping: dict) -> str:
@@ -561,12 +619,9 @@ def export_solver(
     input_hash = h.hexdigest()
 
     if not force:
-        man = _reuse(out, input_hash)
-        if man is not None:
-            info = ExportInfo(out, name, "solver", man, True, 0.0)
-            if build_it:
-                info.build_seconds = build(out, cc=cc, cflags=cflags)
-            return info
+        reused = _reused(out, name, "solver", input_hash, build_it, cc, cflags)
+        if reused is not None:
+            return reused
 
     d = _define(
         machine,
@@ -585,13 +640,9 @@ def export_solver(
     K, N = len(d.station_ids), len(d.layout)
     keys = list(zip(d.layout["station"], d.layout["point"]))
     n_a = [S.theta_block(pr, ph).shape[1] for ph in d.phases]
-    mp = _common(machine, em, name)
+    mp = _common(machine, em, name, model)
     mp.update(
         {
-            "volcal_version": __version__,
-            "casadi_version": ca.CasadiMeta.version(),
-            "model": _model_label(model, spec),
-            "fingerprint": spec.fingerprint(),
             "n_readings": str(N),
             "n_stations": str(K),
             "n_poses": str(d.layout["point"].nunique()),
@@ -644,13 +695,7 @@ def export_solver(
         "format": EXPORT_FORMAT,
         "kind": "solver",
         "name": name,
-        "model": {
-            "name": spec.name,
-            "source": _model_label(model, spec),
-            "fingerprint": spec.fingerprint(),
-            "axes": machine.axis_names,
-            "rotary": [bool(a.is_rotary) for a in spec.axes],
-        },
+        "model": _manifest_model(model, machine),
         "plan": {
             "n_readings": N,
             "n_stations": K,
@@ -692,11 +737,7 @@ def export_solver(
         "export_seconds": None,
     }
     manifest["export_seconds"] = round(time.perf_counter() - t0, 3)
-    manifest = _write_files(out, files, manifest)
-    info = ExportInfo(out, name, "solver", manifest, False, time.perf_counter() - t0)
-    if build_it:
-        info.build_seconds = build(out, cc=cc, cflags=cflags)
-    return info
+    return _written(out, name, "solver", files, manifest, t0, build_it, cc, cflags)
 
 
 # ---------------------------------------------------------------------------------------
@@ -739,25 +780,18 @@ def export_model(
         ).encode()
     )
     if not force:
-        man = _reuse(out, input_hash)
-        if man is not None:
-            info = ExportInfo(out, name, "model", man, True, 0.0)
-            if build_it:
-                info.build_seconds = build(out, cc=cc, cflags=cflags)
-            return info
+        reused = _reused(out, name, "model", input_hash, build_it, cc, cflags)
+        if reused is not None:
+            return reused
     em = build_error_model(spec, degree=degree, datum=datum)
     funcs = [
         S.model_function(machine, em, f"{name}_ca_model", exact=exact),
         S.error_values_function(machine, em, f"{name}_ca_error_values"),
     ]
     files = _generate_casadi(funcs, name)
-    mp = _common(machine, em, name)
+    mp = _common(machine, em, name, model)
     mp.update(
         {
-            "volcal_version": __version__,
-            "casadi_version": ca.CasadiMeta.version(),
-            "model": _model_label(model, spec),
-            "fingerprint": spec.fingerprint(),
             "degree": str(degree),
             "datum": datum,
         }
@@ -771,13 +805,7 @@ def export_model(
         "format": EXPORT_FORMAT,
         "kind": "model",
         "name": name,
-        "model": {
-            "name": spec.name,
-            "source": _model_label(model, spec),
-            "fingerprint": spec.fingerprint(),
-            "axes": machine.axis_names,
-            "rotary": [bool(a.is_rotary) for a in spec.axes],
-        },
+        "model": _manifest_model(model, machine),
         "options": {"degree": degree, "datum": datum, "exact": exact},
         "sizes": {"n_theta": em.n_params, "n_errors": em.n_errors, "n_axes": machine.n_axes},
         "parameters": {"names": list(em.param_names), "units": list(em.param_units)},
@@ -786,11 +814,7 @@ def export_model(
         "input_hash": input_hash,
         "export_seconds": round(time.perf_counter() - t0, 3),
     }
-    manifest = _write_files(out, files, manifest)
-    info = ExportInfo(out, name, "model", manifest, False, time.perf_counter() - t0)
-    if build_it:
-        info.build_seconds = build(out, cc=cc, cflags=cflags)
-    return info
+    return _written(out, name, "model", files, manifest, t0, build_it, cc, cflags)
 
 
 def _readme_solver(

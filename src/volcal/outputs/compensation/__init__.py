@@ -377,6 +377,67 @@ def table_residuals(
     return at_table, others
 
 
+def one_axis_built(
+    ctx: Context,
+    tables,
+    spacing,
+    render: Callable[[Compensation], Mapping[str, str | bytes]],
+    values: str,
+    not_carried: list[str],
+    summary: list[dict[str, Any]],
+    limits: dict[str, Any],
+    notes: list[str],
+) -> Built:
+    """The :class:`Built` of a format of 1-D tables (siemens, heidenhain): its residual is
+    what the axis corrections of ``tables`` leave (first order), ``spacing`` (a
+    :class:`~volcal.outputs.compensation.grid.Spacing`) the node spacing over every axis,
+    for the tables' tool offset ``ctx.table_tool``."""
+    from volcal.outputs.compensation.grid import correction_residual
+
+    fld = ctx.field
+
+    def residual(q, t):
+        return correction_residual(fld, tables, q, t)
+
+    return Built(
+        residual,
+        render,
+        values,
+        {a.name: spacing.h[i] for i, a in enumerate(fld.axes)},
+        spacing.bound_um,
+        None,
+        not_carried,
+        summary,
+        limits,
+        notes,
+        table_tool=np.asarray(ctx.table_tool, float),
+    )
+
+
+def tool_offset_not_carried(others: list[tuple[float, np.ndarray]]) -> list[str]:
+    """The NOT CARRIED line of 1-D tables for the tool offsets other than the tables' one
+    (``others`` from :func:`table_residuals`): the worst RMS um they leave; none without
+    other tool offsets."""
+    if not others:
+        return []
+    worst, wt = max(others, key=lambda x: x[0])
+    return [
+        "the tool-length-dependent part of the angular errors (the tables know no tool "
+        f"offset): up to {worst:.3g} um RMS at tool offset ("
+        + ", ".join(f"{v:g}" for v in wt)
+        + ") mm"
+    ]
+
+
+def check_axis_names(fld: ErrorField, names: Mapping[str, Any]) -> None:
+    """Raise :class:`InputError` (source ``--axis``) if ``names`` (controller axis names by
+    model axis) names an axis the model does not have."""
+    inputs = [a.name for a in fld.axes]
+    unknown = sorted(set(names) - set(inputs))
+    if unknown:
+        raise InputError(f"unknown axis name(s) {unknown}; the model has {inputs}", source="--axis")
+
+
 def _builder(fmt: str):
     from importlib import import_module
 

@@ -449,6 +449,12 @@ class AxisTable:
     def __call__(self, x: np.ndarray) -> np.ndarray:
         return interp1(self.nodes, self.values, x, periodic=self.periodic)
 
+    def file_values(self, field, sign: float) -> np.ndarray:
+        """The values times ``sign`` in file units: mm on a linear output axis, deg on a
+        rotary one."""
+        v = sign * self.values
+        return np.rad2deg(v) if field.axis(self.output).rotary else v
+
 
 def table_corrections(field, tables: list[AxisTable], q: np.ndarray) -> np.ndarray:
     """Axis corrections (N, n_axes), internal units, that ``tables`` give at poses q."""
@@ -599,3 +605,41 @@ def correction_spacing(
         min_intervals=[8 if a.full_turn else 1 for a in axes],
     )
     return sp, S
+
+
+def one_axis_tables(
+    field, tool: np.ndarray, tolerance_um: float
+) -> tuple[CorrectionTargets, Spacing, dict[str, np.ndarray], list[AxisTable]]:
+    """The start of the 1-D tables of a control (siemens, heidenhain) for the tool offset
+    ``tool`` (3,) mm: the split of the correction (:func:`correction_targets`), the node
+    spacing over every axis for ``tolerance_um`` (:func:`correction_spacing`), the nodes
+    (:func:`axis_table_nodes`) and the tables of the rotary axes' own angular positioning
+    corrections (kind ``"own"``, values set)."""
+    targets = correction_targets(field, tool)
+    sp, _ = correction_spacing(field, targets, tolerance_um, [a.name for a in field.axes])
+    nodes = axis_table_nodes(field, sp.h)
+    own = [
+        AxisTable(
+            r, r, nodes[r], targets.own_value(field, r, nodes[r]), field.axis(r).full_turn, "own"
+        )
+        for r in targets.own
+    ]
+    return targets, sp, nodes, own
+
+
+def axis_table_nodes(field, h: Sequence[float] | np.ndarray) -> dict[str, np.ndarray]:
+    """Uniform nodes (internal units) of a 1-D table over each axis at spacing ``h`` (one
+    per axis, model order): over the travel, except that a full-turn axis' table spans
+    [0, 360] deg, the range the control reports it in."""
+    nodes = {}
+    for i, a in enumerate(field.axes):
+        lo, hi = (0.0, a.hi - a.lo) if a.full_turn else (a.lo, a.hi)
+        nodes[a.name] = uniform_nodes(lo, hi, h[i])
+    return nodes
+
+
+def table_fit_poses(field, nodes: dict[str, np.ndarray]) -> np.ndarray:
+    """The poses (N, n_axes) the 1-D tables are fitted at: a Halton sample of the travel
+    box, 40 poses per node of the longest table, at least 6000 and at most 40000."""
+    n_fit = int(min(40000, max(6000, 40 * max(len(v) for v in nodes.values()))))
+    return workspace_sample(field.lower, field.upper, n_fit, skip=3)

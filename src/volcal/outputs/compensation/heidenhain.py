@@ -40,18 +40,22 @@ from __future__ import annotations
 
 import numpy as np
 
-from volcal.base.exceptions import InputError
-
-from . import Built, Context, control_path, render_template, table_residuals
+from . import (
+    Built,
+    Context,
+    check_axis_names,
+    control_path,
+    one_axis_built,
+    render_template,
+    table_residuals,
+    tool_offset_not_carried,
+)
 from .grid import (
     AxisTable,
     check_limit,
-    correction_residual,
-    correction_spacing,
-    correction_targets,
     fit_tables,
-    uniform_nodes,
-    workspace_sample,
+    one_axis_tables,
+    table_fit_poses,
 )
 
 MAX_POINTS = 256
@@ -63,24 +67,14 @@ def build(ctx: Context) -> Built:
     fld = ctx.field
     max_points = int(ctx.options.get("max_points") or MAX_POINTS)
     max_tables = int(ctx.options.get("max_tables") or MAX_TABLES)
-    targets = correction_targets(fld, ctx.table_tool)
+    targets, sp, nodes, tables = one_axis_tables(fld, ctx.table_tool, ctx.tolerance_um)
     inputs = [a.name for a in fld.axes]
-    sp, _ = correction_spacing(fld, targets, ctx.tolerance_um, inputs)
-    # a full-turn axis' table spans [0, 360] deg, the range the control reports it in
-    nodes = {
-        a.name: uniform_nodes(*((0.0, a.hi - a.lo) if a.full_turn else (a.lo, a.hi)), sp.h[i])
-        for i, a in enumerate(fld.axes)
-    }
     per = {a.name: a.full_turn for a in fld.axes}
     lin = targets.linear
-    tables: list[AxisTable] = []
-    for r in targets.own:
-        tables.append(AxisTable(r, r, nodes[r], targets.own_value(fld, r, nodes[r]), per[r], "own"))
     for J in inputs:
         for o in lin:
             tables.append(AxisTable(J, o, nodes[J], np.zeros(len(nodes[J])), per[J]))
-    n_fit = int(min(40000, max(6000, 40 * max(len(v) for v in nodes.values()))))
-    Q = workspace_sample(fld.lower, fld.upper, n_fit, skip=3)
+    Q = table_fit_poses(fld, nodes)
     fit_tables(
         fld,
         tables,
@@ -109,9 +103,7 @@ def build(ctx: Context) -> Built:
             "raise --tolerance or --max-points",
         )
     keys = dict(ctx.options.get("axis_names") or {})
-    unknown = sorted(set(keys) - set(inputs))
-    if unknown:
-        raise InputError(f"unknown axis name(s) {unknown}; the model has {inputs}", source="--axis")
+    check_axis_names(fld, keys)
     key = {a: str(keys.get(a, a)) for a in inputs}
     # the manuals enter the axis error: the negative of the fitted correction
     sgn = -1.0
@@ -129,24 +121,13 @@ def build(ctx: Context) -> Built:
         ),
     ]
 
-    def residual(q, t):
-        return correction_residual(fld, tables, q, t)
-
     at_table, others = table_residuals(fld, tables, ctx)
     not_carried = [
         "products of an axis position and a function of another axis (an angular error "
         "times its lever arm) and couplings of rotary axes: the tables add functions of one "
         "axis each; with the interpolation this leaves "
         f"{at_table:.3g} um RMS at the tables' tool offset"
-    ]
-    if others:
-        worst, wt = max(others, key=lambda x: x[0])
-        not_carried.append(
-            "the tool-length-dependent part of the angular errors (the tables know no tool "
-            f"offset): up to {worst:.3g} um RMS at tool offset ("
-            + ", ".join(f"{v:g}" for v in wt)
-            + ") mm"
-        )
+    ] + tool_offset_not_carried(others)
     values = (
         "errors of the column's axis (actual - nominal, as the HEIDENHAIN technical manuals "
         "enter the axis error; the control applies their negative), mm on linear axes, deg "
@@ -159,14 +140,10 @@ def build(ctx: Context) -> Built:
         for J, ts in by_input.items():
             a = fld.axis(J)
             cols = [key[t.output] for t in ts]
+            vals = [t.file_values(fld, sgn) for t in ts]
             rows = []
             for n, x in enumerate(nodes[J]):
-                cells = []
-                for t in ts:
-                    v = sgn * t.values[n]
-                    if fld.axis(t.output).rotary:
-                        v = np.rad2deg(v)
-                    cells.append(f"{v + 0.0:+.{DECIMALS}f}")
+                cells = [f"{v[n] + 0.0:+.{DECIMALS}f}" for v in vals]
                 rows.append((n, f"{a.to_file(x) + datum[J] + 0.0:+.4f}", cells))
             out[f"{J}.COM"] = render_template(
                 "heidenhain.com.j2",
@@ -201,16 +178,4 @@ def build(ctx: Context) -> Built:
         "tables": f"{len(by_input)} of {max_tables}",
         "points per table": f"{max(len(nodes[J]) for J in by_input)} of {max_points}",
     }
-    return Built(
-        residual,
-        render,
-        values,
-        {a: sp.h[i] for i, a in enumerate(inputs)},
-        sp.bound_um,
-        None,
-        not_carried,
-        summary,
-        limits,
-        notes,
-        table_tool=np.asarray(ctx.table_tool, float),
-    )
+    return one_axis_built(ctx, tables, sp, render, values, not_carried, summary, limits, notes)

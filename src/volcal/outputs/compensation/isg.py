@@ -45,7 +45,7 @@ import numpy as np
 
 from volcal.base.exceptions import InputError
 
-from . import Built, Context, control_path, render_template
+from . import Built, Context, check_axis_names, control_path, render_template
 from .grid import check_limit, component_tables
 
 #: parameter files per compensation (TF5280 documentation)
@@ -125,12 +125,7 @@ def build(ctx: Context) -> Built:
         "raise --tolerance or the limit",
     )
     axis_ids = dict(ctx.options.get("axis_names") or {})
-    unknown = sorted(set(axis_ids) - {a.name for a in fld.axes})
-    if unknown:
-        raise InputError(
-            f"unknown axis name(s) {unknown}; the model has {[a.name for a in fld.axes]}",
-            source="--axis",
-        )
+    check_axis_names(fld, axis_ids)
     numbers, k = {}, 4
     for a in fld.axes:
         if a.name in axis_ids:

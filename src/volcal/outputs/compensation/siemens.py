@@ -54,16 +54,21 @@ import numpy as np
 
 from volcal.base.exceptions import InputError
 
-from . import Built, Context, render_template, table_residuals
+from . import (
+    Built,
+    Context,
+    check_axis_names,
+    one_axis_built,
+    render_template,
+    table_residuals,
+    tool_offset_not_carried,
+)
 from .grid import (
     AxisTable,
     check_limit,
-    correction_residual,
-    correction_spacing,
-    correction_targets,
     fit_tables,
-    uniform_nodes,
-    workspace_sample,
+    one_axis_tables,
+    table_fit_poses,
 )
 
 TARGETS = {
@@ -177,9 +182,7 @@ def machine_axis_names(ctx: Context) -> dict[str, str]:
     fld = ctx.field
     inputs = [a.name for a in fld.axes]
     names = dict(ctx.options.get("axis_names") or {})
-    unknown = sorted(set(names) - set(inputs))
-    if unknown:
-        raise InputError(f"unknown axis name(s) {unknown}; the model has {inputs}", source="--axis")
+    check_axis_names(fld, names)
     if ctx.options.get("general_axis_names"):
         order = sorted((a for a in fld.axes if not a.rotary), key=lambda a: a.dir_index) + [
             a for a in fld.axes if a.rotary
@@ -193,29 +196,20 @@ def machine_axis_names(ctx: Context) -> dict[str, str]:
 def build(ctx: Context) -> Built:
     fld = ctx.field
     lim = _limits(ctx)
-    targets = correction_targets(fld, ctx.table_tool)
+    targets, sp, nodes, own = one_axis_tables(fld, ctx.table_tool, ctx.tolerance_um)
     inputs = [a.name for a in fld.axes]
-    sp, _ = correction_spacing(fld, targets, ctx.tolerance_um, inputs)
-    # a full-turn axis' table spans [0, 360] deg, the range the control reports it in
-    nodes = {
-        a.name: uniform_nodes(*((0.0, a.hi - a.lo) if a.full_turn else (a.lo, a.hi)), sp.h[i])
-        for i, a in enumerate(fld.axes)
-    }
     per = {a.name: a.full_turn for a in fld.axes}
     lin = targets.linear
-    tables: list[AxisTable] = []
-    for o in lin:  # LEC: own position
-        tables.append(AxisTable(o, o, nodes[o], np.zeros(len(nodes[o])), False, "lec"))
-    for r in targets.own:
-        tables.append(AxisTable(r, r, nodes[r], targets.own_value(fld, r, nodes[r]), per[r], "own"))
+    # LEC: own position, then the rotary axes' own tables
+    tables = [AxisTable(o, o, nodes[o], np.zeros(len(nodes[o])), False, "lec") for o in lin]
+    tables += own
     # CEC: one table per other input axis and output axis; no table multiplication (a
     # factor table would hold a position, see the module docstring)
     for o in lin:
         for J in inputs:
             if J != o:
                 tables.append(AxisTable(J, o, nodes[J], np.zeros(len(nodes[J])), per[J]))
-    n_fit = int(min(40000, max(6000, 40 * max(len(v) for v in nodes.values()))))
-    Q = workspace_sample(fld.lower, fld.upper, n_fit, skip=3)
+    Q = table_fit_poses(fld, nodes)
     target = targets.linear_values(fld, Q)
 
     def fixed(tabs):
@@ -257,9 +251,6 @@ def build(ctx: Context) -> Built:
     # the negative direction": the value is the negative of the axis motion wanted
     sgn = -1.0
 
-    def residual(q, t):
-        return correction_residual(fld, tables, q, t)
-
     at_table, others = table_residuals(fld, tables, ctx)
     not_carried = [
         "the lever-arm products (an angular error of one axis times the position of "
@@ -267,14 +258,7 @@ def build(ctx: Context) -> Built:
         "tables add functions of one axis each (table multiplication is not used: its "
         "factor table would hold a position, not a small correction); this leaves "
         f"{at_table:.3g} um RMS at the tables' tool offset"
-    ]
-    if others:
-        worst, wt = max(others, key=lambda x: x[0])
-        not_carried.append(
-            "the tool-length-dependent part of the angular errors (the tables know no tool "
-            "offset): up to "
-            f"{worst:.3g} um RMS at tool offset (" + ", ".join(f"{v:g}" for v in wt) + ") mm"
-        )
+    ] + tool_offset_not_carried(others)
     values = (
         "compensation values as SINUMERIK documents them (K3: a positive compensation "
         "value causes the machine axis to move in the negative direction; the same sign "
@@ -298,9 +282,7 @@ def build(ctx: Context) -> Built:
         head = comp.header() + notes
         ctab = []
         for k, t in enumerate(cec):
-            vals = sgn * t.values
-            if fld.axis(t.output).rotary:
-                vals = np.rad2deg(vals)
+            vals = t.file_values(fld, sgn)
             xs = axis_val(t.input, t.nodes)
             ctab.append(
                 dict(
@@ -318,9 +300,7 @@ def build(ctx: Context) -> Built:
         ltab = []
         for t in lec:
             a = fld.axis(t.input)
-            vals = sgn * t.values
-            if a.rotary:
-                vals = np.rad2deg(vals)
+            vals = t.file_values(fld, sgn)  # input = output: the axis' own table
             xs = axis_val(t.input, t.nodes)
             ltab.append(
                 dict(
@@ -371,16 +351,4 @@ def build(ctx: Context) -> Built:
         "LEC points per axis": f"{max((len(t.nodes) for t in lec), default=0)} of "
         f"{lim['max_lec_points']}",
     }
-    return Built(
-        residual,
-        render,
-        values,
-        {a: sp.h[i] for i, a in enumerate(inputs)},
-        sp.bound_um,
-        None,
-        not_carried,
-        summary,
-        limits,
-        notes,
-        table_tool=np.asarray(ctx.table_tool, float),
-    )
+    return one_axis_built(ctx, tables, sp, render, values, not_carried, summary, limits, notes)
