@@ -42,9 +42,11 @@ class DataSet:
 def parse_data_argument(text: str, default: str = "tracker") -> DataSet:
     """``"ballbar=circles.csv"`` -> DataSet("ballbar", Path("circles.csv")); a path
     without a registered instrument name before ``=`` is read by ``default``."""
+    head, sep, tail = str(text).partition("=")
+    if not sep:  # a plain path: the registry (which imports the numerics) is not needed
+        return DataSet(default, Path(text))
     from volcal.measurement.instruments import instruments
 
-    head, sep, tail = str(text).partition("=")
-    if sep and head.strip() in instruments():
+    if head.strip() in instruments():
         return DataSet(head.strip(), Path(tail))
     return DataSet(default, Path(text))

@@ -65,7 +65,6 @@ Problems found in one pass are collected into one message; the exception's ``row
 
 from __future__ import annotations
 
-import difflib
 import re
 import warnings
 from collections.abc import Iterable, Mapping, Sequence
@@ -77,6 +76,13 @@ import numpy as np
 import pandas as pd
 
 from volcal.base.exceptions import InputError
+from volcal.measurement.header import (
+    _closest,
+    _Col,
+    _Problems,
+)
+from volcal.measurement.header import measurement_schema as _measurement_schema
+from volcal.measurement.header import resolve_columns as _resolve_header
 from volcal.model.spec import MachineSpec, resolve_model
 
 __all__ = [
@@ -109,7 +115,6 @@ COPLANAR_RTOL = 1e-6
 #: Name used in messages for a DataFrame given without ``name``.
 DATAFRAME_NAME = "<DataFrame>"
 
-_MAX_LISTED = 12  # problems listed in one message
 _NA_STRINGS = {"nan", "na", "n/a", "null", "none"}
 _TRUE = {"true", "t", "yes", "y", "1"}
 _FALSE = {"false", "f", "no", "n", "0"}
@@ -179,47 +184,6 @@ class Measurements:
     def has_sigma(self) -> bool:
         """True when at least one reading has its own standard uncertainty."""
         return bool(np.isfinite(self.sigma).any())
-
-
-# --------------------------------------------------------------------------------------
-# problem collection
-
-
-@dataclass
-class _Problem:
-    row: int | None
-    column: str | None
-    message: str
-
-
-class _Problems:
-    def __init__(self, source: str):
-        self.source = source
-        self.items: list[_Problem] = []
-
-    def add(self, row: int | None, column: str | None, message: str) -> None:
-        self.items.append(_Problem(row, column, message))
-
-    def raise_if_any(self) -> None:
-        if not self.items:
-            return
-        # in file order (stable: problems of one row keep their order); row-less last
-        self.items.sort(key=lambda p: (p.row is None, p.row or 0))
-        first = self.items[0]
-        msg = first.message
-        rest = self.items[1:]
-        if rest:
-            lines = []
-            for p in rest[: _MAX_LISTED - 1]:
-                where = ", ".join(
-                    ([f"row {p.row}"] if p.row is not None else [])
-                    + ([f"column '{p.column}'"] if p.column is not None else [])
-                )
-                lines.append(f"  - {where}: {p.message}" if where else f"  - {p.message}")
-            if len(rest) > _MAX_LISTED - 1:
-                lines.append(f"  - ... and {len(rest) - (_MAX_LISTED - 1)} more")
-            msg += f"\n{len(rest)} further problem(s) in {self.source}:\n" + "\n".join(lines)
-        raise InputError(msg, source=self.source, row=first.row, column=first.column)
 
 
 # --------------------------------------------------------------------------------------
@@ -500,27 +464,6 @@ def _map_columns(raw: _Raw, mapping: dict[str, tuple[str, str | None]], spec) ->
 # columns
 
 
-@dataclass(frozen=True)
-class _Col:
-    canonical: str
-    synonyms: tuple[str, ...]
-    required: bool
-    kind: str  # "id", "float", "optfloat", "bool"
-    unit: str = ""
-
-    @property
-    def names(self) -> tuple[str, ...]:
-        return (self.canonical, *self.synonyms)
-
-
-def _closest(name: str, candidates: Iterable[str]) -> str | None:
-    low: dict[str, str] = {}
-    for c in candidates:
-        low.setdefault(c.lower(), c)
-    m = difflib.get_close_matches(name.lower(), list(low), n=1, cutoff=0.6)
-    return low[m[0]] if m else None
-
-
 def _resolve_columns(
     raw: _Raw,
     schema: list[_Col],
@@ -529,79 +472,12 @@ def _resolve_columns(
     axis_names: list[str] | None = None,
     model_name: str | None = None,
 ) -> dict[str, int]:
-    """Map canonical names to positions in ``raw.body``; report naming problems (row 1)."""
-    by_name = {n: c for c in schema for n in c.names}
-    allowed = [n for c in schema for n in c.names]
-    found: dict[str, tuple[str, int]] = {}
-    seen: dict[str, int] = {}
-    unknown: list[tuple[str, int]] = []
-    for k, h in enumerate(raw.header):
-        if h == "":
-            problems.add(1, f"#{k + 1}", f"column {k + 1} has no name in the header row")
-            continue
-        if h in seen:
-            problems.add(1, h, f"column '{h}' appears twice (columns {seen[h] + 1} and {k + 1})")
-            continue
-        seen[h] = k
-        col = by_name.get(h)
-        if col is None:
-            unknown.append((h, k))
-            continue
-        if col.canonical in found:
-            other = found[col.canonical][0]
-            problems.add(
-                1,
-                h,
-                f"columns '{other}' and '{h}' are the same quantity "
-                f"({col.canonical}{', ' + col.unit if col.unit else ''}); keep one",
-            )
-            continue
-        found[col.canonical] = (h, k)
-    unknown_names = [u for u, _ in unknown]
-    missing = [c for c in schema if c.required and c.canonical not in found]
-    missing_axes = [c.canonical for c in missing if axis_names and c.canonical in axis_names]
-    guessed: set[str] = set()
-    for c in missing:
-        if c.canonical in missing_axes:
-            continue
-        msg = f"missing required column '{c.canonical}'"
-        if c.synonyms:
-            msg += f" (or {', '.join(repr(s) for s in c.synonyms)})"
-        if c.unit:
-            msg += f", {c.unit}"
-        guess = _closest(c.canonical, unknown_names) or (
-            _closest(c.synonyms[0], unknown_names) if c.synonyms else None
-        )
-        if guess is not None:
-            guessed.add(guess)
-            msg += f"; is column '{guess}' meant to be '{c.canonical}'?"
-        problems.add(1, c.canonical, msg)
-    if missing_axes:
-        msg = (
-            f"the axis columns do not match the model '{model_name}': its axes are "
-            f"{', '.join(axis_names or [])}; missing column(s) for "
-            f"{', '.join(missing_axes)}"
-        )
-        extra = [u for u in unknown_names if re.fullmatch(r"[A-Z][A-Z0-9]{0,3}(_mm|_deg)?", u)]
-        if extra:
-            guessed.update(extra)
-            msg += f"; the table has column(s) {', '.join(extra)} that the model has no axis for"
-        problems.add(1, missing_axes[0], msg)
-    for u, _ in unknown:
-        if u in guessed:
-            continue
-        hint = _closest(u, allowed)
-        msg = f"unknown column '{u}'"
-        if hint is not None and hint != u:
-            msg += f" (did you mean '{hint}'?)"
-        problems.add(1, u, msg)
-    if unknown:
-        groups = []
-        for c in schema:
-            groups.append(c.canonical + (f" ({'/'.join(c.synonyms)})" if c.synonyms else ""))
-        problems.add(1, None, "allowed columns: " + ", ".join(groups))
-    problems.raise_if_any()
-    return {canon: pos for canon, (_, pos) in found.items()}
+    """Map canonical names to positions in ``raw.body``; report naming problems (row 1).
+    The header's rules are in :mod:`volcal.measurement.header` (standard library only, so
+    that the command line checks a header before pandas is imported)."""
+    return _resolve_header(
+        raw.header, schema, problems, axis_names=axis_names, model_name=model_name
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -942,20 +818,6 @@ def mm_or_um(
 
 # --------------------------------------------------------------------------------------
 # measurements
-
-
-def _measurement_schema(spec: MachineSpec) -> list[_Col]:
-    cols = [_Col("station", (), True, "id"), _Col("point", (), True, "id")]
-    for a in spec.axes:
-        unit = "deg" if a.is_rotary else "mm"
-        cols.append(_Col(a.name, (f"{a.name}_{unit}",), True, "float", unit))
-    cols += [_Col(f"tool_{c}", (f"tool_{c}_mm",), False, "float", "mm") for c in "xyz"]
-    cols += [
-        _Col("length", ("length_mm",), True, "float", "mm"),
-        _Col("time", ("time_s",), False, "optfloat", "s"),
-        _Col("sigma", ("sigma_mm",), False, "optfloat", "mm"),
-    ]
-    return cols
 
 
 def _rot(i: int, a: np.ndarray) -> np.ndarray:

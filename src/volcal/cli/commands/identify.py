@@ -212,7 +212,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         action="store_true",
         help="skip the PNG plots (0.4 s; `volcal report` draws them later from the result)",
     )
-    p.set_defaults(func=run)
+    # the collector stays paused through this command's imports (_run resumes it)
+    p.set_defaults(func=run, imports_gc_paused=True)
     return p
 
 
@@ -253,12 +254,6 @@ def _read_inputs(args: argparse.Namespace):
     None, seconds spent reading the measurement table)."""
     import time
 
-    from volcal.measurement.instruments import get_instrument
-    from volcal.measurement.tables import (
-        load_instrument_stations,
-        load_measurements,
-        load_stations,
-    )
     from volcal.model.spec import resolve_model
 
     sets = _data_sets(args)
@@ -268,6 +263,19 @@ def _read_inputs(args: argparse.Namespace):
         return None, None, 0.0
     args.data = Path(sets[0].source)
     spec = resolve_model(args.model)
+    if not args.columns:
+        # the header's columns from its first line, before pandas' import (0.25 s): a
+        # misnamed or missing column is reported at once; the cells need the loader
+        from volcal.measurement.header import check_header
+
+        check_header(args.data, spec)
+    from volcal.measurement.instruments import get_instrument
+    from volcal.measurement.tables import (
+        load_instrument_stations,
+        load_measurements,
+        load_stations,
+    )
+
     ins = get_instrument(args.instrument)
     stations = None
     if args.stations is not None:
@@ -290,6 +298,9 @@ def _read_inputs(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     from volcal.outputs.plot_process import plotting
 
+    # a bad input ends the program without the interpreter's teardown too: the error is
+    # raised before anything is opened that a `with` does not close (volcal.cli.main)
+    args.exit_now_on_error = True
     inputs = _read_inputs(args)
     # then, before the numerics are imported: two children that import matplotlib on the
     # other core while this process solves, then draw the plots two at a time while this
@@ -354,6 +365,12 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
                 source=name,
             )
 
+    if getattr(args, "gc_paused", False):
+        # the libraries are imported (the table read, the output checked): the collector
+        # again, without walking what they allocated (volcal.base.processes.resume_gc)
+        from volcal.base.processes import resume_gc
+
+        resume_gc()
     data_name = ", ".join(str(d.source) for d in args.data_sets)
     log.info("identifying: model %s, data %s, strategy %s", args.model, data_name, args.strategy)
     meas, stations, read_s = inputs
