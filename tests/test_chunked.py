@@ -91,6 +91,14 @@ def test_chunked_sums_are_the_whole_graphs_and_the_residuals_derivatives(model, 
     s = np.linalg.svd(R, compute_uv=False)
     assert np.max(np.abs(s - s_ref)) <= 1e-6 * s_ref[0]
 
+    # a solve that holds every error parameter: the other blocks, without d(point)/d(theta)
+    nt = pr.n_theta
+    r0, g0, H0 = ch.gram(xs, p, theta=False)
+    assert np.max(np.abs(r0 - r)) <= 1e-12 * scale_r
+    assert np.max(np.abs(g0[nt:] - g[nt:])) <= 1e-12 * np.abs(g_ref).max()
+    assert np.max(np.abs(H0[nt:, nt:] - H[nt:, nt:])) <= 1e-12 * np.abs(H_ref).max()
+    assert not g0[:nt].any() and not H0[:nt].any() and not H0[:, :nt].any()
+
     # one chunk holding every pose gives the same sums (to rounding)
     r1, g1, H1 = ChunkedEvaluator(pr, pose_chunk=n_poses + 5).gram(xs, p)
     assert np.array_equal(r1, r)

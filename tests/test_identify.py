@@ -229,3 +229,45 @@ def test_exact_hessian_and_exact_model_options_agree():
     assert np.max(np.abs(gn.theta - ex_m.theta) * f) < 0.05
     rms, _ = field_error_um(ex_m, machine, em, theta, n=3)
     assert rms < 0.5
+
+
+def test_a_plan_solves_new_readings_as_run_does():
+    # a Monte Carlo over one layout: the strategy's decisions (datum, pivots) made once on
+    # one data set and reused for another give the answer run() finds deciding afresh,
+    # and that answer recovers the other data set's own simulated truth
+    from volcal.analysis.identify import Identifier, prepare
+    from volcal.problem.residuals import Layout
+
+    out = []
+    for seed in (3, 4):
+        machine, em, theta, sim = simulated("xfyz", seed=seed, vmax_um=2.0)
+        prep = prepare(machine, sim.measurements, error_model=em, strategy="two-phase")
+        out.append((theta, prep))
+    (_, a), (theta_b, b) = out
+    assert np.array_equal(a.meas.q_internal, b.meas.q_internal)  # the same layout
+    ider = Identifier(a.machine, a.error_model, Layout.from_measurements(a.meas))
+    pr = ider.problem
+
+    def data(prep):
+        x0 = pr.pack_x(np.zeros(em.n_params), prep.st0, prep.glob0)
+        return x0, pr.pack_data(prep.meas.q_internal, prep.meas.tool, prep.meas.length,
+                                1.0 / prep.sigma)
+
+    plan = ider.plan("two-phase", *data(a))
+    assert len(plan.held) == 2 and plan.datum[1].any() and not plan.datum[0].any()
+    x_plan, outs, fixed, ident = ider.run(plan, *data(b))
+    assert all(o.success for o in outs)
+    assert ident is plan.identifiability and np.array_equal(fixed, plan.held[-1])
+    x_run, _, fixed_run, _ = ider.run("two-phase", *data(b))
+    assert np.array_equal(fixed_run, plan.held[-1])
+    np.testing.assert_allclose(x_plan, x_run, rtol=0, atol=1e-9)
+    # the identified errors against the truth the simulator drew (on the first-order
+    # model's datum: compare the field, modulo the rigid motion the lengths cannot see)
+    q = machine.axis_to_internal(grid_plan(machine.spec, 4).to_numpy(float))
+    ident_field = machine.evaluate(q, np.zeros(3), em.values(q, x_plan[: em.n_params]))[1]
+    true_field = machine.evaluate(q, np.zeros(3), em.values(q, theta_b), exact=True)[1]
+    p0 = machine.evaluate(q, np.zeros(3), np.zeros(machine.n_errors))[0]
+    _, d = rigid_fit(p0, 1e3 * (ident_field - true_field))
+    assert np.sqrt(np.mean(d ** 2)) < 0.5
+    with pytest.raises(Exception, match="user_fixed"):
+        ider.run(plan, *data(b), user_fixed=~plan.user_fixed)

@@ -148,6 +148,7 @@ __all__ = [
     "simulate",
     "HPTIEstimator",
     "CoreEstimator",
+    "ESTIMATORS",
     "point_cloud_spec",
     "JacobianReport",
     "Estimate",
@@ -164,6 +165,8 @@ LASERS = ("laser1", "laser2", "laser3")
 GEOMETRY_NAMES = ("x1_mm", "x2_mm", "y2_mm")
 OFFSET_NAMES = ("offset1_mm", "offset2_mm", "offset3_mm")
 STRATEGIES = ("sphere", "points-only", "two-phase", "joint")
+#: who solves the NLP strategies of the study: volcal's core or the study's own IPOPT problem
+ESTIMATORS = ("core", "study")
 GROUPS = ("points", "frame", "geometry", "offsets")
 
 
@@ -1013,9 +1016,19 @@ class CoreEstimator:
     (:meth:`volcal.solve.gauss_newton.GaussNewtonSolver.solve_levenberg`) with the study's
     damping: ``damping_rel`` times the mean diagonal of J^T J over the free variables in
     the scaling ``scaling`` (``"units"``: 1 um / 1 urad; ``"jacobian"``: unit Jacobian
-    columns at the start)."""
+    columns at the start).
 
-    def __init__(self, n_points: int) -> None:
+    Everything that depends on the layout is built once per object and reused for every
+    trial: the problem and its chunked evaluator, the solvers, the phased strategies'
+    plans (datum and pivots, :meth:`volcal.analysis.identify.Identifier.plan`) and the
+    joint's held gauge, each decided at its first call (the study runner makes that call on
+    noise-free data, so the decisions do not depend on which trial a worker runs first).
+
+    solver: the core solver of the phased strategies, ``"gauss-newton"`` (default: the
+    core's Levenberg-Marquardt on the chunked evaluation, the faster here) or ``"ipopt"``
+    (IPOPT then the Gauss-Newton polish); both reach the same minimiser."""
+
+    def __init__(self, n_points: int, *, solver: str = "gauss-newton") -> None:
         from volcal.analysis.identify import Identifier
         from volcal.model.errors import ErrorModel
         from volcal.model.machine import Machine
@@ -1029,6 +1042,7 @@ class CoreEstimator:
             ErrorModel(spec, datum="none"),
             layout,
             instrument=MultiLaserInstrument(),
+            solver=solver,
         )
         pr = self.identifier.problem
         self._q = np.repeat(np.arange(N, dtype=float), 3)[:, None]
@@ -1040,6 +1054,8 @@ class CoreEstimator:
         # joint: (held mask with the gauge pivots, rank deficient after them) per free set;
         # decided once, at the structural point (nominal points), as the study does
         self._joint_cache: dict[tuple, tuple[np.ndarray, bool]] = {}
+        # points-only / two-phase: the strategy's plan (datum, pivots) per strategy
+        self._plans: dict[tuple, Any] = {}
 
     def data(self, data: HPTIData, weights: np.ndarray | float) -> np.ndarray:
         """The problem's data vector p: pose index, nominal point as tool offset, readings
@@ -1147,9 +1163,17 @@ class CoreEstimator:
         return out.x, [out]
 
     def _phased(self, strategy: str, x0, p, phase1: Sequence[str]):
-        """points-only and two-phase as core strategies run by ``Identifier.run``."""
+        """points-only and two-phase as core strategies run by ``Identifier.run``, on a
+        plan (:meth:`volcal.analysis.identify.Identifier.plan`) made at the first call per
+        strategy: the datum and the held pivots are structural, decided once as the
+        study's estimator does, not per trial."""
         from volcal.problem.strategies import POINTS_ONLY, Phase, PhasedStrategy
 
+        key = (strategy, tuple(phase1) if strategy == "two-phase" else ())
+        plan = self._plans.get(key)
+        if plan is not None:
+            x, outs, _, _ = self.identifier.run(plan, x0, p)
+            return x, outs
         held = self._icrs.copy()
         if strategy == "points-only":
             strat = POINTS_ONLY
@@ -1169,7 +1193,8 @@ class CoreEstimator:
                     Phase(hold=frozenset({"stations", "frame"})),
                 ),
             )
-        x, outs, _, _ = self.identifier.run(strat, x0, p, user_fixed=held)
+        plan = self._plans[key] = self.identifier.plan(strat, x0, p, user_fixed=held)
+        x, outs, _, _ = self.identifier.run(plan, x0, p)
         return x, outs
 
 
@@ -1301,16 +1326,26 @@ def cases_from_config(cfg: dict) -> list[Case]:
 
 
 class StudyRunner:
-    """Runs trials of the paper-001 study for one scenario; one estimator (one IPOPT build)
-    per instance.
+    """Runs trials of the paper-001 study for one scenario; its estimators (volcal's core
+    and the study's IPOPT problem) are built once per instance and reused for every trial.
 
     :meth:`trial` returns errors (n_cases, N) um (instrument frame), success (n_cases,),
     iterations (n_cases,) and the estimated x1 x2 y2 (n_cases, 3) mm, in the order of
     :attr:`cases`."""
 
-    def __init__(self, cfg: dict, scenario: str | None = None, *, threads_one: bool = True):
+    def __init__(
+        self,
+        cfg: dict,
+        scenario: str | None = None,
+        *,
+        threads_one: bool = True,
+        estimator: str | None = None,
+    ):
         """threads_one: limit BLAS to one thread for the rest of the process (small SVDs;
-        several processes share the cores)."""
+        several processes share the cores).  estimator: ``"core"`` (volcal's core,
+        :class:`CoreEstimator`) or ``"study"`` (:class:`HPTIEstimator`, the study's own
+        IPOPT problem) for the NLP strategies; default the config's ``study.estimator``,
+        else ``"core"``.  The sphere intersection is closed-form either way."""
         st = cfg.get("study", {})
         self.cfg = cfg
         self.scenario = scenario
@@ -1324,9 +1359,27 @@ class StudyRunner:
             )
         self.scale_instrument = applies == "points+instrument"
         self.cases = cases_from_config(cfg)
+        self.estimator_name = str(estimator or st.get("estimator", "core"))
+        if self.estimator_name not in ESTIMATORS:
+            raise ValueError(
+                f"study.estimator must be one of {ESTIMATORS}, got {self.estimator_name!r}"
+            )
+        if self.estimator_name == "core":
+            for case in self.cases:
+                if case.calibration_points is not None or case.fix_unidentifiable:
+                    raise ValueError(
+                        f"[[case]] {case.name!r}: calibration_points and fix_unidentifiable "
+                        "are options of the study's estimator only (study.estimator = "
+                        "'study')"
+                    )
         if threads_one:
             set_blas_threads(1)
+        # the study's own estimator: the sphere intersection, the rank analyses of the
+        # `jacobian` table and the cross-check of the core (run.py --core-check)
         self.estimator = HPTIEstimator(self.experiment.n_points)
+        self.core = (
+            CoreEstimator(self.experiment.n_points) if self.estimator_name == "core" else None
+        )
         # weights 1 / nominal reading uncertainty (uniform: they scale the objective, which
         # matters only to the damping of rank-deficient steps)
         self.sigma = self.experiment.noise.nominal_sigma_mm or 1e-3
@@ -1335,16 +1388,48 @@ class StudyRunner:
         self._reference = simulate(replace(self.experiment, noise=NoiseModel.none()), 0)
         for case in self.cases:
             if case.strategy != "sphere":
-                self.estimate(self._reference, case)
+                self.estimate(self._reference, case, by="study")
+                if self.core is not None:
+                    self.estimate(self._reference, case)
 
     def case_labels(self) -> list[str]:
         return [c.label for c in self.cases]
 
-    def estimate(self, data: HPTIData, case: Case, *, cache: bool = True) -> Estimate:
+    def estimate(
+        self,
+        data: HPTIData,
+        case: Case,
+        *,
+        cache: bool = True,
+        damping_rel: float = 1e-5,
+        by: str | None = None,
+    ) -> Estimate:
+        """One case on one data set by ``by`` (``"core"`` or ``"study"``; default the
+        runner's estimator; the sphere intersection is the study's closed form).  cache:
+        the study's estimator reuses its gauge decisions per case (False: decide afresh,
+        with the rank reports); the core always reuses its plans."""
+        a = 1.0 if case.accuracy is None else case.accuracy
+        by = by or self.estimator_name
+        if by not in ESTIMATORS:
+            raise ValueError(f"by must be one of {ESTIMATORS}, got {by!r}")
+        if by == "core" and case.strategy != "sphere":
+            if self.core is None:
+                self.core = CoreEstimator(self.experiment.n_points)
+            return self.core.estimate(
+                data,
+                case.strategy,
+                a,
+                scale_instrument=self.scale_instrument,
+                weights=1.0 / self.sigma,
+                phase1=case.phase1,
+                joint_groups=case.groups,
+                scaling=case.scaling,
+                damping_rel=damping_rel,
+            )
         return self.estimator.estimate(
             data,
             case.strategy,
-            1.0 if case.accuracy is None else case.accuracy,
+            a,
             scale_instrument=self.scale_instrument,
             weights=np.full((data.n_points, 3), 1.0 / self.sigma),
             phase1=case.phase1,
@@ -1352,6 +1437,7 @@ class StudyRunner:
             joint_groups=case.groups,
             fix_unidentifiable=case.fix_unidentifiable,
             scaling=case.scaling,
+            damping_rel=damping_rel,
             cache_key=(case.name, case.accuracy) if cache else None,
         )
 
@@ -1395,7 +1481,7 @@ class StudyRunner:
                 )
                 out.append((case, rep))
                 continue
-            e = self.estimate(data, case, cache=False)
+            e = self.estimate(data, case, cache=False, by="study")
             out += [(case, r) for r in e.reports]
         return out
 
@@ -1403,8 +1489,8 @@ class StudyRunner:
 class TrialKernel:
     """The trials of one scenario as a kernel of
     :func:`volcal.analysis.uncertainty.parallel.run_chunks` (a chunk is a list of trial
-    indices): the :class:`StudyRunner` (one IPOPT build) is made on first use in each
-    process and never pickled, so a worker builds its own."""
+    indices): the :class:`StudyRunner` (its estimators built once) is made on first use in
+    each process and never pickled, so a worker builds its own."""
 
     def __init__(self, cfg: dict, scenario: str | None = None) -> None:
         self.cfg, self.scenario = cfg, scenario

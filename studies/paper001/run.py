@@ -231,6 +231,10 @@ class ScenarioJob:
         st = self.cfg.get("study", {})
         keep["study"] = {k: st.get(k) for k in ("seed", "initial_accuracy_percent",
                                                 "initial_accuracy_applies_to")}
+        if st.get("estimator", "core") != "study":
+            # the core's chunks say so; the study's estimator keeps the fingerprint its
+            # chunks had before the core computed the tables (they stay readable)
+            keep["study"]["estimator"] = st.get("estimator", "core")
         return _hash(keep)
 
     def run(self, indices: list[int]) -> dict:
@@ -278,6 +282,10 @@ class DampingJob:
         st = self.cfg.get("study", {})
         keep["study"] = {k: st.get(k) for k in ("seed", "initial_accuracy_percent",
                                                 "initial_accuracy_applies_to")}
+        if st.get("estimator", "core") != "study":
+            # the core's chunks say so; the study's estimator keeps the fingerprint its
+            # chunks had before the core computed the tables (they stay readable)
+            keep["study"]["estimator"] = st.get("estimator", "core")
         keep["damping_sweep"] = {k: v for k, v in keep["damping_sweep"].items()
                                  if k not in ("trials", "smoke_trials")}
         return _hash(keep)
@@ -292,10 +300,7 @@ class DampingJob:
         for t, k in enumerate(indices):
             data = r.simulate(k)
             for j, (case, d) in enumerate(self.keys):
-                e = r.estimator.estimate(
-                    data, "joint", case.accuracy, scale_instrument=r.scale_instrument,
-                    weights=1.0 / r.sigma, joint_groups=case.groups, scaling=case.scaling,
-                    damping_rel=d, cache_key=(case.name, case.accuracy))
+                e = r.estimate(data, case, damping_rel=d)
                 out["errors_um"][t, j] = e.errors_um(data)
                 out["success"][t, j] = e.success
                 out["iterations"][t, j] = e.iterations
@@ -553,7 +558,7 @@ def plot_errors(path: Path, hist: np.ndarray, cases: list, scenario: str, trials
 
 
 def jacobian_rows(cfg: dict, scenario: str) -> list[dict]:
-    runner = hpti.StudyRunner(cfg, scenario)
+    runner = hpti.StudyRunner(cfg, scenario, estimator="study")  # its rank reports
     rows = []
     for case, rep in runner.jacobian_reports():
         d = rep.as_dict()
@@ -609,23 +614,14 @@ def noise_alternatives(cfg: dict, args) -> int:
 
 def _core_rows(runner: hpti.StudyRunner, keys: list, trials: int, scenario: str) -> list[dict]:
     """:func:`core_check` for the (case, damping_rel) pairs ``keys`` of one runner."""
-    core = hpti.CoreEstimator(runner.experiment.n_points)
-    w = 1.0 / runner.sigma
     acc = {k: [0.0, 0.0, 0.0, 0.0] for k in range(len(keys))}
     for t in range(trials):
         data = runner.simulate(t)
         for k, (c, d) in enumerate(keys):
-            a = 1.0 if c.accuracy is None else c.accuracy
             t0 = time.perf_counter()
-            ref = runner.estimator.estimate(
-                data, c.strategy, a, scale_instrument=runner.scale_instrument,
-                weights=np.full((data.n_points, 3), w), phase1=c.phase1,
-                joint_groups=c.groups, scaling=c.scaling, damping_rel=d,
-                cache_key=(c.name, c.accuracy))
+            ref = runner.estimate(data, c, damping_rel=d, by="study")
             t1 = time.perf_counter()
-            got = core.estimate(data, c.strategy, a, scale_instrument=runner.scale_instrument,
-                                weights=w, phase1=c.phase1, joint_groups=c.groups,
-                                scaling=c.scaling, damping_rel=d)
+            got = runner.estimate(data, c, damping_rel=d, by="core")
             t2 = time.perf_counter()
             r = acc[k]
             r[0] = max(r[0], float(np.max(np.abs(got.errors_um(data) - ref.errors_um(data)))))
@@ -636,8 +632,67 @@ def _core_rows(runner: hpti.StudyRunner, keys: list, trials: int, scenario: str)
     return [{"scenario": scenario,
              "case": c.label if len({d for _, d in keys}) == 1 else f"{c.label}, damping {d:g}",
              "trials": trials, "point": f"{r[0]:.2g}", "geometry": f"{r[1]:.2g}",
-             "study_s": f"{r[2]:.2f}", "core_s": f"{r[3]:.2f}"}
+             "study_s": f"{r[2]:.2f}", "core_s": f"{r[3]:.2f}",
+             "ratio": f"{r[3] / r[2]:.1f}" if r[2] > 0 else "-"}
             for (c, d), r in zip(keys, acc.values())]
+
+
+def _cells(md: str) -> tuple[list[str], list[list[str]]]:
+    """(header, rows) of a markdown table's cells, as printed."""
+    rows = [[c.strip() for c in line.strip().strip("|").split("|")]
+            for line in md.splitlines() if line.startswith("|")]
+    return rows[0], rows[2:]
+
+
+def _number(cell: str) -> float | None:
+    """The value of a printed cell (before a '±'), None for text."""
+    try:
+        return float(cell.split("±")[0].strip())
+    except ValueError:
+        return None
+
+
+def compare_tables(old: Path, new: Path) -> str:
+    """Where two runs' tables (``tables.json`` files or the folders holding them) differ in
+    their printed digits: per table and column, the cells that differ and the largest
+    relative difference, with the row where it is largest (markdown)."""
+    def load(path: Path) -> dict:
+        f = path / "tables.json" if path.is_dir() else path
+        if not f.is_file():
+            raise SystemExit(f"{f}: no tables.json (a folder written by run.py, or the file)")
+        return json.loads(f.read_text(encoding="utf-8"))
+
+    a, b = load(old), load(new)
+    rows = []
+    for name in a:
+        if name not in b:
+            continue
+        head, ra = _cells(a[name])
+        head_b, rb = _cells(b[name])
+        if head != head_b or len(ra) != len(rb):
+            rows.append({"table": name, "column": "(layout)", "n": "-", "rel": "-",
+                         "where": "headers or row count differ"})
+            continue
+        for j, col in enumerate(head):
+            diff = []
+            for x, y in zip(ra, rb):
+                if x[j] == y[j]:
+                    continue
+                u, v = _number(x[j]), _number(y[j])
+                d = abs(v - u) if u is not None and v is not None else np.inf
+                diff.append((d / abs(u) if u else np.inf, d, x, y))
+            if not diff:
+                continue
+            r, d, x, y = max(diff, key=lambda t: (t[0], t[1]))
+            rows.append({"table": name, "column": col, "n": f"{len(diff)} of {len(ra)}",
+                         "rel": f"{r:.3g}", "abs": f"{max(t[1] for t in diff):.3g}",
+                         "where": f"{' / '.join(x[:2])}: {x[j]} -> {y[j]}"})
+    if not rows:
+        return "every printed cell of every table is the same"
+    return rt.markdown(rows, ["table", "column", "n", "rel", "abs", "where"],
+                       ["table", "column", "cells that differ", "largest relative difference",
+                        "largest absolute difference", "where the relative one is (first "
+                        "columns: old -> new)"])
 
 
 def core_check(cfg: dict, trials: int, scenarios: list[str]) -> str:
@@ -648,16 +703,20 @@ def core_check(cfg: dict, trials: int, scenarios: list[str]) -> str:
     process; the ratio is the point, the machine's load sets the seconds)."""
     rows = []
     for sc in scenarios:
-        runner = hpti.StudyRunner(cfg, sc)
+        runner = hpti.StudyRunner(cfg, sc, estimator="core")
         keys = [(c, 1e-5) for c in runner.cases if c.strategy != "sphere"]
         rows += _core_rows(runner, keys, trials, sc)
     if cfg.get("damping_sweep"):
         sweep = DampingJob(cfg)
         rows += _core_rows(sweep.runner, sweep.keys, trials, f"{sweep.scenario} (sweep)")
+    total = [sum(float(r[k]) for r in rows) for k in ("study_s", "core_s")]
+    rows.append({"scenario": "all", "case": "all", "trials": trials, "point": "-",
+                 "geometry": "-", "study_s": f"{total[0]:.2f}", "core_s": f"{total[1]:.2f}",
+                 "ratio": f"{total[1] / total[0]:.1f}" if total[0] > 0 else "-"})
     return rt.markdown(rows, ["scenario", "case", "trials", "point", "geometry", "study_s",
-                              "core_s"],
+                              "core_s", "ratio"],
                        ["scenario", "case", "trials", "max abs point error diff um",
-                        "max abs x1 x2 y2 diff um", "study s", "core s"])
+                        "max abs x1 x2 y2 diff um", "study s", "core s", "core / study"])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -691,8 +750,19 @@ def main(argv: list[str] | None = None) -> int:
                     help="print how far volcal's core (identify's problem and solvers) "
                          "agrees with the study's estimator on the points-only and two-phase "
                          "cases of trials 0..N-1; compute nothing else")
+    ap.add_argument("--compare-tables", nargs=2, type=Path, default=None,
+                    metavar=("OLD", "NEW"),
+                    help="print where two runs' tables (tables.json or its folder) differ "
+                         "in their printed digits; compute nothing")
+    ap.add_argument("--estimator", choices=hpti.ESTIMATORS, default=None,
+                    help="who solves the NLP strategies: volcal's core (default, config "
+                         "study.estimator) or the study's own IPOPT problem; the chunks "
+                         "record it")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
+    if args.compare_tables is not None:
+        print(compare_tables(*args.compare_tables))
+        return 0
     if args.core_check is not None:
         if args.core_check < 1:
             ap.error("--core-check: expected a number of trials >= 1")
@@ -711,6 +781,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.noise_alternatives:
         return noise_alternatives(cfg, args)
     st = cfg.setdefault("study", {})
+    if args.estimator:
+        st["estimator"] = args.estimator
+    if st.setdefault("estimator", "core") not in hpti.ESTIMATORS:
+        raise SystemExit(f"{args.config}: study.estimator must be one of {hpti.ESTIMATORS}, "
+                         f"got {st['estimator']!r}")
     if args.initial_accuracy_applies_to:
         st["initial_accuracy_applies_to"] = args.initial_accuracy_applies_to
     trials = args.trials or (int(st.get("smoke_trials", 4)) if args.smoke
@@ -731,6 +806,7 @@ def main(argv: list[str] | None = None) -> int:
     chunk = int(st.get("chunk_trials", 250))
     B = int(st.get("bootstrap", 200))
     meta = {"trials": want, "workers": args.workers, "seed": int(st.get("seed", 1)),
+            "estimator": st["estimator"],
             "chunk_trials": chunk,
             "initial_accuracy_applies_to": st.get("initial_accuracy_applies_to", "points"),
             "scenarios": {}, "python": platform.python_version(),

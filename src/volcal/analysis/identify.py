@@ -635,7 +635,7 @@ class Identifier:
 
     def run(
         self,
-        strategy: str | Strategy,
+        strategy: str | Strategy | StrategyPlan,
         x0: np.ndarray,
         p: np.ndarray,
         *,
@@ -644,15 +644,63 @@ class Identifier:
     ) -> tuple[np.ndarray, list[SolveOutcome], np.ndarray, Identifiability]:
         """Solve with a strategy (:mod:`volcal.problem.strategies`) from x0 (physical), phase
         by phase on the one problem and solver.  Returns (x, outcomes, held mask of the last
-        phase, identifiability of the last phase that analysed it)."""
-        strat = get_strategy(strategy)
+        phase, identifiability of the last phase that analysed it).
+
+        ``strategy`` may be a :class:`StrategyPlan` from :meth:`plan`: its decisions (datum,
+        held pivots) are then taken as they are, with no analysis of the data at hand, and
+        the identifiability returned is the plan's; ``user_fixed`` is then the plan's (a
+        different one is refused)."""
+        x, outcomes, plan = self._run(strategy, x0, p, user_fixed, solve)
+        return x, outcomes, plan.held[-1] if plan.held else plan.user_fixed, plan.identifiability
+
+    def plan(
+        self,
+        strategy: str | Strategy,
+        x0: np.ndarray,
+        p: np.ndarray,
+        *,
+        user_fixed: np.ndarray | None = None,
+        solve: bool = True,
+    ) -> StrategyPlan:
+        """The decisions :meth:`run` takes for a strategy, from x0 (physical units) and
+        data p, kept for reuse: per phase the datum conditions in force and the held
+        variables (the user's, the phase's groups and one pivot per null direction).
+
+        Gauge, datum and pivots are decided at the structural point (:meth:`structural`)
+        from the layout, the weights and the held set, not from the readings, so a Monte
+        Carlo over one layout (new readings, new start values) decides them once, here,
+        and solves every trial with ``run(plan, x0, p)``: the same answers as ``run``
+        without the analyses (two R factors and an SVD per phase).  ``solve=False``
+        decides every phase at x0 instead of at the previous phase's answer (the
+        structural point of a phase depends on the station and frame values only)."""
+        return self._run(strategy, x0, p, user_fixed, solve)[2]
+
+    def _run(
+        self,
+        strategy: str | Strategy | StrategyPlan,
+        x0: np.ndarray,
+        p: np.ndarray,
+        user_fixed: np.ndarray | None,
+        solve: bool,
+    ) -> tuple[np.ndarray, list[SolveOutcome], StrategyPlan]:
+        given = strategy if isinstance(strategy, StrategyPlan) else None
+        strat = strategy.strategy if isinstance(strategy, StrategyPlan) else get_strategy(strategy)
         if not isinstance(strat, PhasedStrategy):
             raise InputError(
                 f"the {strat.name} strategy does not solve the joint problem; "
                 "run it through identify()"
             )
         n = self.problem.n_x
-        user_fixed = np.zeros(n, bool) if user_fixed is None else user_fixed
+        if given is not None:
+            if given.user_fixed.shape != (n,):
+                raise InputError(
+                    f"the plan was made for {given.user_fixed.shape[0]} variables, "
+                    f"this problem has {n}"
+                )
+            if user_fixed is not None and not np.array_equal(user_fixed, given.user_fixed):
+                raise InputError("user_fixed differs from the one the plan was made with")
+            user_fixed = given.user_fixed
+        user_fixed = np.zeros(n, bool) if user_fixed is None else np.asarray(user_fixed, bool)
         outcomes: list[SolveOutcome] = []
 
         def step(x, fixed) -> SolveOutcome:
@@ -669,26 +717,36 @@ class Identifier:
         self.phase_conditions: dict[str, float] = {}
         x = np.array(x0, float)
         fixed, ident = user_fixed, None
-        for ph in strat.phases:
+        held_all: list[np.ndarray] = []
+        datum_all: list[np.ndarray] = []
+        pivots_all: list[np.ndarray] = []
+        for i, ph in enumerate(strat.phases):
             held = user_fixed | self.group_mask(ph.hold)
             x = np.where(self.group_mask(ph.zero), 0.0, x)
-            if ph.datum:
+            if given is not None:
+                self.problem.set_datum(given.datum[i])
+            elif ph.datum:
                 self.select_datum(x, p, held)
             else:
                 # the error parameters are held: no datum condition is needed (rows on held
                 # variables only would over-determine the NLP for IPOPT)
                 self.problem.set_datum(np.zeros(len(self.problem.conditions), bool))
             fixed = held.copy()
-            if ph.pivots:
+            pivot = np.zeros(n, bool)
+            if given is not None:
+                pivot = given.pivots[i]
+            elif ph.pivots:
                 ident = self.analyse(x, p, held)
                 # hold one variable per null direction (the pivot): an error parameter at
                 # zero, a station or frame parameter at its start value (an instrument's
                 # own frame need not start at zero); the others involved stay free and are
                 # reported as not individually identifiable
-                pivot = np.zeros(n, bool)
                 pivot[list(ident.pivots)] = True
-                fixed |= pivot
-                x = np.where(pivot & ~held & self.is_theta, 0.0, x)
+            fixed |= pivot
+            x = np.where(pivot & ~held & self.is_theta, 0.0, x)
+            held_all.append(fixed.copy())
+            datum_all.append(np.array(self.problem.datum_active, bool))
+            pivots_all.append(pivot)
             out = step(x, fixed)
             outcomes.append(out)
             x = out.x
@@ -701,9 +759,36 @@ class Identifier:
                         f"{ph.report}_jacobian_unscaled": rep.condition_unscaled,
                     }
                 )
+        if given is not None:
+            return x, outcomes, given
         if ident is None:
             ident = self.analyse(x, p, fixed)
-        return x, outcomes, fixed, ident
+        plan = StrategyPlan(
+            strat, user_fixed.copy(), tuple(held_all), tuple(datum_all), tuple(pivots_all), ident
+        )
+        return x, outcomes, plan
+
+
+@dataclass(frozen=True)
+class StrategyPlan:
+    """The decisions of a :class:`~volcal.problem.strategies.PhasedStrategy` for one
+    layout and held set (:meth:`Identifier.plan`), reused by ``Identifier.run(plan, x0,
+    p)`` for any readings and start values of that layout (a Monte Carlo over one
+    instrument layout).
+
+    Per phase: ``held`` the mask over x held in the solve (the user's, the phase's groups
+    and the pivots), ``datum`` the mask over the problem's candidate datum conditions in
+    force, ``pivots`` the mask of the variables held for a null direction (error
+    parameters among them start the phase at zero).  ``identifiability``: of the last
+    phase that analysed it (or of the answer when none did), at the data the plan was
+    made with."""
+
+    strategy: PhasedStrategy
+    user_fixed: np.ndarray
+    held: tuple[np.ndarray, ...]
+    datum: tuple[np.ndarray, ...]
+    pivots: tuple[np.ndarray, ...]
+    identifiability: Identifiability
 
 
 # ---------------------------------------------------------------------------------------

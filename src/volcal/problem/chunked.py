@@ -15,8 +15,8 @@ structured products in numpy:
 * J^T J's error-parameter block pose by pose, G_p^T (D_p^T D_p) G_p with D_p^T D_p the
   3 x 3 sum over the readings of pose p of d(r)/d(point) d(r)/d(point)^T, as one dense
   product per chunk: 3 n_poses n_theta^2 flops instead of N n_theta^2;
-* the station and global columns (one nonzero per reading and parameter) through a
-  sparse matrix per chunk;
+* the station and global columns (one nonzero per reading and parameter) by bincounts
+  into dense arrays of the chunk's size;
 * R station by station on the columns a reading touches (error parameters, its station's,
   the globals; :class:`volcal.base.linalg.StackedQR`), then the stations' triangles
   together, as :meth:`volcal.problem.residuals.DenseJacobian.r_factor` does.
@@ -38,7 +38,6 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
-import scipy.sparse as sp
 
 from volcal.model.numpy_call import NumpyCall
 
@@ -129,15 +128,17 @@ class ChunkedEvaluator:
         k = a.shape[1]
         return a if k == n else np.concatenate([a, np.repeat(a[:, -1:], n - k, axis=1)], 1)
 
-    def _chunks(self, xs: np.ndarray, p: np.ndarray, derivatives: bool):
+    def _chunks(self, xs: np.ndarray, p: np.ndarray, derivatives: bool, theta: bool = True):
         """Per chunk of poses: (slice of poses, reading indices (pose-sorted), their local
         pose index, r, rows of d(r)/d(point, station, globals) (k, n_r) or None, G
-        (n, 3, n_theta) or None)."""
-        q, t, m, w, theta, st, glob = self._split(xs, p)
+        (n, 3, n_theta) or None).  ``theta=False``: no G (d(point)/d(theta) is not
+        evaluated) even with ``derivatives``."""
+        q, t, m, w, theta_v, st, glob = self._split(xs, p)
         Bp, Br, nt = self.pose_chunk, self.read_chunk, self._nt
-        f_pose = self._call("pose" if derivatives else "point")
+        with_g = derivatives and theta
+        f_pose = self._call("pose" if with_g else "point")
         f_read = self._call("read" if derivatives else "value")
-        TH = np.repeat(theta[:, None], Bp, axis=1)
+        TH = np.repeat(theta_v[:, None], Bp, axis=1)
         GL = np.repeat(glob[:, None], Br, axis=1)
         for a in range(0, self.n_poses, Bp):
             b = min(a + Bp, self.n_poses)
@@ -158,10 +159,12 @@ class ChunkedEvaluator:
             )
             res = f_read(*args)
             r = res[0].ravel()[:nr]
-            if derivatives:
+            if with_g:
                 # G: the transpose of (n_theta, 3 Bp) [G_0^T | G_1^T | ...]
                 G = out[1][:, : 3 * n].T.reshape(n, 3, nt)
                 yield slice(a, b), idx, pl, r, res[1][:, :nr], G
+            elif derivatives:
+                yield slice(a, b), idx, pl, r, res[1][:, :nr], None
             else:
                 yield slice(a, b), idx, pl, r, None, None
 
@@ -178,56 +181,85 @@ class ChunkedEvaluator:
         r = self.residuals(xs, p)
         return 0.5 * float(r @ r)
 
-    def _sparse(
-        self, ps: slice, idx: np.ndarray, pl: np.ndarray, rows: np.ndarray
-    ) -> tuple[sp.csr_matrix, sp.csr_matrix]:
-        """The chunk's rows of J in two sparse factors: D (n_r, 3 n) with each reading's
-        d(r)/d(point) in the columns of its pose (J_theta = D G_stack) and the station and
-        global columns (n_r, n_x - n_theta), one nonzero per reading and parameter."""
-        nps, ng, nr = self._n_ps, self._n_g, len(idx)
-        n = ps.stop - ps.start
-        D = sp.csr_matrix(
-            (
-                rows[:3].T.ravel(),
-                (3 * pl[:, None] + np.arange(3)[None, :]).ravel(),
-                np.arange(0, 3 * nr + 1, 3),
-            ),
-            shape=(nr, 3 * n),
-        )
-        cols = np.concatenate(
+    def _rest_columns(self, idx: np.ndarray) -> np.ndarray:
+        """(n_r, n_ps + n_g): each reading's columns among the station and global ones
+        (counted from the first of them), in the order of its derivative rows 3.."""
+        nps, ng = self._n_ps, self._n_g
+        return np.concatenate(
             [
                 nps * self._station[idx][:, None] + np.arange(nps)[None, :],
-                np.broadcast_to(nps * self._n_st + np.arange(ng), (nr, ng)),
+                np.broadcast_to(nps * self._n_st + np.arange(ng), (len(idx), ng)),
             ],
             axis=1,
         )
-        L = nps + ng
-        A = sp.csr_matrix(
-            (rows[3 : 3 + L].T.ravel(), cols.ravel(), np.arange(0, nr * L + 1, L)),
-            shape=(nr, self._n_x - self._nt),
-        )
-        return D, A
 
-    def gram(self, xs: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _gram_index(self, start: int, idx: np.ndarray, pl: np.ndarray) -> dict[str, np.ndarray]:
+        """The bins of :meth:`gram`'s bincounts for the chunk of poses from ``start`` (they
+        depend on the layout only: made once per chunk and kept): a reading's station and
+        global columns (``a``) and their pairs (``aa``), its pose's 3 point rows (``d``),
+        their pairs (``dd``, the pose's 3 x 3 block) and the point rows times the columns
+        (``da``)."""
+        cache: dict = self.__dict__.setdefault("_gram_bins", {})
+        ix = cache.get(start)
+        if ix is None:
+            n_rest = self._n_x - self._nt
+            cols = self._rest_columns(idx)  # (n_r, L)
+            c3 = np.arange(3)
+            ix = cache[start] = {
+                "a": cols.ravel(),
+                "aa": (cols[:, :, None] * n_rest + cols[:, None, :]).ravel(),
+                "d": (3 * pl[:, None] + c3[None, :]).ravel(),
+                "dd": (9 * pl[:, None, None] + 3 * c3[None, :, None] + c3[None, None, :]).ravel(),
+                "da": (
+                    (3 * pl[:, None, None] + c3[None, :, None]) * n_rest + cols[:, None, :]
+                ).ravel(),
+            }
+        return ix
+
+    def gram(
+        self, xs: np.ndarray, p: np.ndarray, *, theta: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(r (N,), J^T r (n_x,), J^T J (n_x, n_x)) at scaled x: the Gauss-Newton system,
         the same numbers as the problem's whole-graph ``gram`` to rounding.  With J =
         [D G_stack | A] per chunk: J^T J = [G^T (D^T D) G, G^T (D^T A); ., A^T A], where
         D^T D is block diagonal (3 x 3 per pose): 3 n_poses n_theta^2 flops, not N
-        n_theta^2."""
+        n_theta^2.  The sums over a chunk's readings of the few nonzeros each reading has
+        (its 3 point derivatives, its station's and the global ones) are bincounts into
+        dense arrays of the chunk's size: for the small chunks of a Monte Carlo trial a
+        sparse matrix product costs more in its construction than in its arithmetic.
+
+        ``theta=False`` (a solve that holds every error parameter, e.g. a strategy's
+        station phase): the error-parameter rows and columns of J^T r and J^T J are left
+        at zero and d(point)/d(theta) is not evaluated, the costly part of a chunk."""
         nt, n = self._nt, self._n_x
+        L = self._n_ps + self._n_g
+        n_rest = n - nt
         r = np.empty(self.n_readings)
         g = np.zeros(n)
         H = np.zeros((n, n))
-        for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
+        for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True, theta=theta):
             r[idx] = rc
-            D, A = self._sparse(ps, idx, pl, rows)
-            Gf = G.reshape(-1, nt)  # G_stack of the chunk (3 n, n_theta)
-            Dt, At = D.T.tocsr(), A.T.tocsr()
-            g[:nt] += Gf.T @ (Dt @ rc)
-            g[nt:] += At @ rc
-            H[:nt, :nt] += Gf.T @ ((Dt @ D) @ Gf)
-            H[:nt, nt:] += Gf.T @ (Dt @ A).toarray()
-            H[nt:, nt:] += (At @ A).toarray()
+            k = ps.stop - ps.start
+            d, a = rows[:3], rows[3 : 3 + L]  # (3, n_r) d(r)/d(point); (L, n_r) the rest
+            ix = self._gram_index(ps.start, idx, pl)
+            g[nt:] += np.bincount(ix["a"], (a * rc[None, :]).T.ravel(), n_rest)
+            H[nt:, nt:] += np.bincount(
+                ix["aa"], (a.T[:, :, None] * a.T[:, None, :]).ravel(), n_rest * n_rest
+            ).reshape(n_rest, n_rest)
+            if G is None:
+                continue
+            Gf = G.reshape(-1, nt)  # G_stack of the chunk (3 k, n_theta)
+            dT = d.T
+            # D^T r (3 k,) and D^T D (k, 3, 3): per pose, sums over its readings
+            Dr = np.bincount(ix["d"], (dT * rc[:, None]).ravel(), 3 * k)
+            M = np.bincount(ix["dd"], (dT[:, :, None] * dT[:, None, :]).ravel(), 9 * k)
+            # D^T A (3 k, n_rest): reading i adds d_c(i) a_j(i) at (3 pose + c, column j)
+            DtA = np.bincount(
+                ix["da"], (dT[:, :, None] * a.T[:, None, :]).ravel(), 3 * k * n_rest
+            ).reshape(3 * k, n_rest)
+            g[:nt] += Gf.T @ Dr
+            H[:nt, :nt] += Gf.T @ (M.reshape(k, 3, 3) @ G).reshape(-1, nt)
+            H[:nt, nt:] += Gf.T @ DtA
         H[nt:, :nt] = H[:nt, nt:].T
         # G^T (D^T D G) is symmetric but for rounding; exactly so for the solvers
         H[:nt, :nt] = 0.5 * (H[:nt, :nt] + H[:nt, :nt].T)
@@ -243,14 +275,14 @@ class ChunkedEvaluator:
         width = nt + nps + ng
         r = np.empty(self.n_readings)
         acc = [StackedQR(width) for _ in range(n_st)]
-        for ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
+        for _ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
             r[idx] = rc
-            D, _ = self._sparse(ps, idx, pl, rows)
             sti = self._station[idx]
             o = np.argsort(sti, kind="stable")
-            # the chunk's rows station by station: [D G_stack | station's, globals]
+            # the chunk's rows station by station: [D G_stack | station's, globals], a
+            # reading's theta row being sum_c d(r)/d(p_c) d(p_c)/d(theta) of its pose
             Jb = np.empty((len(idx), width))
-            Jb[:, :nt] = D[o] @ G.reshape(-1, nt)
+            Jb[:, :nt] = np.einsum("cr,rct->rt", rows[:3, o], G[pl[o]])
             Jb[:, nt:] = rows[3 : 3 + nps + ng, o].T
             bounds = np.searchsorted(sti[o], np.arange(n_st + 1))
             for j in np.flatnonzero(np.diff(bounds)):

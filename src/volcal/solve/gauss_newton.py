@@ -49,13 +49,58 @@ def _qr_solve(A: np.ndarray, b: np.ndarray, *, rank_check: bool = False) -> np.n
     LinAlgError when exactly singular, and with ``rank_check`` when numerically singular:
     a diagonal of R below n eps times the largest, the tolerance
     ``numpy.linalg.matrix_rank`` applies to singular values, here on R's diagonal, which
-    an unpivoted QR makes a cheap indicator rather than a rank-revealing one)."""
-    Q, R = np.linalg.qr(A)
-    if rank_check and len(R):
-        d = np.abs(np.diag(R))
-        if d.min() <= len(d) * np.finfo(float).eps * d.max():
-            raise np.linalg.LinAlgError("numerically singular system")
-    return sla.solve_triangular(R, Q.T @ b, check_finite=False)
+    an unpivoted QR makes a cheap indicator rather than a rank-revealing one).  Q^T b is
+    applied from the Householder reflectors (LAPACK ormqr) without forming Q."""
+    if A.shape[0] == 0:
+        return np.zeros(0)
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+        return np.full(len(b), np.nan)  # the caller reports the invalid number
+    qtb, R = sla.qr_multiply(A, b, mode="right")
+    d = np.abs(np.diag(R))
+    if d.min() == 0.0 or (rank_check and d.min() <= len(d) * np.finfo(float).eps * d.max()):
+        raise np.linalg.LinAlgError(
+            "singular system" if d.min() == 0.0 else "numerically singular system"
+        )
+    return sla.solve_triangular(R, qtb, check_finite=False)
+
+
+def _spd_solve(A: np.ndarray, b: np.ndarray, *, rank_check: bool = False) -> np.ndarray:
+    """A^-1 b for a symmetric Gauss-Newton matrix A: by Cholesky (a third of a QR's work)
+    when its pivots show A well conditioned (the smallest squared diagonal of the factor
+    above sqrt(eps) times the largest), else by :func:`_qr_solve` with ``rank_check``, so
+    that a nearly singular system is solved, or refused, exactly as before."""
+    if A.shape[0] and np.all(np.isfinite(A)) and np.all(np.isfinite(b)):
+        try:
+            c = sla.cho_factor(A, check_finite=False)
+        except np.linalg.LinAlgError:
+            pass
+        else:
+            d = np.diag(c[0]) ** 2
+            if d.min() > np.sqrt(np.finfo(float).eps) * d.max():
+                return sla.cho_solve(c, b, check_finite=False)
+    return _qr_solve(A, b, rank_check=rank_check)
+
+
+def _selection(Z: np.ndarray) -> np.ndarray | None:
+    """The indices of the variables Z (n_x, n_z) selects when it is a selection (no datum
+    condition on the free variables: Z's columns are unit vectors in increasing order),
+    else None; the reduced system is then a sub-matrix, not two products with Z."""
+    n_z = Z.shape[1]
+    if np.count_nonzero(Z) != n_z:
+        return None
+    rows, cols = np.nonzero(Z)
+    if not (np.array_equal(cols, np.arange(n_z)) and np.all(Z[rows, cols] == 1.0)):
+        return None
+    return rows
+
+
+def _expand(Z: np.ndarray, sel: np.ndarray | None, dz: np.ndarray) -> np.ndarray:
+    """dx = Z dz (n_x,), by placing dz at the selected variables when Z is a selection."""
+    if sel is None:
+        return Z @ dz
+    dx = np.zeros(Z.shape[0])
+    dx[sel] = dz
+    return dx
 
 
 def feasible_basis(problem: IdentificationProblem, fixed: np.ndarray | None) -> np.ndarray:
@@ -113,6 +158,15 @@ class GaussNewtonSolver:
         #: the steps the last :meth:`solve` took (an iteration may end without one)
         self.steps_taken = 0
 
+    def _basis_kind(self, Z: np.ndarray) -> tuple[np.ndarray | None, bool]:
+        """(the selection Z makes or None (:func:`_selection`), whether Z moves any error
+        parameter: a step that holds them all needs no d(point)/d(theta)), kept for the
+        last Z (one per solve, not modified)."""
+        last = self.__dict__.get("_basis_last")
+        if last is None or last[0] is not Z:
+            last = self._basis_last = (Z, _selection(Z), bool(np.any(Z[: self.problem.n_theta])))
+        return last[1], last[2]
+
     def step(
         self, xs: np.ndarray, p: np.ndarray, Z: np.ndarray, mu: float
     ) -> tuple[float, np.ndarray, float, float, float]:
@@ -121,7 +175,8 @@ class GaussNewtonSolver:
         of f the local model predicts for dx and the rounding level of f (below it two
         evaluations of f cannot rank two points).  A singular system gives a NaN step."""
         ch = self.problem.chunked
-        r, g, H = ch.gram(xs, p)
+        sel, theta = self._basis_kind(Z)
+        r, g, H = ch.gram(xs, p, theta=theta)
         f = 0.5 * float(r @ r)
         # each residual w (reading - m) carries the rounding of a reading of size |m| (or
         # |m + r / w|), eps |w m| + eps |r|; f = 0.5 sum r^2 then moves by up to their sum
@@ -131,15 +186,15 @@ class GaussNewtonSolver:
         level = float(np.finfo(float).eps * (np.abs(r) @ (np.abs(w * m) + np.abs(r))))
         if Z.shape[1] == 0:
             return f, np.zeros(self.problem.n_x), 0.0, 0.0, level
-        Hz = Z.T @ H @ Z
-        gz = Z.T @ g
+        Hz = H[np.ix_(sel, sel)] if sel is not None else Z.T @ H @ Z
+        gz = g[sel] if sel is not None else Z.T @ g
         A = Hz + mu * np.diag(np.fmax(np.diag(Hz), 1e-12))
         try:
-            dz = -_qr_solve(A, gz)
+            dz = -_spd_solve(A, gz)
         except np.linalg.LinAlgError:
             dz = np.full(len(gz), np.nan)
         pred = -(float(gz @ dz) + 0.5 * float(dz @ (Hz @ dz)))
-        return f, Z @ dz, float(np.max(np.abs(gz))), pred, level
+        return f, _expand(Z, sel, dz), float(np.max(np.abs(gz))), pred, level
 
     def solve_levenberg(
         self,
@@ -168,17 +223,20 @@ class GaussNewtonSolver:
             raise ValueError(f"damping: expected {pr.n_x} finite values >= 0, got {d.shape}")
         t0 = time.perf_counter()
         Z = feasible_basis(pr, fixed)
+        sel, theta = self._basis_kind(Z)
         xs = project_feasible(pr, pr.to_scaled(x0), fixed)
         max_iter = self.max_iter if max_iter is None else max_iter
         status, it, f = "Maximum_Iterations_Exceeded", 0, float("nan")
         for it in range(1, max_iter + 1):  # noqa: B007  (the count is reported)
-            r, g, H = pr.chunked.gram(xs, p)
+            r, g, H = pr.chunked.gram(xs, p, theta=theta)
             f = 0.5 * float(r @ r)
             try:
-                A = Z.T @ (H + np.diag(d)) @ Z
+                Hd = H + np.diag(d)
+                A = Hd[np.ix_(sel, sel)] if sel is not None else Z.T @ Hd @ Z
+                gz = g[sel] if sel is not None else Z.T @ g
                 # an undamped null direction would otherwise give a step of rounding
                 # divided by rounding (the whole-graph solver refused it the same way)
-                dx = -Z @ _qr_solve(A, Z.T @ g, rank_check=True) if Z.shape[1] else np.zeros(pr.n_x)
+                dx = -_expand(Z, sel, _spd_solve(A, gz, rank_check=True))
             except np.linalg.LinAlgError:  # a singular system: no damping on a null direction
                 status = "Singular_Step"
                 break
