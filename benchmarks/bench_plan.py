@@ -5,14 +5,23 @@ Runs, for each setting, ``--repeat`` times::
     volcal plan --setting <setting> --out <fresh folder> [--no-plots]
 
 as a subprocess, measures its wall time from start to exit and its CPU time (user +
-system of the finished child), and reads the plan's criterion, its search time and the
-evaluations from the folder's ``summary.json`` (so a faster run that finds a worse plan
-shows).  Prints medians (and the range) as a table.
+system of the finished child and its plotting child), and reads the plan's criterion,
+its search time and the evaluations from the folder's ``summary.json`` (so a faster run
+that finds a worse plan shows).  Prints medians (and the range) as a table.
+
+With ``--baseline-python PY`` (the interpreter of another installation, e.g. the main
+branch's virtual environment) the two versions run in turn, run by run (this one, then
+the baseline), the ratio of each pair is printed (median and range: pairs taken close in
+time cancel most of a shared machine's drift), and the plans are compared: the largest
+station difference (mm), whether the selected poses are the same (a rotary axis at -180
+and +180 deg is one pose), and the difference of the criterion (negative: this version's
+plan is better).
 
 Run by hand (other jobs on the cores show in the wall times, less in the CPU times; the
 load average before and after is printed with them)::
 
     python benchmarks/bench_plan.py [--repeat 3] [--settings mcv754 trunnion_ac] [--no-plots]
+        [--baseline-python ../main/.venv/bin/python] [--out benchmarks/results/plan.txt]
 
 Goals (issue 27): mcv754 < 5 s, trunnion_ac < 15 s, the same plans or a better criterion.
 """
@@ -20,6 +29,7 @@ Goals (issue 27): mcv754 < 5 s, trunnion_ac < 15 s, the same plans or a better c
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import resource
@@ -28,21 +38,25 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 
-def _run(setting: str, no_plots: bool) -> dict[str, float]:
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "plan"
-        cmd = [sys.executable, "-m", "volcal", "plan", "--setting", setting, "--out", str(out)]
-        if no_plots:
-            cmd.append("--no-plots")
-        before = resource.getrusage(resource.RUSAGE_CHILDREN)
-        t0 = time.perf_counter()
-        subprocess.run(cmd, check=True, capture_output=True)
-        wall = time.perf_counter() - t0
-        after = resource.getrusage(resource.RUSAGE_CHILDREN)
-        summary = json.loads((out / "summary.json").read_text())
+
+def _run(python: str, setting: str, no_plots: bool, keep: Path) -> dict[str, float]:
+    out = keep / "plan"
+    cmd = [python, "-m", "volcal", "-q", "plan", "--setting", setting, "--out", str(out)]
+    cmd.append("--force")
+    if no_plots:
+        cmd.append("--no-plots")
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, capture_output=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    summary = json.loads((out / "summary.json").read_text())
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     return {
         "wall_s": wall,
@@ -53,28 +67,98 @@ def _run(setting: str, no_plots: bool) -> dict[str, float]:
     }
 
 
+def _poses(folder: Path) -> Counter:
+    """The selected poses as a multiset; a rotary axis at +-180 deg counted as 180."""
+    p = pd.read_csv(folder / "poses.csv")
+    for c in p.columns:
+        v = p[c].to_numpy(float)
+        if np.any(np.isclose(np.abs(v), 180.0)):
+            p[c] = np.where(np.isclose(v, -180.0), 180.0, v)
+    return Counter(map(tuple, p.round(6).to_numpy()))
+
+
+def _compare(new: Path, base: Path) -> str:
+    cols = ["x_mm", "y_mm", "z_mm"]
+    Sn = pd.read_csv(new / "stations.csv")[cols].to_numpy(float)
+    Sb = pd.read_csv(base / "stations.csv")[cols].to_numpy(float)
+    cn = json.loads((new / "summary.json").read_text())["criterion_value"]
+    cb = json.loads((base / "summary.json").read_text())["criterion_value"]
+    pn, pb = _poses(new), _poses(base)
+    return (
+        f"stations differ by at most {np.abs(Sn - Sb).max():.4f} mm; "
+        f"selected poses {'the same' if pn == pb else 'differ'} ({sum(pn.values())} poses"
+        f"{'' if pn == pb else f', {sum((pn - pb).values())} exchanged'}); "
+        f"criterion {cn:.10f} um here, {cb:.10f} um baseline, difference {cn - cb:+.2e} um"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeat", type=int, default=3, help="runs per setting (default 3)")
     ap.add_argument("--settings", nargs="+", default=["mcv754", "trunnion_ac"])
     ap.add_argument("--no-plots", action="store_true", help="pass --no-plots")
+    ap.add_argument("--baseline-python", help="interpreter of a version to run in turn")
+    ap.add_argument("--out", type=Path, help="also write the printout to this file")
     args = ap.parse_args(argv)
-    print(f"load average before: {os.getloadavg()[0]:.2f}")
-    print("| setting | wall (s) | CPU (s) | planning (s) | criterion I (um) | evaluations |")
-    print("|---|---|---|---|---|---|")
-    for setting in args.settings:
-        runs = [_run(setting, args.no_plots) for _ in range(args.repeat)]
+    text = io.StringIO()
 
-        def cell(key: str, fmt: str = ".1f", runs: list[dict[str, float]] = runs) -> str:
-            v = [r[key] for r in runs]
-            med = statistics.median(v)
-            return f"{med:{fmt}}" if len(v) == 1 else f"{med:{fmt}} ({min(v):{fmt}}-{max(v):{fmt}})"
+    def say(line: str) -> None:
+        print(line, flush=True)
+        text.write(line + "\n")
 
-        print(
-            f"| {setting} | {cell('wall_s')} | {cell('cpu_s')} | {cell('plan_s')} | "
-            f"{cell('criterion_um', '.4f')} | {cell('evaluations', '.0f')} |"
-        )
-    print(f"load average after: {os.getloadavg()[0]:.2f}")
+    say(f"command: python benchmarks/bench_plan.py {' '.join(argv or sys.argv[1:])}")
+    say(f"load average before: {os.getloadavg()[0]:.2f}")
+    say(
+        "| setting | version | wall (s) | CPU (s) | planning (s) | criterion I (um) | evaluations |"
+    )
+    say("|---|---|---|---|---|---|---|")
+    versions = [("this", sys.executable)]
+    if args.baseline_python:
+        versions.append(("baseline", args.baseline_python))
+    comparisons = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for setting in args.settings:
+            runs: dict[str, list[dict[str, float]]] = {v: [] for v, _ in versions}
+            for _ in range(args.repeat):
+                for name, py in versions:
+                    keep = Path(tmp) / setting / name
+                    keep.mkdir(parents=True, exist_ok=True)
+                    runs[name].append(_run(py, setting, args.no_plots, keep))
+            for name, _ in versions:
+
+                def cell(key: str, fmt: str = ".1f", rs: list = runs[name]) -> str:
+                    v = [r[key] for r in rs]
+                    med = statistics.median(v)
+                    return (
+                        f"{med:{fmt}}"
+                        if len(v) == 1
+                        else f"{med:{fmt}} ({min(v):{fmt}}-{max(v):{fmt}})"
+                    )
+
+                say(
+                    f"| {setting} | {name} | {cell('wall_s', '.2f')} | {cell('cpu_s', '.2f')} "
+                    f"| {cell('plan_s')} | {cell('criterion_um', '.6f')} "
+                    f"| {cell('evaluations', '.0f')} |"
+                )
+            if args.baseline_python:
+                for key in ("wall_s", "cpu_s"):
+                    r = [a[key] / b[key] for a, b in zip(runs["this"], runs["baseline"])]
+                    comparisons.append(
+                        f"{setting}: {key[:-2]} this / baseline, pair by pair: median "
+                        f"{statistics.median(r):.3f} ({min(r):.3f}-{max(r):.3f})"
+                    )
+                comparisons.append(
+                    f"{setting}: "
+                    + _compare(
+                        Path(tmp) / setting / "this" / "plan",
+                        Path(tmp) / setting / "baseline" / "plan",
+                    )
+                )
+    for line in comparisons:
+        say(line)
+    say(f"load average after: {os.getloadavg()[0]:.2f}")
+    if args.out is not None:
+        args.out.write_text(text.getvalue())
     return 0
 
 

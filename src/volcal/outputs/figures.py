@@ -26,6 +26,7 @@ __all__ = [
     "draw_residuals",
     "draw_residuals_vs_axes",
     "draw_correlations",
+    "draw_plan",
 ]
 
 DPI = 100
@@ -395,3 +396,31 @@ def draw_correlations(data: dict[str, Any], path: Target = None, max_labels: int
         fontsize=11,
     )
     return save(fig, path)
+
+
+def draw_plan(data: dict[str, Any], path: Target = None):
+    """A measurement plan's ``plan.png`` (:mod:`volcal.outputs.plan_files`): data
+    ``{"stations_mm" (K, 3), "points_mm" (n, 3), "u_um" (n,), "centre_mm" (3,) or None}``;
+    the stations and the evaluation points from above (x, y) and from the side (x, z),
+    the points coloured by the predicted volumetric uncertainty u (µm), the point the
+    re-aimed reflector is aimed from when there is one.  Fixed margins: pyplot's import
+    and the constrained layout were two thirds of the figure's time."""
+    S, P, u, c = data["stations_mm"], data["points_mm"], data["u_um"], data["centre_mm"]
+    fig = figure(10, 4.2)
+    fig.subplots_adjust(left=0.07, right=0.88, bottom=0.12, top=0.92, wspace=0.25)
+    axes = fig.subplots(1, 2)
+    for ax, (i, j, lab) in zip(axes, [(0, 1, "from above (x, y)"), (0, 2, "from the side (x, z)")]):
+        sc = ax.scatter(P[:, i], P[:, j], c=u, s=10, cmap="viridis", rasterized=True)
+        ax.plot(S[:, i], S[:, j], "r^", markersize=9, label="stations")
+        if c is not None:
+            ax.plot(c[i], c[j], "kx", markersize=9, label="reflector aimed from")
+        for k, s in enumerate(S):
+            ax.annotate(f"S{k + 1}", (s[i], s[j]), textcoords="offset points", xytext=(4, 4))
+        ax.set_xlabel("xyz"[i] + " / mm")
+        ax.set_ylabel("xyz"[j] + " / mm")
+        ax.set_title(lab)
+        ax.set_aspect("equal", adjustable="datalim")
+    cax = fig.add_axes((0.9, 0.12, 0.015, 0.8))
+    fig.colorbar(sc, cax=cax, label="predicted u of the volumetric error (µm)")
+    axes[0].legend(loc="best", fontsize=8)
+    return save(fig, path, dpi=110)

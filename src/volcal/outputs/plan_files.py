@@ -295,33 +295,16 @@ def _report(
     return "\n".join(lines) + "\n"
 
 
-def _plot(result: Any, vol: pd.DataFrame, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    S = result.stations_mm
-    P = vol[["x_mm", "y_mm", "z_mm"]].to_numpy()
-    u = vol["u_total_um"].to_numpy()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2), constrained_layout=True)
-    for ax, (i, j, lab) in zip(axes, [(0, 1, "from above (x, y)"), (0, 2, "from the side (x, z)")]):
-        sc = ax.scatter(P[:, i], P[:, j], c=u, s=10, cmap="viridis", rasterized=True)
-        ax.plot(S[:, i], S[:, j], "r^", markersize=9, label="stations")
-        if result.constraints.reflector.limited and result.constraints.reflector.axis is None:
-            # the point the re-aimed reflector's axis is aimed from (the set-up sheet's)
-            c = np.asarray(result.centre_mm, float)
-            ax.plot(c[i], c[j], "kx", markersize=9, label="reflector aimed from")
-        for k, s in enumerate(S):
-            ax.annotate(f"S{k + 1}", (s[i], s[j]), textcoords="offset points", xytext=(4, 4))
-        ax.set_xlabel("xyz"[i] + " / mm")
-        ax.set_ylabel("xyz"[j] + " / mm")
-        ax.set_title(lab)
-        ax.set_aspect("equal", adjustable="datalim")
-    fig.colorbar(sc, ax=axes, label="predicted u of the volumetric error (µm)")
-    axes[0].legend(loc="best", fontsize=8)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+def _plot_data(result: Any, vol: pd.DataFrame) -> dict[str, Any]:
+    """What ``plan.png`` shows, as plain arrays (:func:`draw_plan`)."""
+    aimed = result.constraints.reflector.limited and result.constraints.reflector.axis is None
+    return {
+        "stations_mm": np.asarray(result.stations_mm, float),
+        "points_mm": vol[["x_mm", "y_mm", "z_mm"]].to_numpy(float),
+        "u_um": vol["u_total_um"].to_numpy(float),
+        # the point the re-aimed reflector's axis is aimed from (the set-up sheet's)
+        "centre_mm": np.asarray(result.centre_mm, float) if aimed else None,
+    }
 
 
 def write_plan(
@@ -333,9 +316,12 @@ def write_plan(
     feed_mm_min: float = 2000.0,
     plots: bool = True,
     force: bool | None = None,
+    plotter: Any = None,
 ) -> Path:
     """Write the files of a :class:`volcal.analysis.planning.PlanResult` (see the module
-    docstring) atomically into ``out_dir``; returns its path."""
+    docstring) atomically into ``out_dir``; returns its path.  ``plotter``: a
+    :class:`volcal.outputs.plot_process.PlotProcess` started early (the command line's),
+    which draws ``plan.png`` while this process writes the tables; None: drawn here."""
     m = result.machine
     mp = result.measurement_plan()
     mp_nc = result.measurement_plan(with_tool_index=True)
@@ -383,7 +369,11 @@ def write_plan(
         columns=["search", "step", "best", "seconds"],
     )
 
+    from volcal.outputs.figures import draw_plan
+
     def writer(d: Path) -> None:
+        if plots and plotter is not None:  # drawn in the child while the tables are written
+            plotter.draw(draw_plan, _plot_data(result, vol), d / "plan.png")
         result.stations.to_csv(d / "stations.csv", index=False)
         result.poses.to_csv(d / "poses.csv", index=False)
         mp.to_csv(d / "measurement_plan.csv", index=False)
@@ -401,7 +391,9 @@ def write_plan(
                 table = add.table(name)
                 if len(table):
                     table.to_csv(d / f"added_{name}.csv", index=False)
-        if plots:
-            _plot(result, vol, d / "plan.png")
+        if plots and plotter is not None:
+            plotter.wait()  # the folder is renamed into place with its figure
+        elif plots:
+            draw_plan(_plot_data(result, vol), d / "plan.png")
 
     return write_folder(out_dir, PLAN_FILES, "a measurement plan", writer, force=force)

@@ -80,6 +80,24 @@ class Frozen:
     unidentifiable: list[str]
 
 
+def _linsol() -> str:
+    """CasADi's LAPACK LU where the build has it (M^-1 of the criterion graph), else its own
+    sparse QR.  Chosen once."""
+    global _LINSOL
+    if _LINSOL is None:
+        _LINSOL = "qr"
+        try:
+            m = ca.MX.sym("m", 2, 2)
+            ca.Function("t", [m], [ca.solve(m, ca.DM.eye(2), "lapacklu")])
+            _LINSOL = "lapacklu"
+        except Exception:  # plugin not in this build
+            pass
+    return _LINSOL
+
+
+_LINSOL: str | None = None
+
+
 class PlanEvaluator:
     """Criteria of plans over a candidate pose set (see the module docstring).
 
@@ -280,15 +298,27 @@ class PlanEvaluator:
         gs = ca.SX.sym("g", ins.n_global_params)
         v = ins.reading(ps, ss, gs)
         f_d = ca.Function("d_reading", [ps, ss, gs], [ca.jacobian(v, ps), ca.jacobian(v, ss)])
-        s = ca.MX.sym("s", 3 * K)
-        w = ca.MX.sym("w", N)
-        S = ca.reshape(s, 3, K)
-        St = ca.vertcat(S, ca.DM(np.full((1, K), self.dead_length_mm)))  # (n_ps, K)
+        nps = ins.n_station_params
         st = self.station_of[rows]
+        # the weighted derivatives V (3 + n_ps, N) as a function of (s, w) in SX: a few
+        # scalar operations per reading, evaluated without the MX graph's per-node copies
+        # of (3 + n_ps) x N matrices (a third of the criterion's time), and their
+        # transposed directional derivative (for the gradient) in SX as well
+        s_x, w_x = ca.SX.sym("s", 3 * K), ca.SX.sym("w", N)
+        St = ca.vertcat(ca.reshape(s_x, 3, K), ca.DM(np.full((1, K), self.dead_length_mm)))
         sel = ca.DM(ca.Sparsity.triplet(K, N, st.tolist(), list(range(N))), 1.0)
         dp, ds = f_d.map(N)(ca.DM(self.points[rows].T), ca.mtimes(St, sel), 0)
         # the map lays the (1, 3) and (1, n_ps) row Jacobians side by side
-        dp, ds = ca.reshape(dp, 3, N), ca.reshape(ds, ins.n_station_params, N)
+        V_x = ca.vertcat(ca.reshape(dp, 3, N), ca.reshape(ds, nps, N))
+        V_x = V_x * ca.repmat(w_x.T, 3 + nps, 1)
+        dV_x = ca.SX.sym("dV", V_x.shape)
+        f_V = ca.Function("plan_derivatives", [s_x, w_x], [V_x])
+        f_Vt = ca.Function(
+            "plan_derivatives_t", [s_x, w_x, dV_x], [ca.jtimes(V_x, s_x, dV_x, True)]
+        )
+        s = ca.MX.sym("s", 3 * K)
+        w = ca.MX.sym("w", N)
+        V = f_V(s, w)  # (3 + n_ps, N)
         # A = J[:, free] Z without forming J: the theta columns of a row are
         # w (dp_x G_x + dp_y G_y + dp_z G_z) and a free station parameter j of the row's
         # station adds w ds_j times its row of Z, so A = sum_b diag(w v_b) H_b over the
@@ -299,19 +329,21 @@ class PlanEvaluator:
         ZZ = np.zeros((pr.n_x, fz.Z.shape[1]))
         ZZ[fz.free] = fz.Z
         r = ZZ.shape[1]
-        nps = ins.n_station_params
         H = [G[:, c, :] @ ZZ[:nt] for c in range(3)]
         for j in range(nps):
             i = nt + nps * st + j  # parameter j of each reading's station
             H.append(ZZ[i] * pr.scale[i][:, None])
-        V = ca.vertcat(dp, ds) * ca.repmat(w.T, 3 + nps, 1)  # (3 + n_ps, N)
         used = [b for b, Hb in enumerate(H) if np.any(Hb)]  # all zero: held, or unmoved
+        used = self._merge_proportional(f_V, N, H, used)
         A: ca.MX = ca.MX(N, r)
         for b in used:
             A = A + ca.repmat(V[b, :].T, 1, r) * ca.DM(H[b])
         M = dense_mtimes(A.T, A)
         # f and the r x r matrix Q with df = -<A Q, dA> (times 2): I and A are
-        # trace(M^-1 W) / n, so Q = M^-1 W M^-1 / n; D is det(M)^(-1/r), Q = f M^-1 / r
+        # trace(M^-1 W) / n, so Q = M^-1 W M^-1 / n; D is det(M)^(-1/r), Q = f M^-1 / r.
+        # M^-1 from one LU (LAPACK) and r x r products: two solves through CasADi's own
+        # sparse QR took as long as forming M
+        Minv = ca.solve(M, ca.DM.eye(r), _linsol())
         if criterion in ("I", "A"):
             if criterion == "I":
                 # trace(B M^-1 B^T) = trace(M^-1 B^T B): an r x r right-hand side
@@ -319,12 +351,12 @@ class PlanEvaluator:
             else:
                 Zt = fz.Z[self._theta_rows]
                 W, n = Zt.T @ Zt, max(len(self._theta_rows), 1)
-            X = ca.solve(M, ca.DM(W))
+            X = dense_mtimes(Minv, ca.DM(W))
             f = ca.trace(X) / n
-            Q = ca.solve(M, X.T) / n
+            Q = dense_mtimes(X, Minv) / n
         elif criterion == "D":
             f = ca.exp(-ca.log(ca.det(M)) / M.shape[0])
-            Q = f * ca.inv(M) / M.shape[0]
+            Q = f * Minv / M.shape[0]
         else:
             raise ValueError(f"criterion {criterion!r} has no smooth form; use I, A or D")
         # the gradient written out rather than left to reverse AD: df/dA = -2 A Q, then
@@ -337,7 +369,37 @@ class PlanEvaluator:
         for b in used:
             dV[b, :] = ca.sum2(GA * ca.DM(H[b])).T
         self._sym_rows = rows
-        return s, w, f, ca.jtimes(V, s, dV, True)
+        return s, w, f, f_Vt(s, w, dV)
+
+    def _merge_proportional(
+        self, f_V: ca.Function, N: int, H: list[np.ndarray], used: list[int]
+    ) -> list[int]:
+        """Fold a derivative row v_b that is a fixed multiple c of an earlier one v_a into
+        it (H_a += c H_b, b dropped): the tracker's d(reading)/d(station) is minus
+        d(reading)/d(point), which halves the N x r terms of A and of the gradient.  The
+        proportion is read off the instrument's own derivatives at two sets of stations
+        drawn around the points (seeded), exact to rounding or not taken."""
+        rng = np.random.default_rng(0)
+        c0, ext = self.points.mean(0), np.ptp(self.points, axis=0) + 1.0
+        K = self.n_stations
+        Vs = [
+            np.asarray(f_V((c0 + ext * rng.uniform(-1.5, 1.5, (K, 3))).ravel(), np.ones(N)))
+            for _ in range(2)
+        ]
+        keep: list[int] = []
+        for b in used:
+            for a in keep:
+                va, vb = np.concatenate([V[a] for V in Vs]), np.concatenate([V[b] for V in Vs])
+                big = np.abs(va) > 1e-3 * np.abs(va).max()
+                if not big.any():
+                    continue
+                c = float(np.median(vb[big] / va[big]))
+                if np.all(np.abs(vb - c * va) <= 1e-12 * (np.abs(vb) + np.abs(c * va) + 1e-300)):
+                    H[a] = H[a] + c * H[b]
+                    break
+            else:
+                keep.append(b)
+        return keep
 
     def weights(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
         """1/sigma (1/mm) of the selected readings (the ``w`` of :meth:`symbolic_criterion`)."""

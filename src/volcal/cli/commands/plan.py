@@ -196,6 +196,15 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    from volcal.outputs.plot_process import plotting
+
+    # first, before the numerics are imported: a child that imports matplotlib on the
+    # other core while this process plans, then draws plan.png while this one writes
+    with plotting(not args.no_plots, workers=1) as plotter:
+        return _run(args, plotter)
+
+
+def _run(args: argparse.Namespace, plotter) -> int:
     import numpy as np
 
     from volcal.analysis.planning import constraints_from_dict, plan
@@ -343,6 +352,7 @@ def run(args: argparse.Namespace) -> int:
         feed_mm_min=args.feed,
         plots=not args.no_plots,
         force=args.force or None,
+        plotter=plotter,
     )
     if not quiet:
         s = res.summary()
