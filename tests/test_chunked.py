@@ -120,3 +120,21 @@ def test_gauss_newton_never_builds_the_whole_graph():
     assert "_graph" in ref.identifier.problem.__dict__
     assert np.max(np.abs(res.theta - ref.theta)) <= 1e-9 * np.abs(ref.theta).max()
     assert np.allclose(res.cov_theta, ref.cov_theta, rtol=1e-6, atol=1e-18, equal_nan=True)
+
+
+def test_the_gram_bins_are_kept_only_below_their_budget(monkeypatch):
+    """The bincount bins are kept between calls for small problems (Monte Carlo trials)
+    and made again per chunk above the budget (a large identification would hold
+    8 (L^2 + 4 L + 12) bytes per reading): both ways give the same sums, bit for bit."""
+    import volcal.problem.chunked as chunked
+
+    pr, xs, p = _problem("mcv754_wxyzt", "tracker")
+    kept = ChunkedEvaluator(pr, pose_chunk=7)
+    r, g, H = kept.gram(xs, p)
+    assert kept._gram_bins  # a small problem keeps them
+    monkeypatch.setattr(chunked, "GRAM_BINS_KEPT_BYTES", 0)
+    remade = ChunkedEvaluator(pr, pose_chunk=7)
+    for _ in range(2):
+        r1, g1, H1 = remade.gram(xs, p)
+        assert not remade.__dict__.get("_gram_bins")
+        assert np.array_equal(r1, r) and np.array_equal(g1, g) and np.array_equal(H1, H)

@@ -41,6 +41,10 @@ import numpy as np
 
 from volcal.model.numpy_call import NumpyCall
 
+#: the largest total size of :meth:`ChunkedEvaluator.gram`'s bincount bins kept between
+#: calls (bytes); above it the bins are made again for each chunk and call
+GRAM_BINS_KEPT_BYTES = 32 * 2**20
+
 __all__ = ["ChunkedEvaluator"]
 
 #: poses per chunk: large enough that the per-chunk Python and call overhead is small
@@ -205,7 +209,7 @@ class ChunkedEvaluator:
             n_rest = self._n_x - self._nt
             cols = self._rest_columns(idx)  # (n_r, L)
             c3 = np.arange(3)
-            ix = cache[start] = {
+            ix = {
                 "a": cols.ravel(),
                 "aa": (cols[:, :, None] * n_rest + cols[:, None, :]).ravel(),
                 "d": (3 * pl[:, None] + c3[None, :]).ravel(),
@@ -214,6 +218,13 @@ class ChunkedEvaluator:
                     (3 * pl[:, None, None] + c3[None, :, None]) * n_rest + cols[:, None, :]
                 ).ravel(),
             }
+            # kept only while all chunks' bins stay small (the many small solves of a
+            # Monte Carlo trial, where making them costs more than the sums): they take
+            # 8 (L^2 + 4 L + 12) bytes per reading, 0.6 GB at 10^6 readings with L = 8,
+            # more than the rest of a large identification holds
+            L = cols.shape[1]
+            if 8 * (L * L + 4 * L + 12) * self.n_readings <= GRAM_BINS_KEPT_BYTES:
+                cache[start] = ix
         return ix
 
     def gram(
