@@ -220,7 +220,8 @@ class ChunkedEvaluator:
             }
             # kept only while all chunks' bins stay small (the many small solves of a
             # Monte Carlo trial, where making them costs more than the sums): they take
-            # 8 (L^2 + 4 L + 12) bytes per reading, 0.6 GB at 10^6 readings with L = 8,
+            # 8 (L^2 + 4 L + 12) bytes per reading, 1.2 GB at 10^6 tracker readings (L =
+            # 10: 4 station and 6 global columns; measured +232 MB at 200,136 readings),
             # more than the rest of a large identification holds
             L = cols.shape[1]
             if 8 * (L * L + 4 * L + 12) * self.n_readings <= GRAM_BINS_KEPT_BYTES:
