@@ -199,6 +199,13 @@ def _run_pool(kernel, chunks: list, n: int, helps: bool, start: Callable[[], Non
             pool.shutdown(wait=False, cancel_futures=True)
             for proc in procs:
                 proc.join(timeout=5)
+            # let the pool's manager thread finish closing its wake-up pipe now: at
+            # interpreter exit concurrent.futures wakes every manager without its lock
+            # (CPython 3.11) and, racing a manager that is closing, wrote to the closed
+            # pipe ("OSError: Bad file descriptor" after "interrupted", seen in CI)
+            manager = getattr(pool, "_executor_manager_thread", None)
+            if manager is not None:
+                manager.join(timeout=5)
         else:
             pool.shutdown(wait=True, cancel_futures=True)
 
