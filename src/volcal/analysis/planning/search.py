@@ -315,13 +315,26 @@ def gradient_placement(
     initial: np.ndarray | None = None,
     criterion: str = "I",
     max_iter: int = 60,
+    workers: int | None = 1,
+    scheduler: Any = None,
     checkpoint: Path | None = None,
     progress: Callable[[int, float], None] | None = None,
     fingerprint: str = "",
 ) -> SearchResult:
     """Multi-start IPOPT on the station coordinates (see the module doc).  The reading
     weights are those of each start's stations (the budget's distance dependence is weak);
-    the result is scored again with its own weights."""
+    the result is scored again with its own weights.
+
+    The starts are independent: every start design is drawn here first (the random stream
+    and what the checkpoint records are those of drawing them one after the other), then
+    the starts are solved where ``workers`` / ``scheduler`` say
+    (:func:`volcal.analysis.uncertainty.parallel.run_chunks`: 1 this process, None every
+    core with this one, a Dask address or Client), each by the same solver with one BLAS
+    thread, so the result does not depend on where they ran.  The best start is the one
+    of least criterion, the first of equal ones.  ``progress(n - 1, best)`` after the n-th
+    start to finish, with the best criterion of the finished ones."""
+    from volcal.analysis.uncertainty.parallel import run_chunks
+
     t0 = time.perf_counter()
     if ev.frozen is None:
         raise RuntimeError("freeze the evaluator first")
@@ -385,60 +398,86 @@ def gradient_placement(
                 )
             )
         rows_of.append(mine)
-    results, history, n_eval = [], [], 0
+    results: list[tuple[float, np.ndarray]] = []
+    history: list[dict[str, float]] = []
+    n_eval = 0
     state = _load(checkpoint, "gradient", key)
-    done_starts: list[np.ndarray] = []
     if state is not None:
-        done_starts = list(state["stations"])
         results = [(float(v), S) for v, S in zip(state["values"], state["stations"])]
         history = state["meta"]["history"]
         rng.bit_generator.state = state["meta"]["rng"]
-    solvers: dict[tuple[int, ...], tuple[ca.Function, np.ndarray, np.ndarray]] = {}
+    n_done = len(results)
+    # every start design first, with the random stream's state after drawing it (what a
+    # checkpoint after that start records): the draws are those of a search that solves
+    # each start before drawing the next, wherever the starts are then solved
+    drawn: list[np.ndarray] = []
+    rng_after: list[dict[str, Any]] = []
+    for j in range(n_done, starts):
+        use_initial = j == 0 and initial is not None
+        drawn.append(
+            np.asarray(initial, float).reshape(K, 3) if use_initial else sampler.draw(rng, K)
+        )
+        rng_after.append(rng.bit_generator.state)
     # a start drawn where an earlier one began (the first draw of a round is the plan's
     # start design when both come from the same seed) ends where it ended: IPOPT is
-    # deterministic, so its result is reused instead of solved again
-    ended: dict[bytes, tuple[float, np.ndarray]] = {}
-    for j in range(len(done_starts), starts):
-        S0 = (
-            np.asarray(initial, float).reshape(K, 3)
-            if (j == 0 and initial is not None)
-            else sampler.draw(rng, K)
-        )
-        if S0.tobytes() in ended:
-            value, S = ended[S0.tobytes()]
-        else:
-            # region of each station: fixed for this start (linear constraints); one
-            # solver per assignment of stations to regions, built once and reused by later
-            # starts
-            regions = tuple(_region_of(sampler, S0[k]) for k in range(K)) if cons.regions else ()
-            if regions not in solvers:
-                g, lbg, ubg = _reading_rows(rows_of, cons, regions, P, sampler.centre)
-                fv, gv = fg_sym(s, pp)
-                grad_f = ca.Function("grad_f", [s, pp], [fscale * fv, fscale * gv])
-                solvers[regions] = _placement_solver(
-                    s, pp, fscale * f_sym(s, pp), g, lbg, ubg, cons, regions, max_iter, grad_f
-                )
-            solver, lb_all, ub_all = solvers[regions]
-            sol = solver(x0=S0.ravel(), p=ev.weights(S0, selected), lbg=lb_all, ubg=ub_all)
-            n_eval += int(solver.stats().get("iter_count", 0)) + 1
-            S = np.asarray(sol["x"]).reshape(K, 3)
-            value = scorer.score(S, selected) if sampler.ok(S).all() else float("inf")
-            ended[S0.tobytes()] = (value, S)
-        results.append((value, S))
-        history.append(
-            {"step": j, "best": min(v for v, _ in results), "seconds": time.perf_counter() - t0}
-        )
+    # deterministic, so it is solved once
+    first_of: dict[bytes, int] = {}
+    same_as: dict[int, int] = {}
+    for i, S0 in enumerate(drawn):
+        same_as[i] = first_of.setdefault(S0.tobytes(), i)
+    solvers: dict[tuple[int, ...], tuple[ca.Function, np.ndarray, np.ndarray]] = {}
+    chunks = []
+    for i, S0 in enumerate(drawn):
+        if same_as[i] != i:
+            continue
+        # region of each station: fixed for this start (linear constraints); one solver
+        # per assignment of stations to regions, built here once and shared by the starts
+        regions = tuple(_region_of(sampler, S0[k]) for k in range(K)) if cons.regions else ()
+        if regions not in solvers:
+            g, lbg, ubg = _reading_rows(rows_of, cons, regions, P, sampler.centre)
+            fv, gv = fg_sym(s, pp)
+            grad_f = ca.Function("grad_f", [s, pp], [fscale * fv, fscale * gv])
+            solvers[regions] = _placement_solver(
+                s, pp, fscale * f_sym(s, pp), g, lbg, ubg, cons, regions, max_iter, grad_f
+            )
+        chunks.append((i, S0, regions, ev.weights(S0, selected)))
+    kernel = _PlacementKernel(solvers, scorer, sampler, selected)
+    base = len(results)  # starts done before (a checkpoint); drawn[i] is start base + i
+    ended: dict[int, tuple[float, np.ndarray]] = {}
+
+    def record(i: int, value: float, S: np.ndarray) -> None:
+        """Drawn start i (and the later ones drawn at its start design) has ended: the
+        finished starts without a gap go into the results, the history and the
+        checkpoint (a resumed search draws the rest), in the order of the starts."""
+        for d in range(i, len(drawn)):
+            if same_as[d] == i:
+                ended[d] = (value, S)
+        m = len(results) - base
+        if m not in ended:
+            return
+        while m in ended:
+            results.append(ended[m])
+            best = min(v for v, _ in results)
+            history.append({"step": base + m, "best": best, "seconds": time.perf_counter() - t0})
+            m += 1
         _save(
             checkpoint,
             {
                 "values": np.array([v for v, _ in results]),
                 "stations": np.array([S for _, S in results]),
             },
-            {"kind": "gradient", "key": key, "rng": rng.bit_generator.state, "history": history},
+            {"kind": "gradient", "key": key, "rng": rng_after[m - 1], "history": history},
         )
+
+    before = [v for v, _ in results]
+    for (i, *_), (value, S, iters) in run_chunks(
+        kernel, chunks, workers=workers, scheduler=scheduler
+    ):
+        n_eval += iters
+        record(i, value, S)
         if progress is not None:
-            progress(j, history[-1]["best"])
-    best = min(results, key=lambda r: r[0])
+            progress(base + len(ended) - 1, min(before + [v for v, _ in ended.values()]))
+    best = min(results, key=lambda r: r[0])  # the first of the least: the lowest start
     notes = []
     n_bad = sum(1 for v, _ in results if not np.isfinite(v))
     if n_bad:
@@ -452,6 +491,52 @@ def gradient_placement(
         time.perf_counter() - t0,
         notes,
     )
+
+
+class _PlacementKernel:
+    """One start of the placement search, for :func:`run_chunks`: the solvers (one per
+    assignment of stations to regions, built by :func:`gradient_placement`), the scorer
+    and the sampler's constraint check, picklable (CasADi Functions travel serialised).
+    ``run_chunk((index, S0, regions, weights))`` solves from the start design S0 (K, 3)
+    mm and returns (criterion of the result, or inf where it breaks a constraint; stations
+    (K, 3) mm; IPOPT iterations + 1)."""
+
+    def __init__(
+        self,
+        solvers: dict[tuple[int, ...], tuple[ca.Function, np.ndarray, np.ndarray]],
+        scorer: Scorer,
+        sampler: StationSampler,
+        selected: np.ndarray | None,
+    ):
+        self.solvers, self.scorer, self.sampler = solvers, scorer, sampler
+        self.selected = selected
+
+    def __getstate__(self) -> dict[str, Any]:
+        # the solvers in one CasADi serialisation: the criterion graph they share (its
+        # constant matrices) is written once, not once per solver (8 MB instead of 21 for
+        # three solvers of a 20-pose test plan, and a third of the time to read)
+        d = dict(self.__dict__)
+        keys = list(self.solvers)
+        ss = ca.StringSerializer()
+        ss.pack([self.solvers[k][0] for k in keys])
+        d["solvers"] = (keys, ss.encode(), [self.solvers[k][1:] for k in keys])
+        return d
+
+    def __setstate__(self, d: dict[str, Any]) -> None:
+        keys, packed, bounds = d["solvers"]
+        fs = ca.StringDeserializer(packed).unpack() if keys else []
+        d["solvers"] = {k: (f, *b) for k, f, b in zip(keys, fs, bounds)}
+        self.__dict__.update(d)
+
+    def run_chunk(self, chunk: tuple[int, np.ndarray, tuple[int, ...], np.ndarray]):
+        _, S0, regions, w = chunk
+        solver, lb_all, ub_all = self.solvers[regions]
+        sol = solver(x0=S0.ravel(), p=w, lbg=lb_all, ubg=ub_all)
+        iters = int(solver.stats().get("iter_count", 0)) + 1
+        S = np.asarray(sol["x"]).reshape(S0.shape)
+        ok = self.sampler.ok(S).all()
+        value = self.scorer.score(S, self.selected) if ok else float("inf")
+        return float(value), S, iters
 
 
 def _reading_rows(
