@@ -425,23 +425,22 @@ def gradient_placement(
     same_as: dict[int, int] = {}
     for i, S0 in enumerate(drawn):
         same_as[i] = first_of.setdefault(S0.tobytes(), i)
-    solvers: dict[tuple[int, ...], tuple[ca.Function, np.ndarray, np.ndarray]] = {}
+    problems: dict[tuple[int, ...], tuple[ca.Function, np.ndarray, np.ndarray]] = {}
+    fv, gv = fg_sym(s, pp)
+    grad_f = ca.Function("grad_f", [s, pp], [fscale * fv, fscale * gv])
+    f = fscale * f_sym(s, pp)
     chunks = []
     for i, S0 in enumerate(drawn):
         if same_as[i] != i:
             continue
-        # region of each station: fixed for this start (linear constraints); one solver
-        # per assignment of stations to regions, built here once and shared by the starts
+        # region of each station: fixed for this start (linear constraints); one problem
+        # per assignment of stations to regions, shared by the starts
         regions = tuple(_region_of(sampler, S0[k]) for k in range(K)) if cons.regions else ()
-        if regions not in solvers:
+        if regions not in problems:
             g, lbg, ubg = _reading_rows(rows_of, cons, regions, P, sampler.centre)
-            fv, gv = fg_sym(s, pp)
-            grad_f = ca.Function("grad_f", [s, pp], [fscale * fv, fscale * gv])
-            solvers[regions] = _placement_solver(
-                s, pp, fscale * f_sym(s, pp), g, lbg, ubg, cons, regions, max_iter, grad_f
-            )
+            problems[regions] = _placement_problem(s, pp, f, g, lbg, ubg, cons, regions)
         chunks.append((i, S0, regions, ev.weights(S0, selected)))
-    kernel = _PlacementKernel(solvers, scorer, sampler, selected)
+    kernel = _PlacementKernel(problems, grad_f, max_iter, scorer, sampler, selected)
     base = len(results)  # starts done before (a checkpoint); drawn[i] is start base + i
     ended: dict[int, tuple[float, np.ndarray]] = {}
 
@@ -494,43 +493,56 @@ def gradient_placement(
 
 
 class _PlacementKernel:
-    """One start of the placement search, for :func:`run_chunks`: the solvers (one per
-    assignment of stations to regions, built by :func:`gradient_placement`), the scorer
+    """One start of the placement search, for :func:`run_chunks`: the NLP of every
+    assignment of stations to regions (a Function of the station coordinates and the
+    weights, with its constraint bounds), the objective's gradient Function, the scorer
     and the sampler's constraint check, picklable (CasADi Functions travel serialised).
+    Each process builds the IPOPT solver of an assignment when a start first needs it and
+    keeps it (building one, its derivatives' sparsity included, is about 0.05 s: in the
+    processes that solve, not before the work is shared out).
     ``run_chunk((index, S0, regions, weights))`` solves from the start design S0 (K, 3)
     mm and returns (criterion of the result, or inf where it breaks a constraint; stations
     (K, 3) mm; IPOPT iterations + 1)."""
 
     def __init__(
         self,
-        solvers: dict[tuple[int, ...], tuple[ca.Function, np.ndarray, np.ndarray]],
+        problems: dict[tuple[int, ...], tuple[ca.Function, np.ndarray, np.ndarray]],
+        grad_f: ca.Function,
+        max_iter: int,
         scorer: Scorer,
         sampler: StationSampler,
         selected: np.ndarray | None,
     ):
-        self.solvers, self.scorer, self.sampler = solvers, scorer, sampler
-        self.selected = selected
+        self.problems, self.grad_f, self.max_iter = problems, grad_f, int(max_iter)
+        self.scorer, self.sampler, self.selected = scorer, sampler, selected
+        self._solvers: dict[tuple[int, ...], ca.Function] = {}
 
     def __getstate__(self) -> dict[str, Any]:
-        # the solvers in one CasADi serialisation: the criterion graph they share (its
-        # constant matrices) is written once, not once per solver (8 MB instead of 21 for
-        # three solvers of a 20-pose test plan, and a third of the time to read)
+        # the Functions in one CasADi serialisation: the criterion graph they share (its
+        # constant matrices) is written once, not once per Function; no solvers (built
+        # where they run)
         d = dict(self.__dict__)
-        keys = list(self.solvers)
+        keys = list(self.problems)
         ss = ca.StringSerializer()
-        ss.pack([self.solvers[k][0] for k in keys])
-        d["solvers"] = (keys, ss.encode(), [self.solvers[k][1:] for k in keys])
+        ss.pack([self.grad_f] + [self.problems[k][0] for k in keys])
+        d["problems"] = (keys, ss.encode(), [self.problems[k][1:] for k in keys])
+        d["grad_f"] = None
+        d["_solvers"] = {}
         return d
 
     def __setstate__(self, d: dict[str, Any]) -> None:
-        keys, packed, bounds = d["solvers"]
-        fs = ca.StringDeserializer(packed).unpack() if keys else []
-        d["solvers"] = {k: (f, *b) for k, f, b in zip(keys, fs, bounds)}
+        keys, packed, bounds = d["problems"]
+        fs = ca.StringDeserializer(packed).unpack()
+        d["grad_f"] = fs[0]
+        d["problems"] = {k: (f, *b) for k, f, b in zip(keys, fs[1:], bounds)}
         self.__dict__.update(d)
 
     def run_chunk(self, chunk: tuple[int, np.ndarray, tuple[int, ...], np.ndarray]):
         _, S0, regions, w = chunk
-        solver, lb_all, ub_all = self.solvers[regions]
+        nlp, lb_all, ub_all = self.problems[regions]
+        solver = self._solvers.get(regions)
+        if solver is None:
+            solver = self._solvers[regions] = _placement_solver(nlp, self.max_iter, self.grad_f)
         sol = solver(x0=S0.ravel(), p=w, lbg=lb_all, ubg=ub_all)
         iters = int(solver.stats().get("iter_count", 0)) + 1
         S = np.asarray(sol["x"]).reshape(S0.shape)
@@ -586,11 +598,11 @@ def _reading_rows(
     return (ca.vertcat(*g) if g else ca.MX(0, 1)), lbg, ubg
 
 
-def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter, grad_f):
-    """IPOPT on the station coordinates ``s`` with weights ``pp``: objective f (its value
-    and gradient from the Function ``grad_f(s, pp)``, written out rather than reverse
-    AD), the smooth reading constraints g_base and the half-spaces of each station's
-    region ``regions`` (indices into ``cons.regions``).  Returns (solver, lbg, ubg)."""
+def _placement_problem(s, pp, f, g_base, lbg, ubg, cons, regions):
+    """The NLP on the station coordinates ``s`` with weights ``pp``: objective f, the
+    smooth reading constraints g_base and the half-spaces of each station's region
+    ``regions`` (indices into ``cons.regions``).  Returns (Function (x, p) -> (f, g), as
+    ``nlpsol`` builds it from the expressions; lbg; ubg)."""
     K = s.shape[0] // 3
     gg, lb, ub = [g_base], list(lbg), list(ubg)
     if regions:
@@ -605,10 +617,20 @@ def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter, grad_
         gg.append(ca.mtimes(ca.DM(Aall), s))
         lb.append(np.full(len(Aall), -np.inf))
         ub.append(np.concatenate(b_rows) - 1e-4)
-    solver = ca.nlpsol(
+    nlp = ca.Function(
+        "nlp", {"x": s, "p": pp, "f": f, "g": ca.vertcat(*gg)}, ["x", "p"], ["f", "g"]
+    )
+    cat = np.concatenate
+    return nlp, (cat(lb) if lb else np.zeros(0)), (cat(ub) if ub else np.zeros(0))
+
+
+def _placement_solver(nlp: ca.Function, max_iter: int, grad_f: ca.Function) -> ca.Function:
+    """IPOPT on the NLP of :func:`_placement_problem`, the objective's value and gradient
+    from the Function ``grad_f(s, pp)`` (written out rather than reverse AD)."""
+    return ca.nlpsol(
         "placement",
         "ipopt",
-        {"x": s, "p": pp, "f": f, "g": ca.vertcat(*gg)},
+        nlp,
         {
             "ipopt.print_level": 0,
             "print_time": False,
@@ -625,8 +647,6 @@ def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter, grad_
             "grad_f": grad_f,
         },
     )
-    cat = np.concatenate
-    return solver, (cat(lb) if lb else np.zeros(0)), (cat(ub) if ub else np.zeros(0))
 
 
 # ---- pose exchange ---------------------------------------------------------------------
