@@ -17,8 +17,10 @@ so feasibility is checked (and repaired) station by station.
   :meth:`~volcal.analysis.planning.evaluator.PlanEvaluator.criterion_functions`), the
   regions, distance, range and acceptance-angle constraints written as smooth
   inequalities (those the station's region cannot break left out: the region implies
-  them), from several feasible starts; line of sight is checked on each result (a start
-  whose optimum a beam of which is blocked is discarded).  Checkpointed after every start.
+  them), from several feasible starts, all drawn first and then solved in parallel like
+  the GA's scores (each process builds the solvers it needs); line of sight is checked on
+  each result (a start whose optimum a beam of which is blocked is discarded).
+  Checkpointed after every start.
 * :func:`exchange_poses`: a Fedorov-type exchange of poses between the plan and a candidate
   grid for the I-criterion, with rank-K updates of the information matrix.
 
