@@ -470,6 +470,12 @@ def gradient_placement(
             {"kind": "gradient", "key": key, "rng": rng_after[m - 1], "history": history},
         )
 
+    if chunks:
+        # the first solver built works out the sparsity of the criterion's graph, which
+        # the graph keeps (a third of a second for trunnion_ac, 0.03 s for each solver
+        # after it): once here, before forked workers inherit it, not once in each process;
+        # this process's first start (the last, see run_chunks) uses it
+        kernel.solver(chunks[-1][2])
     before = [v for v, _ in results]
     for (i, *_), (value, S, iters) in run_chunks(
         kernel, chunks, workers=workers, scheduler=scheduler
@@ -539,12 +545,18 @@ class _PlacementKernel:
         d["problems"] = {k: (f, *b) for k, f, b in zip(keys, fs[1:], bounds)}
         self.__dict__.update(d)
 
-    def run_chunk(self, chunk: tuple[int, np.ndarray, tuple[int, ...], np.ndarray]):
-        _, S0, regions, w = chunk
-        nlp, lb_all, ub_all = self.problems[regions]
+    def solver(self, regions: tuple[int, ...]) -> ca.Function:
+        """The IPOPT solver of an assignment of stations to regions, built at first use."""
         solver = self._solvers.get(regions)
         if solver is None:
+            nlp = self.problems[regions][0]
             solver = self._solvers[regions] = _placement_solver(nlp, self.max_iter, self.grad_f)
+        return solver
+
+    def run_chunk(self, chunk: tuple[int, np.ndarray, tuple[int, ...], np.ndarray]):
+        _, S0, regions, w = chunk
+        _, lb_all, ub_all = self.problems[regions]
+        solver = self.solver(regions)
         sol = solver(x0=S0.ravel(), p=w, lbg=lb_all, ubg=ub_all)
         iters = int(solver.stats().get("iter_count", 0)) + 1
         S = np.asarray(sol["x"]).reshape(S0.shape)
