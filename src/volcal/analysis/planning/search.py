@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -413,7 +413,7 @@ def gradient_placement(
     # checkpoint after that start records): the draws are those of a search that solves
     # each start before drawing the next, wherever the starts are then solved
     drawn: list[np.ndarray] = []
-    rng_after: list[dict[str, Any]] = []
+    rng_after: list[Mapping[str, Any]] = []
     for j in range(n_done, starts):
         use_initial = j == 0 and initial is not None
         drawn.append(
