@@ -42,6 +42,7 @@ from volcal.analysis import (
     field_null_space,
     split_gauge,
 )
+from volcal.analysis.covariance import gram_covariance
 from volcal.analysis.identifiability import FieldSets, rigid_columns
 from volcal.base.exceptions import InputError, SolverError
 from volcal.base.linalg import unique_rows
@@ -618,9 +619,19 @@ class Identifier:
 
     def covariance(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray) -> np.ndarray:
         """Linearised covariance of x (physical units) under the datum constraints, with
-        fixed variables NaN."""
-        R, m = self.factor(x, p)
-        cov_s = constrained_covariance(R, self._scaled_constraints(), fixed=fixed, n_rows=m)
+        fixed variables NaN.
+
+        At the answer of a Gauss-Newton solve (or IPOPT's polish) the solver's last
+        iteration has evaluated J^T J there; while the reduced system is well conditioned
+        the covariance is taken from it (:func:`volcal.analysis.covariance.gram_covariance`)
+        instead of from an R factor, which costs a second pass over the readings."""
+        cov_s = None
+        final = self.gauss_newton.final_gram
+        if final is not None and final.matches(x, p):
+            cov_s = gram_covariance(final.H, self._scaled_constraints(), fixed=fixed)
+        if cov_s is None:
+            R, m = self.factor(x, p)
+            cov_s = constrained_covariance(R, self._scaled_constraints(), fixed=fixed, n_rows=m)
         s = self.problem.scale
         return cov_s * s[:, None] * s[None, :]
 

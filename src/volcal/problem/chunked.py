@@ -294,7 +294,9 @@ class ChunkedEvaluator:
             # the chunk's rows station by station: [D G_stack | station's, globals], a
             # reading's theta row being sum_c d(r)/d(p_c) d(p_c)/d(theta) of its pose
             Jb = np.empty((len(idx), width))
-            Jb[:, :nt] = np.einsum("cr,rct->rt", rows[:3, o], G[pl[o]])
+            # G is a view whose last axis strides over the whole output buffer: gathered
+            # as it is, the product took 7x longer (8 ms against 1.2 ms a chunk of 512 poses)
+            Jb[:, :nt] = np.einsum("cr,rct->rt", rows[:3, o], np.ascontiguousarray(G)[pl[o]])
             Jb[:, nt:] = rows[3 : 3 + nps + ng, o].T
             bounds = np.searchsorted(sti[o], np.arange(n_st + 1))
             for j in np.flatnonzero(np.diff(bounds)):
