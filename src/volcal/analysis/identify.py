@@ -1121,9 +1121,12 @@ def _identify(
         p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
         with report_stage(f"solving ({strategy}, {ider.solver_name})"):
             x, outcomes, fixed, ident = ider.run(strat, x0, p, user_fixed=user_fixed)
-        r = pr.chunked.residuals(
-            pr.to_scaled(x), pr.pack_data(meas.q_internal, meas.tool, meas.length, weights)
-        )
+        p_all = pr.pack_data(meas.q_internal, meas.tool, meas.length, weights)
+        final = ider.gauss_newton.final_gram
+        if final is not None and final.matches(x, p_all):
+            r = final.r  # the solver's last evaluation was there: the same numbers
+        else:
+            r = pr.chunked.residuals(pr.to_scaled(x), p_all)
         if not robust:
             break
         # data snooping with re-admission: a blunder spreads into its neighbours' residuals

@@ -205,20 +205,20 @@ class GaussNewtonSolver:
         return self._step(xs, p, Z, mu)[0]
 
     def _step(
-        self, xs: np.ndarray, p: np.ndarray, Z: np.ndarray, mu: float
-    ) -> tuple[tuple[float, np.ndarray, float, float, float], tuple | None]:
-        """:meth:`step` and the system (r, J^T r, J^T J) it was taken from when that holds
-        the error parameters' rows (None when Z holds them all)."""
-        ch = self.problem.chunked
+        self, xs: np.ndarray, p: np.ndarray, Z: np.ndarray, mu: float, system: tuple | None = None
+    ) -> tuple[tuple[float, np.ndarray, float, float, float], tuple]:
+        """:meth:`step` from the system (r, J^T r, J^T J) at xs when it is given (already
+        evaluated there), and that system."""
         sel, theta = self._basis_kind(Z)
-        r, g, H = ch.gram(xs, p, theta=theta)
-        system = (r, g, H) if theta else None
+        if system is None:
+            system = self.problem.chunked.gram(xs, p, theta=theta)
+        r, g, H = system
         f = 0.5 * float(r @ r)
         # each residual w (reading - m) carries the rounding of a reading of size |m| (or
         # |m + r / w|), eps |w m| + eps |r|; f = 0.5 sum r^2 then moves by up to their sum
         # weighted by |r| between two evaluations at points a rounding apart (1e-7 of
         # f = 4e4 on 648 readings with residuals of 150 sigma, far above 1e-13 f)
-        m, w = ch.readings(p)
+        m, w = self.problem.chunked.readings(p)
         level = float(np.finfo(float).eps * (np.abs(r) @ (np.abs(w * m) + np.abs(r))))
         if Z.shape[1] == 0:
             return (f, np.zeros(self.problem.n_x), 0.0, 0.0, level), system
@@ -291,6 +291,18 @@ class GaussNewtonSolver:
     def objective(self, xs: np.ndarray, p: np.ndarray) -> float:
         return self.problem.chunked.objective(xs, p)
 
+    def trial(
+        self, xs: np.ndarray, p: np.ndarray, *, theta: bool, system: bool
+    ) -> tuple[float, tuple | None]:
+        """f = 0.5 ||r||^2 at a trial point xs (scaled) and, with ``system``, the
+        Gauss-Newton system there (r, J^T r, J^T J; the error parameters' rows with
+        ``theta``): the next iteration's when the step is taken, in the same pass over
+        the readings (the residuals are the same numbers as :meth:`objective`'s)."""
+        if not system:
+            return self.objective(xs, p), None
+        r, g, H = self.problem.chunked.gram(xs, p, theta=theta)
+        return 0.5 * float(r @ r), (r, g, H)
+
     def solve(
         self,
         x0: np.ndarray,
@@ -314,9 +326,13 @@ class GaussNewtonSolver:
         taken = 0  # steps taken
         floor: float | None = None  # size of the last step f could not rank, if it was
         self.final_gram = None
-        system = None  # the system at xs (the last iteration's when xs did not move)
+        theta = self._basis_kind(Z)[1]
+        # the system (r, J^T r, J^T J) at xs once evaluated there, kept while xs does not
+        # move (a rejected step, a damping dropped) and taken from the trial point when
+        # an undamped step (nearly always accepted) moves xs there
+        system = None
         for it in range(1, max_iter + 1):  # noqa: B007  (the count is reported)
-            (f, dx, _, pred, level), system = self._step(xs, p, Z, mu)
+            (f, dx, _, pred, level), system = self._step(xs, p, Z, mu, system)
             progress.update(f"Gauss-Newton iteration {it}, cost {f:.6g}")
             if not np.all(np.isfinite(dx)):
                 status = "Invalid_Number_Detected"
@@ -330,7 +346,8 @@ class GaussNewtonSolver:
                 # on the undamped step (a stuck iteration then keeps failing, and says so)
                 mu = 0.0
                 continue
-            f_new = self.objective(xs + dx, p)
+            xt = xs + dx
+            f_new, trial = self.trial(xt, p, theta=theta, system=mu == 0)
             # below the rounding level of f (flat directions of a large-residual fit) the
             # sum of squares cannot judge a step; the gradient-based model still can
             flat = max(1e-13 * max(f, 1.0), level)
@@ -348,7 +365,7 @@ class GaussNewtonSolver:
                 status = "Solve_Succeeded"
                 break
             if accepted:
-                xs = xs + dx
+                xs, system = xt, trial
                 taken += 1
                 floor = size if unrankable else None
                 # Nielsen's rule: relax the damping when the model predicted well
@@ -380,9 +397,8 @@ class GaussNewtonSolver:
             np.all(np.isfinite(x))
         )
         self.steps_taken = taken
-        if system is not None and status == "Solve_Succeeded":
-            # every exit that says so leaves xs where the last iteration evaluated it
-            self.final_gram = FinalGram(x, p, *system)
+        if system is not None and theta and status == "Solve_Succeeded":
+            self.final_gram = FinalGram(x, p, *system)  # the system at xs (see above)
         return SolveOutcome(x, f, status, ok, it, time.perf_counter() - t0)
 
 
