@@ -161,7 +161,8 @@ class Machine:
         key = (name, n, threading.get_ident())
         call = calls.pop(key, None)
         if call is None:
-            call = NumpyCall(self.functions[name].map(n))
+            f = self.functions[name]
+            call = NumpyCall(f.map(n), mapped_from=f)
         calls[key] = call  # most recent last
         while len(calls) > 8:
             calls.pop(next(iter(calls)))
