@@ -1167,6 +1167,8 @@ def _identify(
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
     with report_stage("uncertainty and identifiability"):
         cov = ider.covariance(x, p, fixed)
+        # taken: the result keeps the identifier, which need not keep the data vector
+        ider.gauss_newton.final_gram = None
         resid_w = r
         dof = max(int((~rejected).sum()) - int((~fixed).sum()) + pr.C.shape[0], 1)
         chi2 = float(np.sum(resid_w[~rejected] ** 2) / dof)
