@@ -181,19 +181,16 @@ class Machine:
         n = args[0].shape[1]
         f = self.functions[name]
         shapes = [(f.size1_out(i), f.size2_out(i)) for i in range(f.n_out())]
-        if n == 0:
-            return [np.zeros((r, 0, c)) for r, c in shapes]
-        parts: list[list[np.ndarray]] = [[] for _ in shapes]
+        outs = [np.empty((r, n, c)) for r, c in shapes]  # filled slice by slice
         for a in range(0, n, MAP_POINTS):
             m = min(MAP_POINTS, n - a)
             size = MAP_POINTS if m == MAP_POINTS else 1 << max(m - 1, 0).bit_length()
             sl = [x[:, a : a + m] for x in args]
             if size > m:  # a padded slice: copies of its last point, dropped after
                 sl = [np.concatenate([x, np.repeat(x[:, -1:], size - m, axis=1)], 1) for x in sl]
-            out = self._call(name, size)(*sl)
-            for i, (r, c) in enumerate(shapes):
-                parts[i].append(np.reshape(out[i], (r, size, c))[:, :m])
-        return [p[0] if len(p) == 1 else np.concatenate(p, axis=1) for p in parts]
+            for o, v, (r, c) in zip(outs, self._call(name, size)(*sl), shapes):
+                o[:, a : a + m] = np.reshape(v, (r, size, c))[:, :m]
+        return outs
 
     def __getstate__(self):
         d = dict(self.__dict__)
