@@ -33,7 +33,8 @@ class NumpyCall:
         self._buf: Any
         self._buf, self._eval = f.buffer()
         self._nz = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
-        self._where = []
+        # per output: rows, columns, scatter rows and columns (None when dense), dense
+        self._where: list[tuple[int, int, np.ndarray | None, np.ndarray | None, bool]] = []
         for i in range(f.n_out()):
             sp = f.sparsity_out(i)
             if sp.is_dense():  # reshaped, never scattered: no pattern needed
