@@ -426,21 +426,27 @@ def iter_plot_requests(
     spec = result.machine.spec
     if residuals is None:
         residuals = result.residuals
-    # costs: seconds to draw each on the bundled example (warm matplotlib, one core)
+    # in the order of F.COSTS (the children's frames built ahead expect it)
+    cost = F.COSTS
     yield (
         "component_errors.png",
         F.draw_component_errors,
         component_errors_data(component_table, result.error_model),
-        0.20,
+        cost["component_errors.png"],
     )
-    yield ("correlations.png", F.draw_correlations, correlations_data(result), 0.14)
+    yield (
+        "correlations.png",
+        F.draw_correlations,
+        correlations_data(result),
+        cost["correlations.png"],
+    )
     yield (
         "volumetric_map.png",
         F.draw_volumetric_slices,
         volumetric_slices_data(result.machine, result.error_model, result.theta),
-        0.10,
+        cost["volumetric_map.png"],
     )
-    yield ("residuals.png", F.draw_residuals, residuals_data(residuals), 0.09)
+    yield ("residuals.png", F.draw_residuals, residuals_data(residuals), cost["residuals.png"])
     if isinstance(adequacy, str) and adequacy == "assess":
         from volcal.analysis.adequacy import assess
 
@@ -454,7 +460,7 @@ def iter_plot_requests(
             [_unit(spec, a) for a in spec.axis_names],
             adequacy=adequacy,
         ),
-        0.09,
+        cost["residuals_vs_axes.png"],
     )
 
 
