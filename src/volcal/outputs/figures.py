@@ -10,7 +10,9 @@ path, and returns the ``Figure``.
 
 Speed matters here (the default plots are on the critical path of every ``volcal
 identify``): fixed margins instead of a layout engine, at most five ticks per axis,
-rasterised scatters, images instead of patches.
+rasterised scatters, images instead of patches; and a plotting child builds the frames
+(figure, axes, styling, ticks) of the figures it will draw while it waits for their data
+(:func:`prepare_frame`, :func:`frame_plan`).
 """
 
 from __future__ import annotations

@@ -9,7 +9,9 @@ warmed-up self (one import of matplotlib, not one per child).  The parent then s
 ``(function, args)`` requests: the function is a module-level drawing function (pickled by
 its name) and the arguments are plain data (numpy arrays, numbers, strings, paths), so a
 child never imports pandas, scipy or the solver.  With two children the figures of one
-result are drawn two at a time.
+result are drawn two at a time.  Until its first request, a child makes the calls it is
+given ``ahead`` (:func:`volcal.outputs.figures.frame_plan`: the frames of the figures it
+will draw, a fifth of their drawing time, built while it would otherwise wait).
 
 The parent waits for every figure before it renames its result folder into place, so the
 folder stays all-or-nothing.  Fork only (Linux); :meth:`PlotProcess.start` returns None
