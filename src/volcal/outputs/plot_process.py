@@ -66,8 +66,14 @@ def _serve_requests(conn, ahead: Sequence[Request] = ()) -> None:  # pragma: no 
     import gc
     import traceback
 
+    def idle() -> bool:  # no request waiting (a closed pipe ends the loop below)
+        try:
+            return not conn.poll()
+        except (EOFError, OSError):
+            return False
+
     todo = list(ahead)
-    while todo and not conn.poll():
+    while todo and idle():
         func, args = todo.pop(0)
         try:
             func(*args)
