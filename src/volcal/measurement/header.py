@@ -193,7 +193,8 @@ def resolve_columns(
 def _header_cells(path: Path) -> list[str] | None:
     """The stripped cells of the first line of a CSV file as the loader's parser reads
     them, or None when this cheap reading could differ from it (the loader then decides):
-    no such file, not UTF-8, an empty or a very long first line, quotes, a blank cell (an unnamed
+    no such file, not UTF-8, an empty or a very long first line, quotes, a lone carriage
+    return (a line end for the parser), a blank cell (an unnamed
     column the loader drops when it is empty throughout), a single cell (perhaps another
     separator, which the loader explains)."""
     try:
@@ -207,7 +208,7 @@ def _header_cells(path: Path) -> list[str] | None:
         text = line.decode("utf-8-sig").rstrip("\r\n")
     except UnicodeDecodeError:
         return None
-    if not text.strip() or '"' in text or "'" in text:
+    if not text.strip() or '"' in text or "'" in text or "\r" in text:  # \r: lines end at \r
         return None
     cells = [c.strip() for c in next(csv.reader([text], skipinitialspace=True))]
     if len(cells) < 2 or "" in cells:
