@@ -74,6 +74,7 @@ NA_STRINGS = frozenset({"nan", "na", "n/a", "null", "none"})
 MAX_SCAN_BYTES = 16 << 20
 
 _NUMBER = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
+_INTEGER = re.compile(r"\s*[-+]?[0-9]+\s*")
 _INFINITY = re.compile(r"([-+]?)inf(?:inity)?", re.IGNORECASE)
 _DECIMAL_COMMA = re.compile(r"\s*[-+]?\d+,\d+\s*")
 _CONVERT_HINT = (
@@ -283,6 +284,9 @@ def _floats(cells: list[str], plain: bool) -> tuple[array, list[int], list[int],
         else:
             s = sum(vals)
             if not (math.isnan(s) or math.isinf(s)):
+                if 0.0 in vals and all(map(_INTEGER.fullmatch, cells)):
+                    # pandas reads a column of whole numbers as integers: no -0
+                    vals = array("d", (v + 0.0 for v in vals))
                 return vals, [], [], []
     vals = array("d", bytes(8 * len(cells)))
     bad: list[int] = []
@@ -361,6 +365,8 @@ def scan_measurements(
     # the rows first: pandas reports a row longer than the header before the header
     rows: Sequence[int]
     fast = _fast_columns(text, ncols)
+    if fast is not None and not all(map(str.strip, fast[0][0])):
+        fast = None  # perhaps a blank row (blank in every column): read record by record
     if fast is not None:
         columns, n = fast
         rows = range(2, n + 2)

@@ -193,8 +193,7 @@ def resolve_columns(
 def _header_cells(path: Path) -> list[str] | None:
     """The stripped cells of the first line of a CSV file as the loader's parser reads
     them, or None when this cheap reading could differ from it (the loader then decides):
-    no such file, not UTF-8, an empty or a very long first line, quotes, a lone carriage
-    return (a line end for the parser), a blank cell (an unnamed
+    no such file, not UTF-8, an empty or a very long first line, quotes, a blank cell (an unnamed
     column the loader drops when it is empty throughout), a single cell (perhaps another
     separator, which the loader explains)."""
     try:
@@ -205,10 +204,11 @@ def _header_cells(path: Path) -> list[str] | None:
     if len(line) >= _MAX_HEADER_BYTES:  # perhaps cut: not a header to judge by its start
         return None
     try:
-        text = line.decode("utf-8-sig").rstrip("\r\n")
+        # a lone \r ends a line too (the parser's rule; old Mac files)
+        text = line.decode("utf-8-sig").rstrip("\r\n").partition("\r")[0]
     except UnicodeDecodeError:
         return None
-    if not text.strip() or '"' in text or "'" in text or "\r" in text:  # \r: lines end at \r
+    if not text.strip() or '"' in text or "'" in text:
         return None
     cells = [c.strip() for c in next(csv.reader([text], skipinitialspace=True))]
     if len(cells) < 2 or "" in cells:
