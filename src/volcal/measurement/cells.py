@@ -11,17 +11,19 @@ when the file has quotes) and either
   than the header, a cell that is not a number, empty or infinite, a length, axis position
   or sigma out of range (with the loader's warning about rotary axes in radians first), or
 * returns the table as read (:class:`ScannedTable`: ids as text, numbers as floats), which
-  the loader takes instead of reading the file again (the numbers parsed once: Python's
-  ``float`` is faster than pandas' ``to_numeric`` on text), or
+  the loader takes instead of reading the file again (the numbers parsed once: this
+  reading costs what pandas' reading of the text and its ``to_numeric`` cost together at
+  10^4 readings), or
 * returns None when it cannot be sure to read the file as pandas does (not UTF-8, a NUL
   byte, a header the first line cannot decide, odd quoting the ``csv`` module rejects, a
-  file above :data:`MAX_SCAN_BYTES`): the loader then reads it with pandas.
+  file above :data:`MAX_SCAN_BYTES`, 2 MiB): the loader then reads it with pandas, and a
+  bad cell of a larger table is reported once pandas has read it.
 
 A cell is a number when, stripped of blanks, it is a plain decimal (``[-+]``, digits with
 an optional ``.``, an optional exponent) or an infinity (``inf``, ``infinity``, any case,
 signed): exactly what pandas accepts.  Python's ``float`` accepts more (``1_000``, Arabic
 digits, ``nan``): a column is read with ``float`` only after those are ruled out, and
-cell by cell with the rule above otherwise.  tests/test_startup_csv.py draws spoilt tables
+cell by cell with the rule above otherwise.  tests/test_csv_cells.py draws spoilt tables
 with hypothesis and checks that both readings give the same message.
 
 The later checks of the loader (duplicate readings, readings per station, the stations
@@ -69,9 +71,10 @@ MAX_LENGTH_MM = 100_000.0
 TRAVEL_TOLERANCE = 1e-6
 #: Cells read as missing values (any case, surrounding blanks ignored).
 NA_STRINGS = frozenset({"nan", "na", "n/a", "null", "none"})
-#: Files larger than this (bytes) are left to pandas: about 1.5 x 10^5 readings; a Python
-#: list of every cell of a larger file would cost more memory than pandas' reading.
-MAX_SCAN_BYTES = 16 << 20
+#: Files larger than this (bytes, about 2 x 10^4 readings) are left to pandas: at 10^4
+#: readings this reading and pandas' take the same time (the numbers are parsed once,
+#: here), at 10^5 this one took 15 % more time and 50 MiB more memory.
+MAX_SCAN_BYTES = 2 << 20
 
 _NUMBER = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
 _INTEGER = re.compile(r"\s*[-+]?[0-9]+\s*")
@@ -203,7 +206,7 @@ class ScannedTable:
 
     name: str
     header: tuple[str, ...]
-    columns: tuple[Any, ...]
+    columns: tuple[list[str] | array, ...]
     rows: array
 
 
@@ -271,14 +274,14 @@ def _fast_columns(text: str, ncols: int) -> tuple[list[list[str]], int] | None:
     return [cells[j::ncols] for j in range(ncols)], n
 
 
-def _floats(cells: list[str], plain: bool) -> tuple[array, list[int], list[int], list[int]]:
+def _floats(cells: list[str], plain: bool) -> tuple[list[float], list[int], list[int], list[int]]:
     """(values, bad, blank, infinite): values NaN where a cell is blank, not a number or
     infinite, with the indices of each.  ``plain``: the column's text has no underscore
     and is ASCII (Python's ``float`` then accepts exactly pandas' numbers, nan and inf
     aside, which the sum shows)."""
     if plain:
         try:
-            vals = array("d", map(float, cells))
+            vals = list(map(float, cells))  # a list: min, max and sum unbox nothing
         except ValueError:
             pass
         else:
@@ -286,9 +289,9 @@ def _floats(cells: list[str], plain: bool) -> tuple[array, list[int], list[int],
             if not (math.isnan(s) or math.isinf(s)):
                 if 0.0 in vals and all(map(_INTEGER.fullmatch, cells)):
                     # pandas reads a column of whole numbers as integers: no -0
-                    vals = array("d", (v + 0.0 for v in vals))
+                    vals = [v + 0.0 for v in vals]
                 return vals, [], [], []
-    vals = array("d", bytes(8 * len(cells)))
+    vals = [0.0] * len(cells)
     bad: list[int] = []
     blank: list[int] = []
     inf: list[int] = []
@@ -361,7 +364,7 @@ def scan_measurements(
         return None
     ncols = len(header)
     # Python's float reads a plain column (ASCII, no underscore) as pandas does
-    plain_text = text.isascii() and "_" not in text
+    plain_text = text.isascii() and text.find("_", text.find("\n") + 1) < 0  # not the header's
     # the rows first: pandas reports a row longer than the header before the header
     rows: Sequence[int]
     fast = _fast_columns(text, ncols)
@@ -403,7 +406,7 @@ def scan_measurements(
         if fast is None or not all(map(str.strip, col)):
             missing = [k for k, v in enumerate(col) if not v or v.isspace()]
             _report(problems, rows, missing, label_of[c], MISSING_ID)
-    values: dict[str, tuple[array, bool]] = {}
+    values: dict[str, tuple[list[float], bool]] = {}
     units = {a.name: ("deg" if a.is_rotary else "mm") for a in spec.axes}
     order = [(a.name, units[a.name], False) for a in spec.axes]
     order += [(f"tool_{x}", "mm", False) for x in "xyz" if f"tool_{x}" in pos]
@@ -422,7 +425,7 @@ def scan_measurements(
             _report(problems, rows, blank, col, missing_number(unit))
         _report(problems, rows, inf, col, lambda k, u=unit, x=cells: not_finite(u, x[k]))
         values[c] = (vals, not (bad or blank or inf))
-        columns[pos[c]] = vals
+        columns[pos[c]] = array("d", vals)
     L = label_of["length"]
     if relative_lengths:
         _where(problems, rows, values["length"], lambda v: abs(v) > MAX_LENGTH_MM, L,
@@ -458,7 +461,7 @@ def scan_measurements(
 def _where(
     problems: _Problems,
     rows: Sequence[int],
-    column_values: tuple[array, bool],
+    column_values: tuple[list[float], bool],
     test: Callable[[float], bool],
     column: str,
     message: Callable[[float], str],
