@@ -267,15 +267,14 @@ def _read_inputs(args: argparse.Namespace):
     t0 = time.perf_counter()
     if not args.columns:
         # before pandas' import (a third of a second): the header from the first line,
-        # and for the tracker's tables (positive lengths) the rows and cells too, with the
+        # then for the tracker's tables (positive lengths) the rows and cells, with the
         # loader's messages; the numbers read there are the loader's (no second reading)
         from volcal.measurement.cells import scan_measurements
         from volcal.measurement.header import check_header
 
+        check_header(args.data, spec)
         if args.instrument == "tracker":
             source = scan_measurements(args.data, spec) or args.data
-        else:
-            check_header(args.data, spec)
     t_scan = time.perf_counter() - t0
     from volcal.measurement.instruments import get_instrument
     from volcal.measurement.tables import (
