@@ -41,6 +41,7 @@ import warnings
 from array import array
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from itertools import repeat
 from pathlib import Path
 from typing import Any
@@ -285,8 +286,8 @@ def _floats(cells: list[str], plain: bool) -> tuple[list[float], list[int], list
         except ValueError:
             pass
         else:
-            s = sum(vals)
-            if not (math.isnan(s) or math.isinf(s)):
+            total = sum(vals)
+            if not (math.isnan(total) or math.isinf(total)):
                 if 0.0 in vals and all(map(_INTEGER.fullmatch, cells)):
                     # pandas reads a column of whole numbers as integers: no -0
                     vals = [v + 0.0 for v in vals]
@@ -402,11 +403,12 @@ def scan_measurements(
     )  # raises the header's problems
     label_of = {c: header[p] for c, p in pos.items()}
     for c in ("station", "point"):
-        col = columns[pos[c]]
-        if fast is None or not all(map(str.strip, col)):
-            missing = [k for k, v in enumerate(col) if not v or v.isspace()]
+        ids = columns[pos[c]]
+        if fast is None or not all(map(str.strip, ids)):
+            missing = [k for k, v in enumerate(ids) if not v or v.isspace()]
             _report(problems, rows, missing, label_of[c], MISSING_ID)
     values: dict[str, tuple[list[float], bool]] = {}
+    numbers: dict[int, array] = {}
     units = {a.name: ("deg" if a.is_rotary else "mm") for a in spec.axes}
     order = [(a.name, units[a.name], False) for a in spec.axes]
     order += [(f"tool_{x}", "mm", False) for x in "xyz" if f"tool_{x}" in pos]
@@ -420,12 +422,12 @@ def scan_measurements(
             plain = joined.isascii() and "_" not in joined
         vals, bad, blank, inf = _floats(cells, plain)
         col = label_of[c]
-        _report(problems, rows, bad, col, lambda k, u=unit, x=cells: not_a_number(u, x[k]))
+        _report(problems, rows, bad, col, partial(_cell, not_a_number, unit, cells))
         if not optional:
             _report(problems, rows, blank, col, missing_number(unit))
-        _report(problems, rows, inf, col, lambda k, u=unit, x=cells: not_finite(u, x[k]))
+        _report(problems, rows, inf, col, partial(_cell, not_finite, unit, cells))
         values[c] = (vals, not (bad or blank or inf))
-        columns[pos[c]] = array("d", vals)
+        numbers[pos[c]] = array("d", vals)
     L = label_of["length"]
     if relative_lengths:
         _where(problems, rows, values["length"], lambda v: abs(v) > MAX_LENGTH_MM, L,
@@ -437,9 +439,8 @@ def scan_measurements(
     for a in spec.axes:
         lo, hi = a.travel
         tol = TRAVEL_TOLERANCE * (hi - lo)
-        _where(problems, rows, values[a.name],
-               lambda v, lo=lo - tol, hi=hi + tol: v < lo or v > hi,
-               label_of[a.name], lambda v, a=a: outside_travel(a, v))  # fmt: skip
+        _where(problems, rows, values[a.name], partial(_outside, lo - tol, hi + tol),
+               label_of[a.name], partial(outside_travel, a))  # fmt: skip
     if "sigma" in pos:
         _where(problems, rows, values["sigma"], lambda v: v <= 0, label_of["sigma"],
                sigma_not_positive)  # fmt: skip
@@ -455,7 +456,16 @@ def scan_measurements(
                         stacklevel=2,
                     )
         problems.raise_if_any()
-    return ScannedTable(label, tuple(header), tuple(columns), array("q", rows))
+    out = tuple(numbers.get(k, columns[k]) for k in range(ncols))
+    return ScannedTable(label, tuple(header), out, array("q", rows))
+
+
+def _cell(message: Callable[[str, Any], str], unit: str, cells: list[str], k: int) -> str:
+    return message(unit, cells[k])
+
+
+def _outside(lo: float, hi: float, v: float) -> bool:
+    return v < lo or v > hi
 
 
 def _where(

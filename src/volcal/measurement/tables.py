@@ -931,7 +931,7 @@ def load_measurements(
             rows,
             np.abs(length) > MAX_LENGTH_MM,
             L,
-            lambda k: _cells.length_too_long_relative(length[k]),
+            lambda k: _cells.length_too_long_relative(float(length[k])),
         )
     else:
         _report(
@@ -939,14 +939,14 @@ def load_measurements(
             rows,
             length <= 0,
             L,
-            lambda k: _cells.length_not_positive(length[k]),
+            lambda k: _cells.length_not_positive(float(length[k])),
         )
         _report(
             problems,
             rows,
             length > MAX_LENGTH_MM,
             L,
-            lambda k: _cells.length_too_long(length[k]),
+            lambda k: _cells.length_too_long(float(length[k])),
         )
     for j, a in enumerate(spec.axes):
         lo, hi = a.travel
@@ -957,7 +957,7 @@ def load_measurements(
             rows,
             (qa < lo - tol) | (qa > hi + tol),
             label[a.name],
-            lambda k, qa=qa, a=a: _cells.outside_travel(a, qa[k]),
+            lambda k, qa=qa, a=a: _cells.outside_travel(a, float(qa[k])),
         )
     _warn_radians(raw.name, spec, q_file, label)
     if "sigma" in pos:
@@ -966,7 +966,7 @@ def load_measurements(
             rows,
             sigma <= 0,
             label["sigma"],
-            lambda k: _cells.sigma_not_positive(sigma[k]),
+            lambda k: _cells.sigma_not_positive(float(sigma[k])),
         )
     problems.raise_if_any()
 
