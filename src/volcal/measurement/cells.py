@@ -81,7 +81,7 @@ _NUMBER = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
 _INTEGER = re.compile(r"\s*[-+]?[0-9]+\s*")
 _INFINITY = re.compile(r"([-+]?)inf(?:inity)?", re.IGNORECASE)
 _DECIMAL_COMMA = re.compile(r"\s*[-+]?\d+,\d+\s*")
-_CONVERT_HINT = (
+CONVERT_HINT = (
     "(convert it, e.g. pandas.read_csv(path, sep=';', decimal=',').to_csv(new_path, index=False))"
 )
 
@@ -103,7 +103,7 @@ def separator_hint(path: Path) -> str:
             return (
                 f"; the header is separated by {name}, and decimal commas would then split "
                 "numbers: volcal reads comma-separated files with '.' as the decimal mark "
-                + _CONVERT_HINT
+                + CONVERT_HINT
             )
     return ""
 

@@ -233,9 +233,7 @@ def _is_blank(v: Any) -> bool:
         return False
 
 
-_CONVERT_HINT = (
-    "(convert it, e.g. pandas.read_csv(path, sep=';', decimal=',').to_csv(new_path, index=False))"
-)
+_CONVERT_HINT = _cells.CONVERT_HINT
 
 
 def _read_raw(
