@@ -229,6 +229,13 @@ GOOD = [
         (lambda r: r.__setitem__(8, r[8] + ",1"), False, "\n", "row 9"),  # a long last row
         (lambda r: r.__setitem__(8, r[8].replace(",807,", ",inf,")), True, "\r\n", "row 9"),
         (lambda r: r.__setitem__(2, r[2].replace(",801,", ',"1,5",')), True, "\n", "row 3"),
+        # one cell too many in row 3 and one too few in row 5: the same number of commas
+        (
+            lambda r: r.__setitem__(2, r[2] + ",1") or r.__setitem__(4, r[4].rsplit(",", 1)[0]),
+            False,
+            "\n",
+            "row 3",
+        ),
         # a short row (no length) after a blank line, which is counted
         (
             lambda r: r.__setitem__(7, r[7].rsplit(",", 2)[0]) or r.insert(3, ""),

@@ -36,6 +36,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import operator
 import re
 import warnings
 from array import array
@@ -252,27 +253,32 @@ class _TooLong(Exception):
 
 def _fast_columns(text: str, ncols: int) -> tuple[list[list[str]], int] | None:
     """The columns of a file without quotes, blank lines or short/long rows, by one
-    split of the whole text (None otherwise)."""
+    split of the whole text on commas (None otherwise)."""
     if '"' in text:
         return None
     if "\r" in text:
         text = text.replace("\r\n", "\n")  # Windows' line ends
         if "\r" in text:
             return None
-    body = text.partition("\n")[2]
-    if body.endswith("\n"):
-        body = body[:-1]
-    n = body.count("\n") + 1
-    if not body or body.count(",") != n * (ncols - 1):
+    start = text.find("\n") + 1
+    end = len(text) - 1 if text.endswith("\n") else len(text)
+    if start <= 0 or end <= start:
         return None
-    cells = body.replace("\n", ",").split(",")
-    if len(cells) != n * ncols:
+    n = text.count("\n", start, end) + 1
+    pieces = text[start:end].split(",")
+    m = ncols - 1
+    if len(pieces) != n * m + 1:
         return None
-    # every line has ncols - 1 commas: the total agrees, but a line with too few and
-    # another with too many would shift the cells between them
-    if set(map(str.count, body.split("\n"), repeat(","))) != {ncols - 1}:
+    # with n * (ncols - 1) commas and n - 1 line ends, every line has ncols - 1 commas
+    # exactly when each of the n - 1 pieces that should hold a line end holds one
+    # (last cell, line end, first cell of the next line)
+    ends = pieces[m:-1:m]
+    if not all(map(operator.contains, ends, repeat("\n"))):
         return None
-    return [cells[j::ncols] for j in range(ncols)], n
+    split = "\n".join(ends).split("\n")  # last, first, last, first, ...
+    first = [pieces[0], *split[1::2]]
+    last = [*split[0::2], pieces[-1]]
+    return [first, *(pieces[j::m] for j in range(1, m)), last], n
 
 
 def _floats(cells: list[str], plain: bool) -> tuple[list[float], list[int], list[int], list[int]]:
