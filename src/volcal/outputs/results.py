@@ -1705,11 +1705,12 @@ def save_result(
             from volcal.outputs import plots as P
 
             with progress.stage("plotting"):
-                # the figures' data first: the plotting children (when there are some)
-                # draw them while this process writes the tables and the report
-                requests = P.plot_requests(result, comp)
-                if plotter is not None:
-                    for name, draw, data, cost in requests:
+                # the figures' data first, each sent as soon as it is ready: the plotting
+                # children (when there are some) draw them while this process prepares
+                # the next and then writes the tables and the report
+                for name, draw, data, cost in P.iter_plot_requests(result, comp):
+                    requests.append((name, draw, data, cost))
+                    if plotter is not None:
                         plotter.draw(draw, data, tmp / name, cost=cost)
         log.info("writing the result tables (temporary folder %s)", tmp)
         with progress.stage("writing the tables"):

@@ -310,14 +310,31 @@ def run(args: argparse.Namespace) -> int:
     args.exit_now_on_error = True
     inputs = _read_inputs(args)
     # then, before the numerics are imported: two children that import matplotlib on the
-    # other core while this process solves, then draw the plots two at a time while this
-    # one writes the report
-    with plotting(not args.no_plots) as plotter:
+    # other core while this process solves, build the frames of the figures each will
+    # draw, then draw the plots two at a time while this one writes the report
+    with plotting(not args.no_plots, ahead=_frames_ahead(args)) as plotter:
         code = _run(args, plotter, inputs)
     # everything is written and closed: skip the interpreter's teardown (0.1 s of freeing
     # modules; see volcal.cli.main._exit_now)
     args.exit_now = True
     return code
+
+
+def _frames_ahead(args: argparse.Namespace):
+    """The plotting children's frames to build ahead (``workers -> plan``,
+    :func:`volcal.outputs.figures.frame_plan`), from the model's number of axes; None
+    when the model cannot be read here (the error is reported where it is built)."""
+    if args.no_plots:
+        return None
+    from volcal.model.spec import resolve_model
+
+    try:
+        n_axes = len(resolve_model(args.model).axes)
+    except Exception:
+        return None
+    from volcal.outputs.figures import frame_plan
+
+    return lambda workers: frame_plan(n_axes, workers)
 
 
 def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
