@@ -263,12 +263,19 @@ def _read_inputs(args: argparse.Namespace):
         return None, None, 0.0
     args.data = Path(sets[0].source)
     spec = resolve_model(args.model)
+    source: object = args.data
+    t0 = time.perf_counter()
     if not args.columns:
-        # the header's columns from its first line, before pandas' import (0.25 s): a
-        # misnamed or missing column is reported at once; the cells need the loader
+        # before pandas' import (a third of a second): the header from the first line,
+        # then for the tracker's tables (positive lengths) the rows and cells, with the
+        # loader's messages; the numbers read there are the loader's (no second reading)
+        from volcal.measurement.cells import scan_measurements
         from volcal.measurement.header import check_header
 
         check_header(args.data, spec)
+        if args.instrument == "tracker":
+            source = scan_measurements(args.data, spec) or args.data
+    t_scan = time.perf_counter() - t0
     from volcal.measurement.instruments import get_instrument
     from volcal.measurement.tables import (
         load_instrument_stations,
@@ -286,13 +293,13 @@ def _read_inputs(args: argparse.Namespace):
         )
     t0 = time.perf_counter()
     meas = load_measurements(
-        args.data,
+        source,
         spec,
         stations=stations,
         relative_lengths=not ins.positive_readings,
         columns=args.columns,
     )
-    return meas, stations, time.perf_counter() - t0
+    return meas, stations, t_scan + time.perf_counter() - t0
 
 
 def run(args: argparse.Namespace) -> int:
