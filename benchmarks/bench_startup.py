@@ -13,7 +13,10 @@ median and the fastest kept):
   is imported (the issue's goal: a CSV error in < 0.5 s);
 * the same with the length column misspelled in the header: reported from the first
   line, before pandas is imported (volcal.measurement.header);
-* ``volcal models``.
+* ``volcal models``;
+* with ``--good``: ``volcal -q identify ... --no-plots --force`` on the good table (exit 0),
+  and the stage "reading the data" that its result.json records (the good path of the
+  reading: the cells read before pandas' import and handed to the loader).
 
 With ``--baseline-ref REF`` the same commands run from the ``src/`` of git revision REF
 (``git archive`` into a temporary folder, put first on PYTHONPATH), in turn with this
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import compileall
+import json
 import os
 import platform
 import statistics
@@ -73,6 +77,14 @@ def _bad_header(bad: Path) -> Path:
     return path
 
 
+def _read_stage(argv: list[str]) -> float | None:
+    """The "reading the data" stage (s) of an identify run, from its result.json."""
+    if "--out" not in argv or "--no-plots" not in argv:
+        return None
+    doc = Path(argv[argv.index("--out") + 1]) / "result.json"
+    return float(json.loads(doc.read_text(encoding="utf-8"))["timings_s"]["reading the data"])
+
+
 def _time(argv: list[str], src: Path | None, expect: int) -> float:
     env = dict(os.environ)
     if src is not None:
@@ -92,6 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=10, help="runs per command and version")
     ap.add_argument("--baseline-ref", metavar="REF", help="git revision to compare with")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "startup.txt")
+    ap.add_argument("--good", action="store_true", help="also identify the good table (--no-plots)")
     a = ap.parse_args(argv)
     import volcal
 
@@ -99,7 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = [
         "python benchmarks/bench_startup.py"
         + (f" --baseline-ref {a.baseline_ref}" if a.baseline_ref else "")
-        + f" --repeat {a.repeat}",
+        + f" --repeat {a.repeat}"
+        + (" --good" if a.good else ""),
         f"{platform.platform()}, {os.cpu_count()} CPUs, Python {platform.python_version()}",
         f"load average before: {_load()}",
     ]
@@ -120,6 +134,13 @@ def main(argv: list[str] | None = None) -> int:
             ),
             "volcal models": (["models"], 0),
         }  # fmt: skip
+        if a.good:
+            good = work / "data.csv"  # _bad_table's source
+            commands["volcal identify, good, --no-plots"] = (
+                ["-q", "identify", "--model", "mcv754_wxyzt", "--data", str(good), "--out",
+                 str(work / "good"), "--no-plots", "--force"],
+                0,
+            )  # fmt: skip
         sides: dict[str, Path | None] = {"this": None}
         if a.baseline_ref:
             base = work / "baseline"
@@ -133,12 +154,16 @@ def main(argv: list[str] | None = None) -> int:
             compileall.compile_dir(base / "src", quiet=1)
             sides["baseline"] = base / "src"
         times: dict[tuple[str, str], list[float]] = {}
+        stages: dict[str, list[float]] = {}
         for name, (args, code) in commands.items():
             for src in sides.values():
                 _time(args, src, code)  # one warm-up run each: the file cache
             for _ in range(a.repeat):
                 for side, src in sides.items():
                     times.setdefault((name, side), []).append(_time(args, src, code))
+                    stage = _read_stage(args)
+                    if stage is not None:
+                        stages.setdefault(side, []).append(stage)
     lines.append(f"load average after: {_load()}")
     lines.append("")
     head = f"{'command':38s} {'version':9s} {'median s':>9s} {'fastest s':>10s}"
@@ -149,6 +174,15 @@ def main(argv: list[str] | None = None) -> int:
             row = f"{name:38s} {side:9s} {statistics.median(t):9.3f} {min(t):10.3f}"
             if side == "baseline":
                 pairs = [x / y for x, y in zip(times[(name, "this")], t)]
+                row += f"  {statistics.median(pairs):.3f}"
+            lines.append(row)
+    if stages:
+        lines.append("")
+        lines.append("the good table's stage 'reading the data' (result.json):")
+        for side, t in stages.items():
+            row = f"{'reading the data':38s} {side:9s} {statistics.median(t):9.3f} {min(t):10.3f}"
+            if side == "baseline":
+                pairs = [x / y for x, y in zip(stages["this"], t)]
                 row += f"  {statistics.median(pairs):.3f}"
             lines.append(row)
     text = "\n".join(lines) + "\n"

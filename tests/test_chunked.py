@@ -125,7 +125,8 @@ def test_gauss_newton_never_builds_the_whole_graph():
 def test_the_gram_bins_are_kept_only_below_their_budget(monkeypatch):
     """The bincount bins are kept between calls for small problems (Monte Carlo trials)
     and made again per chunk above the budget (a large identification would hold
-    8 (L^2 + 4 L + 12) bytes per reading): both ways give the same sums, bit for bit."""
+    8 (L (L + 1) / 2 + 4 L + 12) bytes per reading): both ways give the same sums, bit for
+    bit."""
     import volcal.problem.chunked as chunked
 
     pr, xs, p = _problem("mcv754_wxyzt", "tracker")

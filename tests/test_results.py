@@ -546,6 +546,106 @@ def test_plots_drawn_by_the_plotting_processes_equal_those_drawn_here(case, tmp_
         assert (here / name).read_bytes() == (there / name).read_bytes(), name
 
 
+def _framed_requests(case):
+    """The module result's plot data, for the figures with a frame built ahead."""
+    from volcal.outputs.plots import saved_plot_requests
+
+    reqs = saved_plot_requests(load_result(case["out"]))
+    n = len(case["machine"].spec.axes)
+    keys = {
+        "component_errors.png": ("component_errors", n),
+        "correlations.png": ("correlations",),
+        "residuals.png": ("residuals",),
+        "residuals_vs_axes.png": ("residuals_vs_axes", n),
+    }
+    return [(keys[name], name, draw, data) for name, draw, data, _ in reqs if name in keys]
+
+
+def test_a_figure_drawn_in_a_frame_built_ahead_is_the_same_picture(case, tmp_path):
+    """A frame built ahead (figure, axes, styling and ticks, as a plotting child builds it
+    while it waits) is taken by its figure, which is byte for byte the one in the result
+    folder (drawn without a frame); a frame of another layout is left alone."""
+    from volcal.outputs import figures
+
+    framed = _framed_requests(case)
+    assert len(framed) == 4
+    for key, name, draw, data in framed:
+        figures.prepare_frame(key)
+        assert key in figures._FRAMES
+        draw(data, tmp_path / name)
+        assert key not in figures._FRAMES  # taken
+        # the result folder's figure was drawn without a frame
+        assert (tmp_path / name).read_bytes() == (case["out"] / name).read_bytes(), name
+    other = ("component_errors", len(case["machine"].spec.axes) + 1)
+    figures.prepare_frame(other)
+    try:
+        key, name, draw, data = framed[0]
+        draw(data, tmp_path / "other.png")
+        assert other in figures._FRAMES  # not this figure's layout: not used
+        assert (tmp_path / "other.png").read_bytes() == (case["out"] / name).read_bytes()
+    finally:
+        figures._FRAMES.clear()
+
+
+def test_a_plotting_child_builds_its_frames_while_it_waits_and_survives_a_failing_one(
+    case, tmp_path
+):
+    """The calls a plotting child makes before its first request (its frames) are made
+    one at a time, a failing one is skipped, and the figure then drawn on request takes
+    its frame (the same picture); served here in a thread, so that the test knows when
+    the frames are built."""
+    import threading
+    from multiprocessing import Pipe
+
+    from volcal.outputs import figures
+    from volcal.outputs.plot_process import _serve_requests
+
+    key, name, draw, data = _framed_requests(case)[2]  # residuals.png
+    assert key == ("residuals",)
+    built = threading.Event()
+
+    def fails():
+        raise RuntimeError("no frame")
+
+    here, there = Pipe()
+    ahead = [(fails, ()), (figures.prepare_frame, (key,)), (built.set, ())]
+    served = threading.Thread(target=_serve_requests, args=(there, ahead))
+    served.start()
+    try:
+        assert built.wait(300)  # a bound against a hang, not a speed limit
+        assert key in figures._FRAMES
+        here.send((draw, (data, tmp_path / name)))
+        assert here.recv() == ("ok", "")
+        assert key not in figures._FRAMES
+    finally:
+        here.send(None)
+        served.join()
+        figures._FRAMES.clear()
+    assert (tmp_path / name).read_bytes() == (case["out"] / name).read_bytes()
+
+
+def test_frame_plan_gives_each_child_the_frames_of_the_figures_it_is_sent():
+    """With two children the figures (in the order sent, by drawing cost) go component
+    errors -> 0, correlations -> 1, volumetric map -> 1, residuals -> 0, residuals vs
+    axes -> 1 (the least drawing queued first), so those are the frames each builds;
+    one child builds them all."""
+    from volcal.outputs.figures import frame_plan, prepare_frame
+
+    plan = frame_plan(4, 2)
+    assert all(f is prepare_frame for child in plan for f, _ in child)
+    assert [[args[0] for _, args in child] for child in plan] == [
+        [("component_errors", 4), ("residuals",)],
+        [("correlations",), ("residuals_vs_axes", 4)],
+    ]
+    (one,) = frame_plan(3, 1)
+    assert [args[0][0] for _, args in one] == [
+        "component_errors",
+        "correlations",
+        "residuals",
+        "residuals_vs_axes",
+    ]
+
+
 def test_printed_positions_are_described_from_their_grid():
     """The printed error-motion tables say where their rows are from the rows
     themselves: a tenth of the travel for the 41-row table (every fourth row), a quarter

@@ -76,6 +76,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from volcal.base.linalg import unique_rows
+
 __all__ = [
     "Adequacy",
     "AxisStructure",
@@ -934,11 +936,20 @@ def assess(result: Any) -> Adequacy:
         # One "x,y,z" key per reading, joined column-wise: a row-wise agg(",".join) took
         # seconds at 10^5 readings for the same strings.  "+ 0.0" turns -0.0 (a tiny
         # negative offset rounded) into 0.0, so one offset gets one key.
-        txt = (res[tcols].round(6) + 0.0).astype(str)
-        key = txt[tcols[0]]
-        for c in tcols[1:]:
-            key = key + "," + txt[c]
-        tools = key.to_numpy(dtype=object)
+        rounded = res[tcols].round(6) + 0.0
+        vals = rounded.to_numpy(float)
+        if np.isfinite(vals).all():
+            # the text of each distinct offset once (str(float) is the text astype(str)
+            # gives), handed to its readings: 10^4 readings share a handful of offsets
+            uniq, inv = unique_rows(vals)
+            keys = np.array([",".join(map(str, row)) for row in uniq.tolist()], dtype=object)
+            tools = keys[inv]
+        else:
+            txt = rounded.astype(str)
+            key = txt[tcols[0]]
+            for c in tcols[1:]:
+                key = key + "," + txt[c]
+            tools = key.to_numpy(dtype=object)
     time = res["time"].to_numpy(float) if "time" in res.columns else None
     if time is not None and not np.isfinite(time).any():
         time = None

@@ -42,6 +42,7 @@ from volcal.analysis import (
     field_null_space,
     split_gauge,
 )
+from volcal.analysis.covariance import gram_covariance
 from volcal.analysis.identifiability import FieldSets, rigid_columns
 from volcal.base.exceptions import InputError, SolverError
 from volcal.base.linalg import unique_rows
@@ -618,9 +619,19 @@ class Identifier:
 
     def covariance(self, x: np.ndarray, p: np.ndarray, fixed: np.ndarray) -> np.ndarray:
         """Linearised covariance of x (physical units) under the datum constraints, with
-        fixed variables NaN."""
-        R, m = self.factor(x, p)
-        cov_s = constrained_covariance(R, self._scaled_constraints(), fixed=fixed, n_rows=m)
+        fixed variables NaN.
+
+        At the answer of a Gauss-Newton solve (or IPOPT's polish) the solver's last
+        iteration has evaluated J^T J there; while the reduced system is well conditioned
+        the covariance is taken from it (:func:`volcal.analysis.covariance.gram_covariance`)
+        instead of from an R factor, which costs a second pass over the readings."""
+        cov_s = None
+        final = self.gauss_newton.final_gram
+        if final is not None and final.matches(x, p):
+            cov_s = gram_covariance(final.H, self._scaled_constraints(), fixed=fixed)
+        if cov_s is None:
+            R, m = self.factor(x, p)
+            cov_s = constrained_covariance(R, self._scaled_constraints(), fixed=fixed, n_rows=m)
         s = self.problem.scale
         return cov_s * s[:, None] * s[None, :]
 
@@ -1110,9 +1121,12 @@ def _identify(
         p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
         with report_stage(f"solving ({strategy}, {ider.solver_name})"):
             x, outcomes, fixed, ident = ider.run(strat, x0, p, user_fixed=user_fixed)
-        r = pr.chunked.residuals(
-            pr.to_scaled(x), pr.pack_data(meas.q_internal, meas.tool, meas.length, weights)
-        )
+        p_all = pr.pack_data(meas.q_internal, meas.tool, meas.length, weights)
+        final = ider.gauss_newton.final_gram
+        if final is not None and final.matches(x, p_all):
+            r = final.r  # the solver's last evaluation was there: the same numbers
+        else:
+            r = pr.chunked.residuals(pr.to_scaled(x), p_all)
         if not robust:
             break
         # data snooping with re-admission: a blunder spreads into its neighbours' residuals
@@ -1153,6 +1167,8 @@ def _identify(
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
     with report_stage("uncertainty and identifiability"):
         cov = ider.covariance(x, p, fixed)
+        # taken: the result keeps the identifier, which need not keep the data vector
+        ider.gauss_newton.final_gram = None
         resid_w = r
         dof = max(int((~rejected).sum()) - int((~fixed).sum()) + pr.C.shape[0], 1)
         chi2 = float(np.sum(resid_w[~rejected] ** 2) / dof)

@@ -204,7 +204,8 @@ def _header_cells(path: Path) -> list[str] | None:
     if len(line) >= _MAX_HEADER_BYTES:  # perhaps cut: not a header to judge by its start
         return None
     try:
-        text = line.decode("utf-8-sig").rstrip("\r\n")
+        # a lone \r ends a line too (the parser's rule; old Mac files)
+        text = line.decode("utf-8-sig").rstrip("\r\n").partition("\r")[0]
     except UnicodeDecodeError:
         return None
     if not text.strip() or '"' in text or "'" in text:

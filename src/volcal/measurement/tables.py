@@ -67,6 +67,7 @@ from __future__ import annotations
 
 import re
 import warnings
+from array import array
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -76,6 +77,16 @@ import numpy as np
 import pandas as pd
 
 from volcal.base.exceptions import InputError
+from volcal.measurement import cells as _cells
+from volcal.measurement.cells import (
+    MAX_LENGTH_MM,
+    TRAVEL_TOLERANCE,
+    DataWarning,
+    ScannedTable,
+    scan_measurements,
+)
+from volcal.measurement.cells import NA_STRINGS as _NA_STRINGS
+from volcal.measurement.cells import separator_hint as _separator_hint
 from volcal.measurement.header import (
     _closest,
     _Col,
@@ -100,11 +111,6 @@ __all__ = [
     "DATAFRAME_NAME",
 ]
 
-#: Lengths above this (mm, i.e. 100 m) are rejected as absurd (probably not in mm).
-MAX_LENGTH_MM = 100_000.0
-#: Relative tolerance on axis travel: a position may exceed the travel by this fraction
-#: of the travel range (max - min).
-TRAVEL_TOLERANCE = 1e-6
 #: A station with fewer readings cannot be located (3 coordinates and a dead length).
 MIN_READINGS_PER_STATION = 4
 #: A station with fewer readings than this draws a :class:`DataWarning`.
@@ -115,13 +121,8 @@ COPLANAR_RTOL = 1e-6
 #: Name used in messages for a DataFrame given without ``name``.
 DATAFRAME_NAME = "<DataFrame>"
 
-_NA_STRINGS = {"nan", "na", "n/a", "null", "none"}
 _TRUE = {"true", "t", "yes", "y", "1"}
 _FALSE = {"false", "f", "no", "n", "0"}
-
-
-class DataWarning(UserWarning):
-    """Suspicious but usable input data (weak station geometry, few readings, ...)."""
 
 
 # --------------------------------------------------------------------------------------
@@ -232,30 +233,23 @@ def _is_blank(v: Any) -> bool:
         return False
 
 
-_CONVERT_HINT = (
-    "(convert it, e.g. pandas.read_csv(path, sep=';', decimal=',').to_csv(new_path, index=False))"
-)
+_CONVERT_HINT = _cells.CONVERT_HINT
 
 
-def _separator_hint(path: Path) -> str:
-    """A hint when the first line shows ';', tab or '|' separators (a spreadsheet's export
-    in a locale with decimal commas)."""
-    try:
-        with open(path, encoding="utf-8-sig", errors="replace") as fh:
-            first = fh.readline()
-    except OSError:
-        return ""
-    for sep, name in ((";", "semicolons"), ("\t", "tabs"), ("|", "'|'")):
-        if first.count(sep) >= 1 and first.count(sep) >= first.count(","):
-            return (
-                f"; the header is separated by {name}, and decimal commas would then split "
-                "numbers: volcal reads comma-separated files with '.' as the decimal mark "
-                + _CONVERT_HINT
-            )
-    return ""
-
-
-def _read_raw(source: str | Path | pd.DataFrame, name: str | None, what: str) -> _Raw:
+def _read_raw(
+    source: str | Path | pd.DataFrame | ScannedTable, name: str | None, what: str
+) -> _Raw:
+    if isinstance(source, ScannedTable):
+        # read and checked cell by cell by volcal.measurement.cells: ids as text, numbers
+        # as floats (NaN: an empty optional cell), blank lines dropped
+        body = pd.DataFrame(
+            {
+                k: np.frombuffer(c, dtype=float) if isinstance(c, array) else np.array(c, object)
+                for k, c in enumerate(source.columns)
+            }
+        )
+        rows = np.frombuffer(source.rows, dtype=np.int64).astype(int)
+        return _Raw(name if name is not None else source.name, list(source.header), body, rows)
     if isinstance(source, pd.DataFrame):
         label = name if name is not None else DATAFRAME_NAME
         header = [str(c).strip() for c in source.columns]
@@ -484,8 +478,7 @@ def _resolve_columns(
 # values
 
 
-def _describe(v: Any) -> str:
-    return repr(v.strip()) if isinstance(v, str) else repr(v)
+_describe = _cells.describe
 
 
 def _report(
@@ -538,36 +531,11 @@ def _parse_float(
     num[blank] = np.nan
     bad = (~blank & np.isnan(num)) | bools
     num[bad] = np.nan
-    _report(
-        problems,
-        rows,
-        bad,
-        column,
-        lambda k: (
-            f"expected a number ({unit}), got {_describe(vals[k])}"
-            + (
-                " (a decimal comma? volcal reads '.' as the decimal mark)"
-                if isinstance(vals[k], str) and re.fullmatch(r"\s*[-+]?\d+,\d+\s*", vals[k])
-                else ""
-            )
-        ),
-    )
+    _report(problems, rows, bad, column, lambda k: _cells.not_a_number(unit, vals[k]))
     if not optional:
-        _report(
-            problems,
-            rows,
-            blank,
-            column,
-            f"missing value (empty cell or NaN); expected a number ({unit})",
-        )
+        _report(problems, rows, blank, column, _cells.missing_number(unit))
     inf = np.isinf(num)
-    _report(
-        problems,
-        rows,
-        inf,
-        column,
-        lambda k: f"expected a finite number ({unit}), got {_describe(vals[k])}",
-    )
+    _report(problems, rows, inf, column, lambda k: _cells.not_finite(unit, vals[k]))
     num[inf] = np.nan
     return num
 
@@ -595,7 +563,7 @@ def _parse_ids(values: pd.Series, rows: np.ndarray, column: str, problems: _Prob
     else:
         out = np.array([_id_text(v) for v in values.to_numpy(dtype=object)], dtype=object)
         missing = np.array([v is None for v in out], dtype=bool)
-    _report(problems, rows, missing, column, "missing id (empty cell or NaN); expected a text id")
+    _report(problems, rows, missing, column, _cells.MISSING_ID)
     return out
 
 
@@ -871,7 +839,7 @@ def _min_readings(station: str, stations: pd.DataFrame | None) -> int:
 
 
 def load_measurements(
-    source: str | Path | pd.DataFrame,
+    source: str | Path | pd.DataFrame | ScannedTable,
     spec: MachineSpec,
     *,
     name: str | None = None,
@@ -882,7 +850,9 @@ def load_measurements(
 ) -> Measurements:
     """Load and validate a measurement table (CSV path or DataFrame; never modified).
 
-    source: CSV path or DataFrame (columns: see the module docstring).
+    source: CSV path or DataFrame (columns: see the module docstring), or a file already
+        read by :func:`volcal.measurement.cells.scan_measurements` (the command line reads
+        it before pandas' import, to report a bad cell at once).
     spec: the machine model (or a bundled model name / model file path); its axes name the
         axis columns and their travel bounds the positions.
     name: name of the source in messages (default: the path, or ``"<DataFrame>"``).
@@ -912,6 +882,12 @@ def load_measurements(
     translational ones); one point id used for different axis positions or tool offsets.
     """
     spec = resolve_model(spec)
+    if isinstance(source, (str, Path)) and not columns:
+        # a small file is read and its cells checked without pandas (the same errors),
+        # and its numbers parsed once (volcal.measurement.cells); None: pandas reads it
+        source = (
+            scan_measurements(source, spec, name=name, relative_lengths=relative_lengths) or source
+        )
     raw = _read_raw(source, name, "measurement table")
     if columns:
         raw = _map_columns(raw, parse_column_map(columns), spec)
@@ -953,10 +929,7 @@ def load_measurements(
             rows,
             np.abs(length) > MAX_LENGTH_MM,
             L,
-            lambda k: (
-                f"|length| {length[k]:g} mm exceeds the plausibility bound of "
-                f"{MAX_LENGTH_MM:g} mm (100 m); lengths are in mm"
-            ),
+            lambda k: _cells.length_too_long_relative(float(length[k])),
         )
     else:
         _report(
@@ -964,35 +937,25 @@ def load_measurements(
             rows,
             length <= 0,
             L,
-            lambda k: (
-                f"expected a positive length in mm, got {length[k]:g} (pass "
-                "relative_lengths=True for readings relative to a dead length)"
-            ),
+            lambda k: _cells.length_not_positive(float(length[k])),
         )
         _report(
             problems,
             rows,
             length > MAX_LENGTH_MM,
             L,
-            lambda k: (
-                f"length {length[k]:g} mm exceeds the plausibility bound of "
-                f"{MAX_LENGTH_MM:g} mm (100 m); lengths are in mm"
-            ),
+            lambda k: _cells.length_too_long(float(length[k])),
         )
     for j, a in enumerate(spec.axes):
         lo, hi = a.travel
         tol = TRAVEL_TOLERANCE * (hi - lo)
-        unit = "deg" if a.is_rotary else "mm"
         qa = q_file[:, j]
         _report(
             problems,
             rows,
             (qa < lo - tol) | (qa > hi + tol),
             label[a.name],
-            lambda k, qa=qa, lo=lo, hi=hi, tol=tol, a=a, unit=unit: (
-                f"{a.name} = {qa[k]:g} {unit} is outside the travel [{lo:g}, {hi:g}] {unit} of "
-                f"axis {a.name} (tolerance {tol:g} {unit})"
-            ),
+            lambda k, qa=qa, a=a: _cells.outside_travel(a, float(qa[k])),
         )
     _warn_radians(raw.name, spec, q_file, label)
     if "sigma" in pos:
@@ -1001,7 +964,7 @@ def load_measurements(
             rows,
             sigma <= 0,
             label["sigma"],
-            lambda k: f"expected a positive standard uncertainty in mm, got {sigma[k]:g}",
+            lambda k: _cells.sigma_not_positive(float(sigma[k])),
         )
     problems.raise_if_any()
 
@@ -1151,10 +1114,7 @@ def _warn_radians(name: str, spec: MachineSpec, q_file: np.ndarray, label: dict[
             and not np.all(v == np.round(v))
         ):
             warnings.warn(
-                f"{name}: column '{label[a.name]}' (rotary axis {a.name}) looks like "
-                f"radians: every value lies within +-2 pi ({v.min():.4g} to "
-                f"{v.max():.4g}) while the travel spans {lo:g} to {hi:g} deg; rotary "
-                "axis positions are read in degrees",
+                _cells.looks_like_radians(name, label[a.name], a, v.min(), v.max()),
                 DataWarning,
                 stacklevel=3,
             )

@@ -33,6 +33,11 @@ from volcal.model.spec import ErrorSymbol, MachineSpec, error_symbols, resolve_m
 log = logging.getLogger(__name__)
 
 _FUNCTIONS = ("tool_point", "tool_point_exact", "nominal")
+#: the most points a machine function is mapped over: longer batches are evaluated in
+#: slices of this many, a shorter rest on the map of the next power of two (padded).  A
+#: map per batch length cost more to build (about 6 us a point with its numpy buffers)
+#: than to evaluate (1 us a point), and an identification asks for several lengths
+MAP_POINTS = 512
 
 
 # Bumped whenever the symbolic chain changes what a built function computes, so that a
@@ -161,11 +166,31 @@ class Machine:
         key = (name, n, threading.get_ident())
         call = calls.pop(key, None)
         if call is None:
-            call = NumpyCall(self.functions[name].map(n))
+            f = self.functions[name]
+            call = NumpyCall(f.map(n), mapped_from=f)
         calls[key] = call  # most recent last
         while len(calls) > 8:
             calls.pop(next(iter(calls)))
         return call
+
+    def _mapped(self, name: str, *args: np.ndarray) -> list[np.ndarray]:
+        """Function ``name`` at n points, args (rows, n) each: every output (rows_i, n,
+        cols_i), point by point the function's own (rows_i, cols_i), evaluated on maps of
+        at most :data:`MAP_POINTS` points (each point on its own: the numbers do not
+        depend on the slicing)."""
+        n = args[0].shape[1]
+        f = self.functions[name]
+        shapes = [(f.size1_out(i), f.size2_out(i)) for i in range(f.n_out())]
+        outs = [np.empty((r, n, c)) for r, c in shapes]  # filled slice by slice
+        for a in range(0, n, MAP_POINTS):
+            m = min(MAP_POINTS, n - a)
+            size = MAP_POINTS if m == MAP_POINTS else 1 << max(m - 1, 0).bit_length()
+            sl = [x[:, a : a + m] for x in args]
+            if size > m:  # a padded slice: copies of its last point, dropped after
+                sl = [np.concatenate([x, np.repeat(x[:, -1:], size - m, axis=1)], 1) for x in sl]
+            for o, v, (r, c) in zip(outs, self._call(name, size)(*sl), shapes):
+                o[:, a : a + m] = np.reshape(v, (r, size, c))[:, :m]
+        return outs
 
     def __getstate__(self):
         d = dict(self.__dict__)
@@ -189,8 +214,8 @@ class Machine:
         n = q.shape[0]
         t = np.broadcast_to(np.asarray(t, float), (n, 3))
         uniq, inv = unique_rows(np.hstack([q, t]))
-        (p,) = self._call("nominal", len(uniq))(uniq[:, : self.n_axes].T, uniq[:, self.n_axes :].T)
-        return np.reshape(p, (3, len(uniq))).T[inv]
+        (p,) = self._mapped("nominal", uniq[:, : self.n_axes].T, uniq[:, self.n_axes :].T)
+        return p[:, :, 0].T[inv]
 
     def evaluate(self, q: np.ndarray, t: np.ndarray, e: np.ndarray, *, exact: bool = False):
         """Batch evaluation. q: (N, n_axes) internal units; t: (N, 3) or (3,); e: (N, n_err)
@@ -199,15 +224,10 @@ class Machine:
         n = q.shape[0]
         t = np.broadcast_to(np.asarray(t, float), (n, 3))
         e = np.broadcast_to(np.asarray(e, float), (n, self.n_errors))
-        f = self._call("tool_point_exact" if exact else "tool_point", n)
-        p, dp, J = f(q.T, t.T, e.T)
-        # map stacks the (3, n_err) blocks side by side: column a * n_err + b
-        J = (
-            np.asarray(J).reshape(3, n, self.n_errors).transpose(1, 0, 2)
-            if self.n_errors
-            else np.zeros((n, 3, 0))
-        )
-        return np.reshape(p, (3, n)).T, np.reshape(dp, (3, n)).T, J
+        name = "tool_point_exact" if exact else "tool_point"
+        p, dp, J = self._mapped(name, q.T, t.T, e.T)
+        J = J.transpose(1, 0, 2) if self.n_errors else np.zeros((n, 3, 0))
+        return p[:, :, 0].T, dp[:, :, 0].T, J
 
 
 def _save(path: Path, funcs: dict[str, ca.Function]) -> None:

@@ -23,19 +23,35 @@ class NumpyCall:
     the nonzeros land in a numpy array and are scattered once.  Not thread-safe: one
     object per thread."""
 
-    def __init__(self, f: ca.Function):
+    def __init__(self, f: ca.Function, *, mapped_from: ca.Function | None = None):
+        """``mapped_from``: the function f is ``mapped_from.map(n)`` of, whose output
+        patterns, repeated side by side, are f's: read from it instead of from f's
+        (CasADi hands a pattern over as Python lists, which for a Jacobian mapped over a
+        few thousand points took longer than the map's evaluation)."""
         self.f = f
         # CasADi's stub of FunctionBuffer lists a size argument the binding does not take
         self._buf: Any
         self._buf, self._eval = f.buffer()
         self._nz = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
-        self._where = []
+        # per output: rows, columns, scatter rows and columns (None when dense), dense
+        self._where: list[tuple[int, int, np.ndarray | None, np.ndarray | None, bool]] = []
         for i in range(f.n_out()):
             sp = f.sparsity_out(i)
-            colind = np.asarray(sp.colind(), int)
-            rows = np.asarray(sp.row(), int)
-            cols = np.repeat(np.arange(sp.size2()), np.diff(colind))
-            self._where.append((sp.size1(), sp.size2(), rows, cols, sp.is_dense()))
+            if sp.is_dense():  # reshaped, never scattered: no pattern needed
+                self._where.append((sp.size1(), sp.size2(), None, None, True))
+                continue
+            base, reps = sp, 1
+            if mapped_from is not None:
+                base = mapped_from.sparsity_out(i)
+                reps = sp.size2() // max(base.size2(), 1)
+                # a map's output: the blocks of its calls side by side (compared in CasADi)
+                if not sp.is_equal(ca.repmat(base, 1, reps)):
+                    raise ValueError("mapped_from: f's outputs are not its outputs side by side")
+            colind = np.asarray(base.colind(), int)
+            rows = np.tile(np.asarray(base.row(), int), reps)
+            cols = np.repeat(np.arange(base.size2()), np.diff(colind))
+            cols = (cols[None, :] + base.size2() * np.arange(reps)[:, None]).ravel()
+            self._where.append((sp.size1(), sp.size2(), rows, cols, False))
         for i, nz in enumerate(self._nz):
             self._buf.set_res(i, nz.data)
 

@@ -10,11 +10,14 @@ path, and returns the ``Figure``.
 
 Speed matters here (the default plots are on the critical path of every ``volcal
 identify``): fixed margins instead of a layout engine, at most five ticks per axis,
-rasterised scatters, images instead of patches.
+rasterised scatters, images instead of patches; and a plotting child builds the frames
+(figure, axes, styling, ticks) of the figures it will draw while it waits for their data
+(:func:`prepare_frame`, :func:`frame_plan`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, BinaryIO, Literal
 
@@ -27,6 +30,9 @@ __all__ = [
     "draw_residuals_vs_axes",
     "draw_correlations",
     "draw_plan",
+    "prepare_frame",
+    "frame_plan",
+    "COSTS",
 ]
 
 DPI = 100
@@ -68,6 +74,70 @@ def _few_ticks(ax) -> None:
     ax.locator_params(nbins=_NBINS)
 
 
+#: frames built ahead (:func:`prepare_frame`), by layout key: a figure and its axes,
+#: styled, with their ticks made
+_FRAMES: dict[tuple, Any] = {}
+#: ticks made per axis in a frame built ahead: every axis of these figures shows at most
+#: seven (five bins), a few more are made as needed
+_TICKS_AHEAD = 8
+
+
+#: the result folder's figures in the order ``volcal identify`` sends them to the plotting
+#: children, with their relative drawing time (seconds on the bundled example, warm
+#: matplotlib, one core), by which :class:`volcal.outputs.plot_process.PlotProcess`
+#: shares them between its children
+COSTS = {
+    "component_errors.png": 0.20,
+    "correlations.png": 0.14,
+    "volumetric_map.png": 0.10,
+    "residuals.png": 0.09,
+    "residuals_vs_axes.png": 0.09,
+}
+
+
+def frame_plan(n_axes: int, workers: int) -> list[list[tuple[Callable[..., Any], tuple]]]:
+    """The frames (:func:`prepare_frame`) each of ``workers`` plotting children builds
+    while it waits for its first request: those of the figures it will be sent, a result
+    of ``n_axes`` machine axes drawn in the order of :data:`COSTS`, each sent to the
+    child with the least drawing queued (as :meth:`PlotProcess.draw` does).  A frame that
+    does not match its figure (another layout, another child) is not used."""
+    keys = {
+        "component_errors.png": ("component_errors", n_axes),
+        "correlations.png": ("correlations",),
+        "residuals.png": ("residuals",),
+        "residuals_vs_axes.png": ("residuals_vs_axes", max(n_axes, 1)),
+    }
+    queued = [0.0] * workers
+    plan: list[list[tuple[Callable[..., Any], tuple]]] = [[] for _ in range(workers)]
+    for name, cost in COSTS.items():
+        i = min(range(workers), key=lambda k: queued[k])
+        queued[i] += cost
+        if name in keys:
+            plan[i].append((prepare_frame, (keys[name],)))
+    return plan
+
+
+def _frame(key: tuple, build: Callable[[], Any]) -> Any:
+    """The frame of layout ``key`` built ahead (:func:`prepare_frame`), else ``build()``."""
+    frame = _FRAMES.pop(key, None)
+    return frame if frame is not None else build()
+
+
+def prepare_frame(key: tuple) -> None:
+    """Build the frame of a figure ahead (``key``: ``("component_errors", rows)``,
+    ``("residuals",)``, ``("residuals_vs_axes", panels)`` or ``("correlations",)``): its
+    figure, axes and styling, the same calls the drawing function makes, and the ticks of
+    every axis.  A plotting child does this while it waits for its first request: a tick
+    costs about half a millisecond to make, a figure's ticks and axes a fifth of its
+    drawing time.  The drawing function takes it when the layout matches (else it builds
+    its own); ticks made and not needed are not drawn, so the picture is the same."""
+    fig, axes = _BUILDERS[key[0]](*key[1:])
+    for ax in fig.axes:
+        ax.xaxis.get_major_ticks(_TICKS_AHEAD)
+        ax.yaxis.get_major_ticks(_TICKS_AHEAD)
+    _FRAMES[key] = (fig, axes)
+
+
 def _message(text: str, path: Target):
     fig = figure(6, 2)
     fig.text(0.5, 0.5, text, ha="center")
@@ -81,8 +151,7 @@ def draw_component_errors(data: dict[str, Any], path: Target = None):
     axes = data["axes"]
     if not axes:
         return _message("no component error motions in this model", path)
-    fig = figure(MAX_WIDTH, 2.6 * len(axes) + 0.7)
-    grid = fig.subplots(len(axes), 2, squeeze=False)
+    fig, grid = _frame(("component_errors", len(axes)), lambda: _component_frame(len(axes)))
     for row, a in zip(grid, axes):
         x = a["x"]
         for ax, panel in zip(row, a["panels"]):
@@ -101,12 +170,9 @@ def draw_component_errors(data: dict[str, Any], path: Target = None):
                         linewidth=0,
                     )
             ax.set_title(panel["title"], fontsize=10)
-            ax.tick_params(labelsize=9)
             ax.set_xlabel(f"{a['name']} position ({a['unit']})")
             ax.set_ylabel(f"error ({_DISPLAY.get(panel['unit'], panel['unit'])})")
             ax.axhline(0.0, color="0.6", linewidth=0.6)
-            ax.grid(True, alpha=0.3)
-            _few_ticks(ax)
             if panel["series"]:
                 ax.legend(fontsize=8, loc="upper left", ncol=3)
             else:
@@ -121,6 +187,16 @@ def draw_component_errors(data: dict[str, Any], path: Target = None):
         left=0.08, right=0.98, bottom=0.5 / h, top=1 - 0.8 / h, hspace=0.6, wspace=0.22
     )
     return save(fig, path)
+
+
+def _component_frame(rows: int):
+    fig = figure(MAX_WIDTH, 2.6 * rows + 0.7)
+    grid = fig.subplots(rows, 2, squeeze=False)
+    for ax in grid.ravel():
+        ax.tick_params(labelsize=9)
+        ax.grid(True, alpha=0.3)
+        _few_ticks(ax)
+    return fig, grid
 
 
 def _nice(x: float) -> float:
@@ -231,8 +307,7 @@ def draw_residuals(data: dict[str, Any], path: Target = None):
     """data: ``{"kept", "rejected"`` (residuals, um), ``"bins"``, ``"rms"``, ``"qq"``:
     (normal quantiles, sorted standardised residuals) or None, ``"lim"``, ``"by_station"``:
     ``[(station, reading numbers, residuals um)]``, ``"rejected_at"``: reading numbers}``."""
-    fig = figure(MAX_WIDTH, 4.0)
-    ax1, ax2, ax3 = fig.subplots(1, 3, width_ratios=[1, 1, 2])
+    fig, (ax1, ax2, ax3) = _frame(("residuals",), _residuals_frame)
     kept, rej = data["kept"], data["rejected"]
     # histograms as one filled outline each (one artist instead of one per bar)
     if len(kept):
@@ -245,7 +320,6 @@ def draw_residuals(data: dict[str, Any], path: Target = None):
     ax1.set_title(f"residuals (RMS {data['rms']:.3g} µm,\n{len(kept)} readings)", fontsize=10)
     ax1.set_xlabel("residual (µm)")
     ax1.set_ylabel("readings")
-    _few_ticks(ax1)
     if data["qq"] is not None:
         theo, zs = data["qq"]
         ax2.plot(theo, zs, ".", markersize=2, rasterized=True)
@@ -254,8 +328,6 @@ def draw_residuals(data: dict[str, Any], path: Target = None):
     ax2.set_title("normal QQ plot of the\nstandardised residuals", fontsize=10)
     ax2.set_xlabel("normal quantile")
     ax2.set_ylabel("standardised residual")
-    ax2.grid(True, alpha=0.3)
-    _few_ticks(ax2)
     for sid, idx, r in data["by_station"]:
         ax3.plot(idx, r, ".", markersize=2, label=str(sid), rasterized=True)
     if len(data["rejected_at"]):
@@ -264,27 +336,30 @@ def draw_residuals(data: dict[str, Any], path: Target = None):
     ax3.set_xlabel("reading (order in the data file)")
     ax3.set_ylabel("residual (µm)")
     ax3.set_title("residual (model − measured) per reading,\nby station", fontsize=10)
-    ax3.grid(True, alpha=0.3)
-    _few_ticks(ax3)
     ax3.legend(fontsize=8, ncol=2, markerscale=4, loc="upper right")
-    for ax in (ax1, ax2, ax3):
-        ax.tick_params(labelsize=9)
     fig.subplots_adjust(left=0.07, right=0.99, bottom=0.13, top=0.85, wspace=0.3)
     return save(fig, path)
+
+
+def _residuals_frame():
+    fig = figure(MAX_WIDTH, 4.0)
+    axes = fig.subplots(1, 3, width_ratios=[1, 1, 2])
+    for ax in axes:
+        _few_ticks(ax)
+        ax.tick_params(labelsize=9)
+    for ax in axes[1:]:
+        ax.grid(True, alpha=0.3)
+    return fig, axes
 
 
 def draw_residuals_vs_axes(data: dict[str, Any], path: Target = None):
     """data: ``{"panels": [{"xlabel", "title", "x", "z"`` (the drawn readings),
     ``"means": [(centres, binned means)]`` per station, ``"rms": (centres, binned RMS)}],
     ``"title"}``; residuals normalised (residual / sigma)."""
-    import math
-
     panels = data["panels"]
     n = max(len(panels), 1)
-    ncol = min(n, 3)
-    nrow = int(math.ceil(n / ncol))
-    fig = figure(min(MAX_WIDTH, 3.5 * ncol), 2.9 * nrow + 0.8)
-    axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
+    ncol, nrow = _panel_grid(n)
+    fig, axes = _frame(("residuals_vs_axes", n), lambda: _residuals_vs_axes_frame(n))
     for ax, p in zip(axes, panels):
         ax.plot(p["x"], p["z"], ".", color="0.65", markersize=2, rasterized=True)
         for centres, mean in p["means"]:
@@ -294,9 +369,6 @@ def draw_residuals_vs_axes(data: dict[str, Any], path: Target = None):
         ax.set_xlabel(p["xlabel"])
         ax.set_ylabel("normalised residual")
         ax.set_title(p["title"], fontsize=9)
-        ax.tick_params(labelsize=8)
-        ax.grid(True, alpha=0.3)
-        _few_ticks(ax)
     for ax in axes[len(panels) :]:
         ax.set_visible(False)
     if panels:
@@ -312,6 +384,23 @@ def draw_residuals_vs_axes(data: dict[str, Any], path: Target = None):
         hspace=0.45,
     )
     return save(fig, path)
+
+
+def _panel_grid(n: int) -> tuple[int, int]:
+    """(columns, rows) of ``n`` panels, three to a row."""
+    ncol = min(n, 3)
+    return ncol, -(-n // ncol)
+
+
+def _residuals_vs_axes_frame(n: int):
+    ncol, nrow = _panel_grid(n)
+    fig = figure(min(MAX_WIDTH, 3.5 * ncol), 2.9 * nrow + 0.8)
+    axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
+    for ax in axes:
+        ax.tick_params(labelsize=8)
+        ax.grid(True, alpha=0.3)
+        _few_ticks(ax)
+    return fig, axes
 
 
 def strongest_pairs(R: np.ndarray, names: list[str], n: int = 12) -> list[tuple[str, str, float]]:
@@ -336,6 +425,15 @@ def _blocks(groups: list[str]) -> list[tuple[int, int, str]]:
     return out
 
 
+def _correlations_frame():
+    """The matrix, its colour bar and the strongest pairs' axes."""
+    fig = figure(10.4, 6.2)
+    ax = fig.add_axes((0.08, 0.1, 0.5, 0.5 * 10.4 / 6.2 * 0.95))
+    cax = fig.add_axes((0.595, 0.1, 0.012, 0.5 * 10.4 / 6.2 * 0.95))
+    pax = fig.add_axes((0.79, 0.1, 0.19, 0.79))
+    return fig, (ax, cax, pax)
+
+
 def draw_correlations(data: dict[str, Any], path: Target = None, max_labels: int = 30):
     """data: ``{"R"`` (correlation matrix), ``"names"``, ``"groups"`` (optional: the axis
     of each parameter's error quantity)}``.  Left: the matrix, each parameter named when
@@ -343,8 +441,7 @@ def draw_correlations(data: dict[str, Any], path: Target = None, max_labels: int
     strongest pairs by name."""
     R, names = data["R"], data["names"]
     groups = data.get("groups") or [""] * len(names)
-    fig = figure(10.4, 6.2)
-    ax = fig.add_axes((0.08, 0.1, 0.5, 0.5 * 10.4 / 6.2 * 0.95))
+    fig, (ax, cax, pax) = _frame(("correlations",), _correlations_frame)
     im = ax.imshow(R, cmap="RdBu_r", vmin=-1, vmax=1, interpolation="nearest")
     if len(names) <= max_labels:
         ax.set_xticks(range(len(names)), names, rotation=90, fontsize=8)
@@ -360,11 +457,9 @@ def draw_correlations(data: dict[str, Any], path: Target = None, max_labels: int
             ax.axvline(a - 0.5, color="0.2", linewidth=0.6)
         ax.tick_params(length=0)
     ax.set_xlabel("parameter (basis coefficient)", fontsize=9)
-    cax = fig.add_axes((0.595, 0.1, 0.012, 0.5 * 10.4 / 6.2 * 0.95))
     fig.colorbar(im, cax=cax)
     cax.tick_params(labelsize=8)
     pairs = strongest_pairs(R, names)
-    pax = fig.add_axes((0.79, 0.1, 0.19, 0.79))
     if pairs:
         y = np.arange(len(pairs))
         r = np.array([p[2] for p in pairs])
@@ -424,3 +519,12 @@ def draw_plan(data: dict[str, Any], path: Target = None):
     fig.colorbar(sc, cax=cax, label="predicted u of the volumetric error (µm)")
     axes[0].legend(loc="best", fontsize=8)
     return save(fig, path, dpi=110)
+
+
+#: the frame builders of :func:`prepare_frame`, by the first item of its key
+_BUILDERS: dict[str, Callable[..., Any]] = {
+    "component_errors": _component_frame,
+    "residuals": _residuals_frame,
+    "residuals_vs_axes": _residuals_vs_axes_frame,
+    "correlations": _correlations_frame,
+}

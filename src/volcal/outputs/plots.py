@@ -20,6 +20,7 @@ folder's plots can be drawn in a plotting child process (:func:`plot_requests`).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +41,7 @@ __all__ = [
     "residuals_vs_axes_data",
     "correlations_data",
     "plot_requests",
+    "iter_plot_requests",
     "saved_plot_requests",
 ]
 
@@ -410,6 +412,58 @@ def correlations(result: Any, path: Target = None, max_labels: int = 30):
 # the result folder
 
 
+def iter_plot_requests(
+    result: Any,
+    component_table: pd.DataFrame,
+    *,
+    residuals: pd.DataFrame | None = None,
+    adequacy: Any = "assess",
+) -> Iterator[tuple[str, Any, dict, float]]:
+    """:func:`plot_requests` one figure at a time, each as soon as its data are ready: a
+    plotting child starts drawing the first while this process prepares the next, and
+    the model adequacy test (for the title of ``residuals_vs_axes.png`` only) is computed
+    last, after the other figures are on their way."""
+    spec = result.machine.spec
+    if residuals is None:
+        residuals = result.residuals
+    # in the order of F.COSTS (the children's frames built ahead expect it)
+    cost = F.COSTS
+    yield (
+        "component_errors.png",
+        F.draw_component_errors,
+        component_errors_data(component_table, result.error_model),
+        cost["component_errors.png"],
+    )
+    yield (
+        "correlations.png",
+        F.draw_correlations,
+        correlations_data(result),
+        cost["correlations.png"],
+    )
+    yield (
+        "volumetric_map.png",
+        F.draw_volumetric_slices,
+        volumetric_slices_data(result.machine, result.error_model, result.theta),
+        cost["volumetric_map.png"],
+    )
+    yield ("residuals.png", F.draw_residuals, residuals_data(residuals), cost["residuals.png"])
+    if isinstance(adequacy, str) and adequacy == "assess":
+        from volcal.analysis.adequacy import assess
+
+        adequacy = assess(result)
+    yield (
+        "residuals_vs_axes.png",
+        F.draw_residuals_vs_axes,
+        residuals_vs_axes_data(
+            residuals,
+            spec.axis_names,
+            [_unit(spec, a) for a in spec.axis_names],
+            adequacy=adequacy,
+        ),
+        cost["residuals_vs_axes.png"],
+    )
+
+
 def plot_requests(
     result: Any,
     component_table: pd.DataFrame,
@@ -418,50 +472,17 @@ def plot_requests(
     adequacy: Any = "assess",
 ) -> list[tuple[str, Any, dict, float]]:
     """The result folder's plots as ``(file name, drawing function, data, cost)``, the
-    most expensive first; cost: the relative drawing time (measured on the example), by
-    which :class:`volcal.outputs.plot_process.PlotProcess` shares them between its
-    children.
+    most expensive first but for ``residuals_vs_axes.png``, which needs the adequacy test
+    (see :func:`iter_plot_requests`); cost: the relative drawing time (measured on the
+    example), by which :class:`volcal.outputs.plot_process.PlotProcess` shares them
+    between its children.
 
     result: an identification result, or a saved one (:func:`saved_plot_requests`);
     component_table: :func:`volcal.outputs.results.component_error_table`; residuals and
     adequacy: the residual table and model adequacy (default ``result.residuals`` and
     :func:`volcal.analysis.adequacy.assess` of the result; None: no adequacy test in the
     residual plot's title)."""
-    from volcal.analysis.adequacy import assess
-
-    spec = result.machine.spec
-    if residuals is None:
-        residuals = result.residuals
-    if isinstance(adequacy, str) and adequacy == "assess":
-        adequacy = assess(result)
-    # costs: seconds to draw each on the bundled example (warm matplotlib, one core)
-    return [
-        (
-            "component_errors.png",
-            F.draw_component_errors,
-            component_errors_data(component_table, result.error_model),
-            0.20,
-        ),
-        ("correlations.png", F.draw_correlations, correlations_data(result), 0.14),
-        (
-            "volumetric_map.png",
-            F.draw_volumetric_slices,
-            volumetric_slices_data(result.machine, result.error_model, result.theta),
-            0.10,
-        ),
-        (
-            "residuals_vs_axes.png",
-            F.draw_residuals_vs_axes,
-            residuals_vs_axes_data(
-                residuals,
-                spec.axis_names,
-                [_unit(spec, a) for a in spec.axis_names],
-                adequacy=adequacy,
-            ),
-            0.09,
-        ),
-        ("residuals.png", F.draw_residuals, residuals_data(residuals), 0.09),
-    ]
+    return list(iter_plot_requests(result, component_table, residuals=residuals, adequacy=adequacy))
 
 
 def saved_plot_requests(saved: Any) -> list[tuple[str, Any, dict, float]]:

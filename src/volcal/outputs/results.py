@@ -536,7 +536,7 @@ def _column_texts(table: pd.DataFrame) -> list[list[str]] | None:
         dt = col.dtype
         if isinstance(dt, np.dtype) and dt == np.float64:
             v = col.to_numpy()
-            t = list(map(repr, v.tolist()))
+            t = _float_texts(v)
             for i in np.flatnonzero(np.isnan(v)):
                 t[i] = ""
         elif isinstance(dt, np.dtype) and dt.kind == "b":
@@ -552,6 +552,19 @@ def _column_texts(table: pd.DataFrame) -> list[list[str]] | None:
             return None
         texts.append(t)
     return texts
+
+
+def _float_texts(v: np.ndarray) -> list[str]:
+    """``repr`` of every value of a float array.  A column of few distinct values (the
+    axis positions and tool offsets of the readings: a handful for 10^4 rows) has each
+    distinct value turned into text once; ``repr`` took most of the time of writing
+    residuals.csv.  (-0.0, which np.unique takes for 0.0, keeps one text per value.)"""
+    n = len(v)
+    if n >= 256 and len(np.unique(v[:256])) <= 32 and not np.any((v == 0) & np.signbit(v)):
+        uniq, inv = np.unique(v, return_inverse=True)
+        if len(uniq) <= n // 8:
+            return np.array(list(map(repr, uniq.tolist())), dtype=object)[inv.ravel()].tolist()
+    return list(map(repr, v.tolist()))
 
 
 def _json_safe(obj: Any) -> Any:
@@ -1705,11 +1718,12 @@ def save_result(
             from volcal.outputs import plots as P
 
             with progress.stage("plotting"):
-                # the figures' data first: the plotting children (when there are some)
-                # draw them while this process writes the tables and the report
-                requests = P.plot_requests(result, comp)
-                if plotter is not None:
-                    for name, draw, data, cost in requests:
+                # the figures' data first, each sent as soon as it is ready: the plotting
+                # children (when there are some) draw them while this process prepares
+                # the next and then writes the tables and the report
+                for name, draw, data, cost in P.iter_plot_requests(result, comp):
+                    requests.append((name, draw, data, cost))
+                    if plotter is not None:
                         plotter.draw(draw, data, tmp / name, cost=cost)
         log.info("writing the result tables (temporary folder %s)", tmp)
         with progress.stage("writing the tables"):

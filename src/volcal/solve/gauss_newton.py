@@ -35,6 +35,7 @@ is the KKT condition of the constrained problem: the minimiser is the one IPOPT 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg as sla
@@ -137,6 +138,30 @@ def project_feasible(
     return out
 
 
+@dataclass(frozen=True)
+class FinalGram:
+    """The Gauss-Newton system at the answer of a solve: r (N,), J^T r (n_x,) and J^T J
+    (n_x, n_x) wrt the scaled variables at physical x with data p (held, not copied).  The
+    last iteration of :meth:`GaussNewtonSolver.solve` evaluates it there to find that the
+    step is at its tolerance; the covariance at the answer takes it instead of evaluating
+    the Jacobian again (:meth:`matches` says whether it is for a given x and p)."""
+
+    x: np.ndarray
+    p: np.ndarray
+    r: np.ndarray
+    g: np.ndarray
+    H: np.ndarray
+
+    def matches(self, x: np.ndarray, p: np.ndarray) -> bool:
+        """Whether this is the system at physical x (n_x,) with data p, exactly."""
+        x, p = np.asarray(x, float), np.asarray(p, float)
+        return bool(
+            x.shape == self.x.shape
+            and np.array_equal(x, self.x)
+            and (p is self.p or (p.shape == self.p.shape and np.array_equal(p, self.p)))
+        )
+
+
 class GaussNewtonSolver:
     """Gauss-Newton / Levenberg-Marquardt for an :class:`IdentificationProblem`, built once
     per problem and reused for any data of its layout (see the module docstring)."""
@@ -157,6 +182,9 @@ class GaussNewtonSolver:
         self.damping = damping
         #: the steps the last :meth:`solve` took (an iteration may end without one)
         self.steps_taken = 0
+        #: the Gauss-Newton system at the answer of the last :meth:`solve` when its last
+        #: iteration evaluated it there (see :class:`FinalGram`), else None
+        self.final_gram: FinalGram | None = None
 
     def _basis_kind(self, Z: np.ndarray) -> tuple[np.ndarray | None, bool]:
         """(the selection Z makes or None (:func:`_selection`), whether Z moves any error
@@ -174,18 +202,26 @@ class GaussNewtonSolver:
         0.5 ||r||^2, the damped step dx = Z dz, kkt = ||Z^T J^T r||_inf, the reduction
         of f the local model predicts for dx and the rounding level of f (below it two
         evaluations of f cannot rank two points).  A singular system gives a NaN step."""
-        ch = self.problem.chunked
+        return self._step(xs, p, Z, mu)[0]
+
+    def _step(
+        self, xs: np.ndarray, p: np.ndarray, Z: np.ndarray, mu: float, system: tuple | None = None
+    ) -> tuple[tuple[float, np.ndarray, float, float, float], tuple]:
+        """:meth:`step` from the system (r, J^T r, J^T J) at xs when it is given (already
+        evaluated there), and that system."""
         sel, theta = self._basis_kind(Z)
-        r, g, H = ch.gram(xs, p, theta=theta)
+        if system is None:
+            system = self.problem.chunked.gram(xs, p, theta=theta)
+        r, g, H = system
         f = 0.5 * float(r @ r)
         # each residual w (reading - m) carries the rounding of a reading of size |m| (or
         # |m + r / w|), eps |w m| + eps |r|; f = 0.5 sum r^2 then moves by up to their sum
         # weighted by |r| between two evaluations at points a rounding apart (1e-7 of
         # f = 4e4 on 648 readings with residuals of 150 sigma, far above 1e-13 f)
-        m, w = ch.readings(p)
+        m, w = self.problem.chunked.readings(p)
         level = float(np.finfo(float).eps * (np.abs(r) @ (np.abs(w * m) + np.abs(r))))
         if Z.shape[1] == 0:
-            return f, np.zeros(self.problem.n_x), 0.0, 0.0, level
+            return (f, np.zeros(self.problem.n_x), 0.0, 0.0, level), system
         Hz = H[np.ix_(sel, sel)] if sel is not None else Z.T @ H @ Z
         gz = g[sel] if sel is not None else Z.T @ g
         A = Hz + mu * np.diag(np.fmax(np.diag(Hz), 1e-12))
@@ -194,7 +230,7 @@ class GaussNewtonSolver:
         except np.linalg.LinAlgError:
             dz = np.full(len(gz), np.nan)
         pred = -(float(gz @ dz) + 0.5 * float(dz @ (Hz @ dz)))
-        return f, _expand(Z, sel, dz), float(np.max(np.abs(gz))), pred, level
+        return (f, _expand(Z, sel, dz), float(np.max(np.abs(gz))), pred, level), system
 
     def solve_levenberg(
         self,
@@ -255,6 +291,18 @@ class GaussNewtonSolver:
     def objective(self, xs: np.ndarray, p: np.ndarray) -> float:
         return self.problem.chunked.objective(xs, p)
 
+    def trial(
+        self, xs: np.ndarray, p: np.ndarray, *, theta: bool, system: bool
+    ) -> tuple[float, tuple | None]:
+        """f = 0.5 ||r||^2 at a trial point xs (scaled) and, with ``system``, the
+        Gauss-Newton system there (r, J^T r, J^T J; the error parameters' rows with
+        ``theta``): the next iteration's when the step is taken, in the same pass over
+        the readings (the residuals are the same numbers as :meth:`objective`'s)."""
+        if not system:
+            return self.objective(xs, p), None
+        r, g, H = self.problem.chunked.gram(xs, p, theta=theta)
+        return 0.5 * float(r @ r), (r, g, H)
+
     def solve(
         self,
         x0: np.ndarray,
@@ -277,8 +325,14 @@ class GaussNewtonSolver:
         accepted = False  # whether the last trial step was taken
         taken = 0  # steps taken
         floor: float | None = None  # size of the last step f could not rank, if it was
+        self.final_gram = None
+        theta = self._basis_kind(Z)[1]
+        # the system (r, J^T r, J^T J) at xs once evaluated there, kept while xs does not
+        # move (a rejected step, a damping dropped) and taken from the trial point when
+        # an undamped step (nearly always accepted) moves xs there
+        system = None
         for it in range(1, max_iter + 1):  # noqa: B007  (the count is reported)
-            f, dx, _, pred, level = self.step(xs, p, Z, mu)
+            (f, dx, _, pred, level), system = self._step(xs, p, Z, mu, system)
             progress.update(f"Gauss-Newton iteration {it}, cost {f:.6g}")
             if not np.all(np.isfinite(dx)):
                 status = "Invalid_Number_Detected"
@@ -292,7 +346,8 @@ class GaussNewtonSolver:
                 # on the undamped step (a stuck iteration then keeps failing, and says so)
                 mu = 0.0
                 continue
-            f_new = self.objective(xs + dx, p)
+            xt = xs + dx
+            f_new, trial = self.trial(xt, p, theta=theta, system=mu == 0)
             # below the rounding level of f (flat directions of a large-residual fit) the
             # sum of squares cannot judge a step; the gradient-based model still can
             flat = max(1e-13 * max(f, 1.0), level)
@@ -310,7 +365,7 @@ class GaussNewtonSolver:
                 status = "Solve_Succeeded"
                 break
             if accepted:
-                xs = xs + dx
+                xs, system = xt, trial
                 taken += 1
                 floor = size if unrankable else None
                 # Nielsen's rule: relax the damping when the model predicted well
@@ -342,6 +397,8 @@ class GaussNewtonSolver:
             np.all(np.isfinite(x))
         )
         self.steps_taken = taken
+        if system is not None and theta and status == "Solve_Succeeded":
+            self.final_gram = FinalGram(x, p, *system)  # the system at xs (see above)
         return SolveOutcome(x, f, status, ok, it, time.perf_counter() - t0)
 
 

@@ -263,12 +263,19 @@ def _read_inputs(args: argparse.Namespace):
         return None, None, 0.0
     args.data = Path(sets[0].source)
     spec = resolve_model(args.model)
+    source: object = args.data
+    t0 = time.perf_counter()
     if not args.columns:
-        # the header's columns from its first line, before pandas' import (0.25 s): a
-        # misnamed or missing column is reported at once; the cells need the loader
+        # before pandas' import (a third of a second): the header from the first line,
+        # then for the tracker's tables (positive lengths) the rows and cells, with the
+        # loader's messages; the numbers read there are the loader's (no second reading)
+        from volcal.measurement.cells import scan_measurements
         from volcal.measurement.header import check_header
 
         check_header(args.data, spec)
+        if args.instrument == "tracker":
+            source = scan_measurements(args.data, spec) or args.data
+    t_scan = time.perf_counter() - t0
     from volcal.measurement.instruments import get_instrument
     from volcal.measurement.tables import (
         load_instrument_stations,
@@ -286,13 +293,13 @@ def _read_inputs(args: argparse.Namespace):
         )
     t0 = time.perf_counter()
     meas = load_measurements(
-        args.data,
+        source,
         spec,
         stations=stations,
         relative_lengths=not ins.positive_readings,
         columns=args.columns,
     )
-    return meas, stations, time.perf_counter() - t0
+    return meas, stations, t_scan + time.perf_counter() - t0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -303,14 +310,31 @@ def run(args: argparse.Namespace) -> int:
     args.exit_now_on_error = True
     inputs = _read_inputs(args)
     # then, before the numerics are imported: two children that import matplotlib on the
-    # other core while this process solves, then draw the plots two at a time while this
-    # one writes the report
-    with plotting(not args.no_plots) as plotter:
+    # other core while this process solves, build the frames of the figures each will
+    # draw, then draw the plots two at a time while this one writes the report
+    with plotting(not args.no_plots, ahead=_frames_ahead(args)) as plotter:
         code = _run(args, plotter, inputs)
     # everything is written and closed: skip the interpreter's teardown (0.1 s of freeing
     # modules; see volcal.cli.main._exit_now)
     args.exit_now = True
     return code
+
+
+def _frames_ahead(args: argparse.Namespace):
+    """The plotting children's frames to build ahead (``workers -> plan``,
+    :func:`volcal.outputs.figures.frame_plan`), from the model's number of axes; None
+    when the model cannot be read here (the error is reported where it is built)."""
+    if args.no_plots:
+        return None
+    from volcal.model.spec import resolve_model
+
+    try:
+        n_axes = len(resolve_model(args.model).axes)
+    except Exception:
+        return None
+    from volcal.outputs.figures import frame_plan
+
+    return lambda workers: frame_plan(n_axes, workers)
 
 
 def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
