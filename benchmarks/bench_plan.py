@@ -17,11 +17,16 @@ station difference (mm), whether the selected poses are the same (a rotary axis 
 and +180 deg is one pose), and the difference of the criterion (negative: this version's
 plan is better).
 
+With ``--baseline-args='--workers 1'`` (and no baseline interpreter) this version runs in
+turn with and without those flags: the placement starts solved side by side (the default)
+against one after the other in the program itself.
+
 Run by hand (other jobs on the cores show in the wall times, less in the CPU times; the
 load average before and after is printed with them)::
 
     python benchmarks/bench_plan.py [--repeat 3] [--settings mcv754 trunnion_ac] [--no-plots]
-        [--baseline-python ../main/.venv/bin/python] [--out benchmarks/results/plan.txt]
+        [--baseline-python ../main/.venv/bin/python] [--baseline-args='--workers 1']
+        [--out benchmarks/results/plan.txt]
 
 Goals (issue 27): mcv754 < 5 s, trunnion_ac < 15 s, the same plans or a better criterion.
 """
@@ -33,6 +38,7 @@ import io
 import json
 import os
 import resource
+import shlex
 import statistics
 import subprocess
 import sys
@@ -45,10 +51,12 @@ import numpy as np
 import pandas as pd
 
 
-def _run(python: str, setting: str, no_plots: bool, keep: Path) -> dict[str, float]:
+def _run(
+    python: str, setting: str, no_plots: bool, keep: Path, extra: list[str] | None = None
+) -> dict[str, float]:
     out = keep / "plan"
     cmd = [python, "-m", "volcal", "-q", "plan", "--setting", setting, "--out", str(out)]
-    cmd.append("--force")
+    cmd += ["--force", *(extra or [])]
     if no_plots:
         cmd.append("--no-plots")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -98,6 +106,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--settings", nargs="+", default=["mcv754", "trunnion_ac"])
     ap.add_argument("--no-plots", action="store_true", help="pass --no-plots")
     ap.add_argument("--baseline-python", help="interpreter of a version to run in turn")
+    ap.add_argument(
+        "--baseline-args",
+        default="",
+        help="extra flags of the baseline's runs, e.g. --baseline-args='--workers 1' (with "
+        "--baseline-python or alone: this version run in turn with them)",
+    )
     ap.add_argument("--out", type=Path, help="also write the printout to this file")
     args = ap.parse_args(argv)
     text = io.StringIO()
@@ -106,15 +120,16 @@ def main(argv: list[str] | None = None) -> int:
         print(line, flush=True)
         text.write(line + "\n")
 
-    say(f"command: python benchmarks/bench_plan.py {' '.join(argv or sys.argv[1:])}")
+    say(f"command: python benchmarks/bench_plan.py {shlex.join(argv or sys.argv[1:])}")
     say(f"load average before: {os.getloadavg()[0]:.2f}")
     say(
         "| setting | version | wall (s) | CPU (s) | planning (s) | criterion I (um) | evaluations |"
     )
     say("|---|---|---|---|---|---|---|")
     versions = [("this", sys.executable)]
-    if args.baseline_python:
-        versions.append(("baseline", args.baseline_python))
+    if args.baseline_python or args.baseline_args:
+        versions.append(("baseline", args.baseline_python or sys.executable))
+    extra = {"this": [], "baseline": args.baseline_args.split()}
     comparisons = []
     with tempfile.TemporaryDirectory() as tmp:
         for setting in args.settings:
@@ -123,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
                 for name, py in versions:
                     keep = Path(tmp) / setting / name
                     keep.mkdir(parents=True, exist_ok=True)
-                    runs[name].append(_run(py, setting, args.no_plots, keep))
+                    runs[name].append(_run(py, setting, args.no_plots, keep, extra[name]))
             for name, _ in versions:
 
                 def cell(key: str, fmt: str = ".1f", rs: list = runs[name]) -> str:
@@ -140,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
                     f"| {cell('plan_s')} | {cell('criterion_um', '.6f')} "
                     f"| {cell('evaluations', '.0f')} |"
                 )
-            if args.baseline_python:
+            if len(versions) > 1:
                 for key in ("wall_s", "cpu_s"):
                     r = [a[key] / b[key] for a, b in zip(runs["this"], runs["baseline"])]
                     comparisons.append(

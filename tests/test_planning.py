@@ -519,8 +519,11 @@ def test_cli_plan_writes_a_plan_identify_can_read(tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
-def test_gradient_search_resumes_from_its_checkpoint(tmp_path):
-    from volcal.analysis.planning.search import StationSampler, gradient_placement
+@functools.cache
+def _gradient_search_setup():
+    """A small gradient placement search: the evaluator of 20 poses frozen at
+    S_LEFT_RIGHT and a sampler of the mcv754 setting's regions."""
+    from volcal.analysis.planning.search import StationSampler
 
     _, _, _, ev, sel = _evaluator(n_poses=20)
     cons = constraints_from_dict(_setting()[1])
@@ -530,17 +533,51 @@ def test_gradient_search_resumes_from_its_checkpoint(tmp_path):
     use = sel[ev.pose_of] & (ev.station_of == 0)
     centre = 0.5 * (ev.points.min(0) + ev.points.max(0))
     sampler = StationSampler(cons, ev.points[use], np.zeros((use.sum(), 3)), centre)
+    return ev, sampler, sel
 
-    def run(starts, ck=None):
-        return gradient_placement(
-            ev, sampler, selected=sel, starts=starts, seed=5, max_iter=15, checkpoint=ck
-        )
 
-    full = run(2)
+def _gradient_search(starts, ck=None, **where):
+    from volcal.analysis.planning.search import gradient_placement
+
+    ev, sampler, sel = _gradient_search_setup()
+    return gradient_placement(
+        ev, sampler, selected=sel, starts=starts, seed=5, max_iter=15, checkpoint=ck, **where
+    )
+
+
+def test_gradient_search_resumes_from_its_checkpoint(tmp_path):
+    full = _gradient_search(2, workers=1)
     ck = tmp_path / "gradient.npz"
-    run(1, ck)  # stopped after one start
-    resumed = run(2, ck)
+    _gradient_search(1, ck, workers=1)  # stopped after one start
+    resumed = _gradient_search(2, ck, workers=1)
     assert np.array_equal(full.stations, resumed.stations) and full.value == resumed.value
+
+
+def test_gradient_search_same_result_serially_in_processes_and_on_dask(
+    tmp_path, monkeypatch, dask_client
+):
+    """One seed: the same stations, criterion, history of the best criterion and IPOPT
+    iterations whether the starts are solved in this process, in two local worker
+    processes (forked: the solvers inherited), by default (this process solving starts
+    too) or on a Dask LocalCluster (the solvers pickled); a search stopped after one start
+    and resumed in worker processes ends as the serial one.  (Spawned workers receive the
+    pickled solvers as Dask's do; tests/test_montecarlo.py checks spawning itself.)"""
+    monkeypatch.setenv("VOLCAL_MP_START", "fork")
+    serial = _gradient_search(3, workers=1)
+    runs = {
+        "2 processes": _gradient_search(3, workers=2),
+        "this process too": _gradient_search(3, workers=None),
+        "dask": _gradient_search(3, scheduler=dask_client),
+    }
+    ck = tmp_path / "gradient.npz"
+    _gradient_search(1, ck, workers=1)
+    runs["resumed in processes"] = _gradient_search(3, ck, workers=2)
+    for name, other in runs.items():
+        assert np.array_equal(serial.stations, other.stations), name
+        assert serial.value == other.value, name
+        assert [h["best"] for h in serial.history] == [h["best"] for h in other.history], name
+        if name != "resumed in processes":  # counts the iterations it ran itself
+            assert serial.evaluations == other.evaluations, name
 
 
 def test_bad_constraints_name_the_setting_file(tmp_path, capsys):

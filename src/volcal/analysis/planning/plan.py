@@ -552,7 +552,7 @@ def plan(
     rounds: int = 2,
     margin_deg: float = DEFAULT_MARGIN_DEG,
     margin_mm: float = DEFAULT_MARGIN_MM,
-    workers: int | None = 1,
+    workers: int | None = None,
     scheduler: Any = None,
     checkpoint_dir: str | Path | None = None,
     progress: Callable[[str, int, int, float], None] | None = None,
@@ -575,8 +575,10 @@ def plan(
     starts / population / generations: search sizes; rounds: placement / exchange
     alternations; margin_deg / margin_mm: how far the plan keeps from the declared limits
     (deg off the acceptance half-angle; mm inside the regions, on the distance, range and
-    obstacles; see the module docstring); workers / scheduler: where the GA scores (1:
-    this process; None: all cores; a Dask address or Client); checkpoint_dir: searches
+    obstacles; see the module docstring); workers / scheduler: where the gradient search's
+    starts are solved and the GA's designs scored (None, the default: every core, this
+    process's included; 1: this process only; W: W local processes; a Dask address or
+    Client), the same plan wherever; checkpoint_dir: searches
     save there after every generation or start and resume from what they find;
     progress(stage, step, total, best): called after every generation, start and
     exchange, e.g. ("GA round 1 of 2: generation", 5, 30, 0.29) (step 1-based, 0 when a
@@ -755,6 +757,8 @@ def plan(
                 seed=seed + rnd,
                 initial=S,
                 criterion=criterion if criterion in ("I", "A", "D") else "I",
+                workers=workers,
+                scheduler=scheduler,
                 checkpoint=ckpt / f"gradient_round{rnd + 1}.npz" if ckpt else None,
                 progress=report,
                 fingerprint=fp,

@@ -17,8 +17,10 @@ so feasibility is checked (and repaired) station by station.
   :meth:`~volcal.analysis.planning.evaluator.PlanEvaluator.criterion_functions`), the
   regions, distance, range and acceptance-angle constraints written as smooth
   inequalities (those the station's region cannot break left out: the region implies
-  them), from several feasible starts; line of sight is checked on each result (a start
-  whose optimum a beam of which is blocked is discarded).  Checkpointed after every start.
+  them), from several feasible starts, all drawn first and then solved in parallel like
+  the GA's scores (each process builds the solvers it needs); line of sight is checked on
+  each result (a start whose optimum a beam of which is blocked is discarded).
+  Checkpointed after every start.
 * :func:`exchange_poses`: a Fedorov-type exchange of poses between the plan and a candidate
   grid for the I-criterion, with rank-K updates of the information matrix.
 
@@ -30,7 +32,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -315,13 +317,26 @@ def gradient_placement(
     initial: np.ndarray | None = None,
     criterion: str = "I",
     max_iter: int = 60,
+    workers: int | None = 1,
+    scheduler: Any = None,
     checkpoint: Path | None = None,
     progress: Callable[[int, float], None] | None = None,
     fingerprint: str = "",
 ) -> SearchResult:
     """Multi-start IPOPT on the station coordinates (see the module doc).  The reading
     weights are those of each start's stations (the budget's distance dependence is weak);
-    the result is scored again with its own weights."""
+    the result is scored again with its own weights.
+
+    The starts are independent: every start design is drawn here first (the random stream
+    and what the checkpoint records are those of drawing them one after the other), then
+    the starts are solved where ``workers`` / ``scheduler`` say
+    (:func:`volcal.analysis.uncertainty.parallel.run_chunks`: 1 this process, None every
+    core with this one, a Dask address or Client), each by the same solver with one BLAS
+    thread, so the result does not depend on where they ran.  The best start is the one
+    of least criterion, the first of equal ones.  ``progress(n - 1, best)`` after the n-th
+    start to finish, with the best criterion of the finished ones."""
+    from volcal.analysis.uncertainty.parallel import run_chunks
+
     t0 = time.perf_counter()
     if ev.frozen is None:
         raise RuntimeError("freeze the evaluator first")
@@ -385,60 +400,91 @@ def gradient_placement(
                 )
             )
         rows_of.append(mine)
-    results, history, n_eval = [], [], 0
+    results: list[tuple[float, np.ndarray]] = []
+    history: list[dict[str, float]] = []
+    n_eval = 0
     state = _load(checkpoint, "gradient", key)
-    done_starts: list[np.ndarray] = []
     if state is not None:
-        done_starts = list(state["stations"])
         results = [(float(v), S) for v, S in zip(state["values"], state["stations"])]
         history = state["meta"]["history"]
         rng.bit_generator.state = state["meta"]["rng"]
-    solvers: dict[tuple[int, ...], tuple[ca.Function, np.ndarray, np.ndarray]] = {}
+    n_done = len(results)
+    # every start design first, with the random stream's state after drawing it (what a
+    # checkpoint after that start records): the draws are those of a search that solves
+    # each start before drawing the next, wherever the starts are then solved
+    drawn: list[np.ndarray] = []
+    rng_after: list[Mapping[str, Any]] = []
+    for j in range(n_done, starts):
+        use_initial = j == 0 and initial is not None
+        drawn.append(
+            np.asarray(initial, float).reshape(K, 3) if use_initial else sampler.draw(rng, K)
+        )
+        rng_after.append(rng.bit_generator.state)
     # a start drawn where an earlier one began (the first draw of a round is the plan's
     # start design when both come from the same seed) ends where it ended: IPOPT is
-    # deterministic, so its result is reused instead of solved again
-    ended: dict[bytes, tuple[float, np.ndarray]] = {}
-    for j in range(len(done_starts), starts):
-        S0 = (
-            np.asarray(initial, float).reshape(K, 3)
-            if (j == 0 and initial is not None)
-            else sampler.draw(rng, K)
-        )
-        if S0.tobytes() in ended:
-            value, S = ended[S0.tobytes()]
-        else:
-            # region of each station: fixed for this start (linear constraints); one
-            # solver per assignment of stations to regions, built once and reused by later
-            # starts
-            regions = tuple(_region_of(sampler, S0[k]) for k in range(K)) if cons.regions else ()
-            if regions not in solvers:
-                g, lbg, ubg = _reading_rows(rows_of, cons, regions, P, sampler.centre)
-                fv, gv = fg_sym(s, pp)
-                grad_f = ca.Function("grad_f", [s, pp], [fscale * fv, fscale * gv])
-                solvers[regions] = _placement_solver(
-                    s, pp, fscale * f_sym(s, pp), g, lbg, ubg, cons, regions, max_iter, grad_f
-                )
-            solver, lb_all, ub_all = solvers[regions]
-            sol = solver(x0=S0.ravel(), p=ev.weights(S0, selected), lbg=lb_all, ubg=ub_all)
-            n_eval += int(solver.stats().get("iter_count", 0)) + 1
-            S = np.asarray(sol["x"]).reshape(K, 3)
-            value = scorer.score(S, selected) if sampler.ok(S).all() else float("inf")
-            ended[S0.tobytes()] = (value, S)
-        results.append((value, S))
-        history.append(
-            {"step": j, "best": min(v for v, _ in results), "seconds": time.perf_counter() - t0}
-        )
+    # deterministic, so it is solved once
+    first_of: dict[bytes, int] = {}
+    same_as: dict[int, int] = {}
+    for i, S0 in enumerate(drawn):
+        same_as[i] = first_of.setdefault(S0.tobytes(), i)
+    problems: dict[tuple[int, ...], tuple[ca.Function, np.ndarray, np.ndarray]] = {}
+    fv, gv = fg_sym(s, pp)
+    grad_f = ca.Function("grad_f", [s, pp], [fscale * fv, fscale * gv])
+    f = fscale * f_sym(s, pp)
+    chunks = []
+    for i, S0 in enumerate(drawn):
+        if same_as[i] != i:
+            continue
+        # region of each station: fixed for this start (linear constraints); one problem
+        # per assignment of stations to regions, shared by the starts
+        regions = tuple(_region_of(sampler, S0[k]) for k in range(K)) if cons.regions else ()
+        if regions not in problems:
+            g, lbg, ubg = _reading_rows(rows_of, cons, regions, P, sampler.centre)
+            problems[regions] = _placement_problem(s, pp, f, g, lbg, ubg, cons, regions)
+        chunks.append((i, S0, regions, ev.weights(S0, selected)))
+    kernel = _PlacementKernel(problems, grad_f, max_iter, scorer, sampler, selected)
+    base = len(results)  # starts done before (a checkpoint); drawn[i] is start base + i
+    ended: dict[int, tuple[float, np.ndarray]] = {}
+
+    def record(i: int, value: float, S: np.ndarray) -> None:
+        """Drawn start i (and the later ones drawn at its start design) has ended: the
+        finished starts without a gap go into the results, the history and the
+        checkpoint (a resumed search draws the rest), in the order of the starts."""
+        for d in range(i, len(drawn)):
+            if same_as[d] == i:
+                ended[d] = (value, S)
+        m = len(results) - base
+        if m not in ended:
+            return
+        while m in ended:
+            results.append(ended[m])
+            best = min(v for v, _ in results)
+            history.append({"step": base + m, "best": best, "seconds": time.perf_counter() - t0})
+            m += 1
         _save(
             checkpoint,
             {
                 "values": np.array([v for v, _ in results]),
                 "stations": np.array([S for _, S in results]),
             },
-            {"kind": "gradient", "key": key, "rng": rng.bit_generator.state, "history": history},
+            {"kind": "gradient", "key": key, "rng": rng_after[m - 1], "history": history},
         )
+
+    if chunks:
+        # the first solver built works out the sparsity of the criterion's graph, which
+        # the graph keeps (a third of a second for trunnion_ac, 0.03 s for each solver
+        # after it): once here, before forked workers inherit it, not once in each process;
+        # this process's first start (the last, see run_chunks) uses it
+        kernel.solver(chunks[-1][2])
+    before = [v for v, _ in results]
+    for (i, *_), (value, S, iters) in run_chunks(
+        kernel, chunks, workers=workers, scheduler=scheduler
+    ):
+        n_eval += iters
+        record(i, value, S)
         if progress is not None:
-            progress(j, history[-1]["best"])
-    best = min(results, key=lambda r: r[0])
+            progress(base + len(ended) - 1, min(before + [v for v, _ in ended.values()]))
+    best = min(results, key=lambda r: r[0])  # the first of the least: the lowest start
     notes = []
     n_bad = sum(1 for v, _ in results if not np.isfinite(v))
     if n_bad:
@@ -452,6 +498,71 @@ def gradient_placement(
         time.perf_counter() - t0,
         notes,
     )
+
+
+class _PlacementKernel:
+    """One start of the placement search, for :func:`run_chunks`: the NLP of every
+    assignment of stations to regions (a Function of the station coordinates and the
+    weights, with its constraint bounds), the objective's gradient Function, the scorer
+    and the sampler's constraint check, picklable (CasADi Functions travel serialised).
+    Each process builds the IPOPT solver of an assignment when a start first needs it and
+    keeps it (building one, its derivatives' sparsity included, is about 0.05 s: in the
+    processes that solve, not before the work is shared out).
+    ``run_chunk((index, S0, regions, weights))`` solves from the start design S0 (K, 3)
+    mm and returns (criterion of the result, or inf where it breaks a constraint; stations
+    (K, 3) mm; IPOPT iterations + 1)."""
+
+    def __init__(
+        self,
+        problems: dict[tuple[int, ...], tuple[ca.Function, np.ndarray, np.ndarray]],
+        grad_f: ca.Function,
+        max_iter: int,
+        scorer: Scorer,
+        sampler: StationSampler,
+        selected: np.ndarray | None,
+    ):
+        self.problems, self.grad_f, self.max_iter = problems, grad_f, int(max_iter)
+        self.scorer, self.sampler, self.selected = scorer, sampler, selected
+        self._solvers: dict[tuple[int, ...], ca.Function] = {}
+
+    def __getstate__(self) -> dict[str, Any]:
+        # the Functions in one CasADi serialisation: the criterion graph they share (its
+        # constant matrices) is written once, not once per Function; no solvers (built
+        # where they run)
+        d = dict(self.__dict__)
+        keys = list(self.problems)
+        ss = ca.StringSerializer()
+        ss.pack([self.grad_f] + [self.problems[k][0] for k in keys])
+        d["problems"] = (keys, ss.encode(), [self.problems[k][1:] for k in keys])
+        d["grad_f"] = None
+        d["_solvers"] = {}
+        return d
+
+    def __setstate__(self, d: dict[str, Any]) -> None:
+        keys, packed, bounds = d["problems"]
+        fs = ca.StringDeserializer(packed).unpack()
+        d["grad_f"] = fs[0]
+        d["problems"] = {k: (f, *b) for k, f, b in zip(keys, fs[1:], bounds)}
+        self.__dict__.update(d)
+
+    def solver(self, regions: tuple[int, ...]) -> ca.Function:
+        """The IPOPT solver of an assignment of stations to regions, built at first use."""
+        solver = self._solvers.get(regions)
+        if solver is None:
+            nlp = self.problems[regions][0]
+            solver = self._solvers[regions] = _placement_solver(nlp, self.max_iter, self.grad_f)
+        return solver
+
+    def run_chunk(self, chunk: tuple[int, np.ndarray, tuple[int, ...], np.ndarray]):
+        _, S0, regions, w = chunk
+        _, lb_all, ub_all = self.problems[regions]
+        solver = self.solver(regions)
+        sol = solver(x0=S0.ravel(), p=w, lbg=lb_all, ubg=ub_all)
+        iters = int(solver.stats().get("iter_count", 0)) + 1
+        S = np.asarray(sol["x"]).reshape(S0.shape)
+        ok = self.sampler.ok(S).all()
+        value = self.scorer.score(S, self.selected) if ok else float("inf")
+        return float(value), S, iters
 
 
 def _reading_rows(
@@ -501,11 +612,11 @@ def _reading_rows(
     return (ca.vertcat(*g) if g else ca.MX(0, 1)), lbg, ubg
 
 
-def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter, grad_f):
-    """IPOPT on the station coordinates ``s`` with weights ``pp``: objective f (its value
-    and gradient from the Function ``grad_f(s, pp)``, written out rather than reverse
-    AD), the smooth reading constraints g_base and the half-spaces of each station's
-    region ``regions`` (indices into ``cons.regions``).  Returns (solver, lbg, ubg)."""
+def _placement_problem(s, pp, f, g_base, lbg, ubg, cons, regions):
+    """The NLP on the station coordinates ``s`` with weights ``pp``: objective f, the
+    smooth reading constraints g_base and the half-spaces of each station's region
+    ``regions`` (indices into ``cons.regions``).  Returns (Function (x, p) -> (f, g), as
+    ``nlpsol`` builds it from the expressions; lbg; ubg)."""
     K = s.shape[0] // 3
     gg, lb, ub = [g_base], list(lbg), list(ubg)
     if regions:
@@ -520,10 +631,20 @@ def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter, grad_
         gg.append(ca.mtimes(ca.DM(Aall), s))
         lb.append(np.full(len(Aall), -np.inf))
         ub.append(np.concatenate(b_rows) - 1e-4)
-    solver = ca.nlpsol(
+    nlp = ca.Function(
+        "nlp", {"x": s, "p": pp, "f": f, "g": ca.vertcat(*gg)}, ["x", "p"], ["f", "g"]
+    )
+    cat = np.concatenate
+    return nlp, (cat(lb) if lb else np.zeros(0)), (cat(ub) if ub else np.zeros(0))
+
+
+def _placement_solver(nlp: ca.Function, max_iter: int, grad_f: ca.Function) -> ca.Function:
+    """IPOPT on the NLP of :func:`_placement_problem`, the objective's value and gradient
+    from the Function ``grad_f(s, pp)`` (written out rather than reverse AD)."""
+    return ca.nlpsol(
         "placement",
         "ipopt",
-        {"x": s, "p": pp, "f": f, "g": ca.vertcat(*gg)},
+        nlp,
         {
             "ipopt.print_level": 0,
             "print_time": False,
@@ -540,8 +661,6 @@ def _placement_solver(s, pp, f, g_base, lbg, ubg, cons, regions, max_iter, grad_
             "grad_f": grad_f,
         },
     )
-    cat = np.concatenate
-    return solver, (cat(lb) if lb else np.zeros(0)), (cat(ub) if ub else np.zeros(0))
 
 
 # ---- pose exchange ---------------------------------------------------------------------

@@ -7,6 +7,8 @@ Examples::
     volcal plan --setting mcv754 --out plan/
     # the same with paper 004's genetic algorithm, scored in 2 local processes
     volcal plan --setting mcv754 --optimizer ga --workers 2 --out plan_ga/
+    # every search in this process only (the default uses every core: the same plan)
+    volcal plan --setting mcv754 --workers 1 --out plan/
     # your own setting file, flags override it; checkpoints allow a stopped search to resume
     volcal plan --setting my_machine.toml --readings 2000 --checkpoint ckpt/ --out plan/
     # NC programs for two controls
@@ -145,11 +147,18 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--workers",
         type=int,
-        default=1,
+        default=None,
         metavar="N",
-        help="GA: local processes scoring the population (default 1; 0: all cores)",
+        help="local processes solving the gradient search's starts or scoring the GA's "
+        "population (default: all cores, this process computing too; 1: in this process; "
+        "0: as the default); the same plan whatever the number",
     )
-    p.add_argument("--dask", metavar="ADDRESS", help="GA: score on a Dask scheduler")
+    p.add_argument(
+        "--dask",
+        metavar="ADDRESS",
+        help="Dask scheduler address (tcp://host:8786): solve the starts / score the "
+        "population there",
+    )
     p.add_argument(
         "--checkpoint",
         type=Path,
@@ -334,7 +343,7 @@ def _run(args: argparse.Namespace, plotter) -> int:
             rounds=int(cfg.get("rounds", 2)),
             margin_deg=float(cfg.get("margin_deg", DEFAULT_MARGIN_DEG)),
             margin_mm=float(cfg.get("margin_mm", DEFAULT_MARGIN_MM)),
-            workers=None if args.workers == 0 else args.workers,
+            workers=None if not args.workers else args.workers,
             scheduler=args.dask,
             checkpoint_dir=args.checkpoint,
             progress=progress,
