@@ -96,6 +96,9 @@ def _terminate(signum, frame):  # pragma: no cover - exercised through a subproc
     global _SIGNALLED
     _SIGNALLED = True
     from volcal.base.folders import interrupt_deferred
+    from volcal.base.interrupts import note_signal
+
+    note_signal(signum)  # a solver that catches the KeyboardInterrupt still stops the command
 
     if interrupt_deferred(signum):  # a file is being renamed into place: raise right after
         return
@@ -434,6 +437,9 @@ def _main(argv: list[str] | None, gc_paused: bool) -> int:
     from volcal.base.folders import output_policy
 
     if threading.current_thread() is threading.main_thread():
+        from volcal.base.interrupts import clear
+
+        clear()  # a signal noted by an earlier command of this process is not this one's
         previous = signal.signal(signal.SIGTERM, _terminate)
         prev_int = signal.getsignal(signal.SIGINT)
         if prev_int is signal.default_int_handler:

@@ -13,6 +13,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from volcal.base.interrupts import raise_if_signalled
 from volcal.problem.residuals import IdentificationProblem
 from volcal.solve.outcome import SolveOutcome
 
@@ -70,6 +71,7 @@ class NLPSolver:
         lbg, ubg = self.problem.g_bounds()
         t0 = time.perf_counter()
         sol = self.solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=lbg, ubg=ubg)
+        raise_if_signalled()  # IPOPT ends early on Ctrl-C / SIGTERM and returns
         dt = time.perf_counter() - t0
         st = self.solver.stats()
         status = st.get("return_status", "unknown")

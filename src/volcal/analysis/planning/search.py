@@ -43,6 +43,7 @@ import numpy as np
 from volcal.analysis.planning.evaluator import PlanEvaluator, Scorer
 from volcal.analysis.planning.geometry import Constraints, stations_ok
 from volcal.base.exceptions import InputError
+from volcal.base.interrupts import raise_if_signalled
 
 __all__ = [
     "SearchResult",
@@ -558,6 +559,7 @@ class _PlacementKernel:
         _, lb_all, ub_all = self.problems[regions]
         solver = self.solver(regions)
         sol = solver(x0=S0.ravel(), p=w, lbg=lb_all, ubg=ub_all)
+        raise_if_signalled()  # IPOPT ends early on Ctrl-C / SIGTERM and returns
         iters = int(solver.stats().get("iter_count", 0)) + 1
         S = np.asarray(sol["x"]).reshape(S0.shape)
         ok = self.sampler.ok(S).all()

@@ -47,6 +47,7 @@ import pandas as pd
 from volcal.analysis.uncertainty.engine import StructuredLSQ, VolumetricMap, unpack_data
 from volcal.analysis.uncertainty.sampling import InputSampler
 from volcal.base.folders import stale_temporaries
+from volcal.base.interrupts import raise_if_signalled
 from volcal.base.progress import counter
 
 log = logging.getLogger(__name__)
@@ -896,6 +897,7 @@ def _ipopt_rounds(
     solver = S
     while True:
         r = solver(x0=x, p=pm, **bounds, **extra)
+        raise_if_signalled()  # IPOPT ends early on Ctrl-C / SIGTERM and returns
         stats = solver.stats()
         x = r["x"].full().ravel()
         extra = {"lam_g0": r["lam_g"]}
