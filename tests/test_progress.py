@@ -5,6 +5,8 @@ from __future__ import annotations
 import io
 import time
 
+import pytest
+
 from volcal.base import progress
 
 
@@ -25,6 +27,22 @@ def test_progress_lines():
     assert text.splitlines()[0] == "long ..."
     assert "long: iteration 3, cost 1.5" in text
     assert text.splitlines()[-1].startswith("long: done in ")
+
+
+def test_a_stage_ended_by_a_signal_says_it_stopped():
+    """A stage left by an exception (Ctrl-C, SIGTERM, an error) is not reported as done."""
+    buf = io.StringIO()
+    progress.enable(True, buf)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with progress.stage("planning", after=0.01):
+                while "planning ..." not in buf.getvalue():
+                    time.sleep(0.01)
+                raise KeyboardInterrupt
+    finally:
+        progress.enable(False)
+    last = buf.getvalue().splitlines()[-1]
+    assert last.startswith("planning: stopped after ") and "done" not in last
 
 
 class _Terminal(io.StringIO):

@@ -111,8 +111,12 @@ def stage(name: str, after: float = 1.0) -> Iterator[None]:
     timer = threading.Timer(after, announce)
     timer.daemon = True
     timer.start()
+    ended = "done in"
     try:
         yield
+    except BaseException:
+        ended = "stopped after"  # an error or a signal: the stage did not finish
+        raise
     finally:
         timer.cancel()
         _record(name, time.perf_counter() - t0)
@@ -121,7 +125,7 @@ def stage(name: str, after: float = 1.0) -> Iterator[None]:
         _STATE["shown"] = outer_shown
         if shown.is_set():
             dt = time.perf_counter() - t0
-            _write(("\x1b[2K" if _STATE["tty"] else "") + f"{name}: done in {dt:.1f} s\n")
+            _write(("\x1b[2K" if _STATE["tty"] else "") + f"{name}: {ended} {dt:.1f} s\n")
 
 
 def update(message: str) -> None:
