@@ -30,12 +30,7 @@ def constrained_covariance(
     fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
     # columns scaled to unit norm for a well-conditioned inverse, undone afterwards
     free, _, d, Jf = scale_columns(J, fixed)
-    if C is not None and len(C):
-        Cf = np.asarray(C, float)[:, free] * d
-        Cf = Cf[np.linalg.norm(Cf, axis=1) > 0]
-        Z = sla.null_space(Cf) if Cf.shape[0] else np.eye(len(free))
-    else:
-        Z = np.eye(len(free))
+    Z = _datum_basis(C, free, d)
     # pseudo-inverse via SVD: exact for full rank, and never explodes on a near-null direction
     from volcal.analysis.identifiability import _r_factor
 
@@ -45,9 +40,7 @@ def constrained_covariance(
     keep = s > max(m, len(free)) * np.finfo(float).eps * (s[0] if len(s) else 0)
     Minv = (Vt[keep].T / s[keep] ** 2) @ Vt[keep]
     cov_s = Z @ Minv @ Z.T
-    cov = np.full((n, n), np.nan)
-    cov[np.ix_(free, free)] = cov_s * d[:, None] * d[None, :]
-    return cov
+    return _unscaled(cov_s, n, free, d)
 
 
 #: the largest ratio of the extreme eigenvalues of the reduced Gauss-Newton matrix
@@ -81,17 +74,29 @@ def gram_covariance(
     norms = np.sqrt(np.clip(np.diag(Hf), 0.0, None))
     d = 1.0 / np.where(norms == 0, 1.0, norms)
     Hs = Hf * d[:, None] * d[None, :]
-    if C is not None and len(C):
-        Cf = np.asarray(C, float)[:, free] * d
-        Cf = Cf[np.linalg.norm(Cf, axis=1) > 0]
-        Z = sla.null_space(Cf) if Cf.shape[0] else np.eye(len(free))
-    else:
-        Z = np.eye(len(free))
+    Z = _datum_basis(C, free, d)
     M = Z.T @ Hs @ Z
     lam, V = np.linalg.eigh(0.5 * (M + M.T))
     if len(lam) and not (np.isfinite(lam).all() and lam[0] * max_condition > lam[-1]):
         return None
     cov_s = Z @ ((V / lam) @ V.T) @ Z.T
+    return _unscaled(cov_s, n, free, d)
+
+
+def _datum_basis(C: np.ndarray | None, free: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Orthonormal basis Z of the scaled free variables that the datum conditions C
+    (rows over all variables) leave free: the null space of C's free columns scaled by d
+    (rows without a free entry dropped); the identity without conditions."""
+    if C is not None and len(C):
+        Cf = np.asarray(C, float)[:, free] * d
+        Cf = Cf[np.linalg.norm(Cf, axis=1) > 0]
+        if Cf.shape[0]:
+            return sla.null_space(Cf)
+    return np.eye(len(free))
+
+
+def _unscaled(cov_s: np.ndarray, n: int, free: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(n, n) covariance from the scaled free variables' ``cov_s``; fixed ones NaN."""
     cov = np.full((n, n), np.nan)
     cov[np.ix_(free, free)] = cov_s * d[:, None] * d[None, :]
     return cov
