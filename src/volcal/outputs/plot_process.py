@@ -33,7 +33,8 @@ Request = tuple[Callable[..., Any], tuple]
 
 def warm_up() -> None:
     """Import matplotlib's Agg canvas and write one line of text into a tiny PNG in
-    memory: the font file, the text layout and the PNG writer (Pillow) are loaded once,
+    memory (:func:`volcal.outputs.figures.save`): the font file, the text layout and the
+    PNG writer (Pillow) are loaded once,
     in the first plotting child, for all of them.  A warm-up figure with every kind of
     artist the plots use cost 0.1 s of the plotting children's time (a twentieth) and
     saved no more than this in the figures drawn after it."""
@@ -42,10 +43,12 @@ def warm_up() -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
+    from volcal.outputs.figures import save
+
     fig = Figure(figsize=(1.0, 0.5))
     FigureCanvasAgg(fig)
     fig.text(0.5, 0.5, "error (µm) −1.5", fontsize=9, ha="center")
-    fig.savefig(io.BytesIO(), dpi=20)
+    save(fig, io.BytesIO(), dpi=20)  # as the figures are written (hinting, PNG level)
 
 
 def _below(calls: Sequence[Request]) -> None:
