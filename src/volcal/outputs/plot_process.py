@@ -51,34 +51,6 @@ def warm_up() -> None:
     save(fig, io.BytesIO(), dpi=20)  # as the figures are written (hinting, PNG level)
 
 
-def _below(calls: Sequence[Request]) -> None:
-    """Make ``calls`` one at a time (a failing one skipped) in a thread of lower priority
-    (nice 10; Linux keeps a nice value per thread), and return when they are made.
-
-    The warm-up and the frames built ahead run while the parent reads and solves, which
-    is the critical path (with two BLAS threads, on both cores): below it.  The figures
-    are drawn at the parent's priority, by the process's own thread: a plotting child
-    niced as a whole got almost no processor while other programs ran (two busy
-    programs on two cores: a tenth of a core each for the plotting children), and the
-    command waited for its figures."""
-    import threading
-
-    def run() -> None:
-        try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
-        except (OSError, AttributeError):  # pragma: no cover - not Linux
-            pass
-        for func, args in calls:
-            try:
-                func(*args)
-            except Exception:
-                pass
-
-    t = threading.Thread(target=run, name="volcal-plots-ahead", daemon=True)
-    t.start()
-    t.join()
-
-
 def _serve_requests(conn, ahead: Sequence[Request] = ()) -> None:  # pragma: no cover - child
     """Draw on request, ``(function, args)`` -> ``("ok" | "error", text)``, until None;
     after each answer, the figure's garbage is collected (the collector is off while
@@ -97,7 +69,11 @@ def _serve_requests(conn, ahead: Sequence[Request] = ()) -> None:  # pragma: no 
 
     todo = list(ahead)
     while todo and idle():
-        _below([todo.pop(0)])
+        func, args = todo.pop(0)
+        try:
+            func(*args)
+        except Exception:
+            pass
     while True:
         try:
             msg = conn.recv()
@@ -128,7 +104,15 @@ def _zygote(  # pragma: no cover - runs in a child
     from volcal.base.processes import watch_parent
 
     watch_parent(parent)
-    _below([(w, ()) for w in warm])  # a real failure is reported with the first request
+    # at the parent's priority: niced, the warm-up got almost no processor while other
+    # programs ran (with two of them busy on the two cores, matplotlib's import ended after
+    # the parent had sent every figure, 1.5 s in, instead of 0.9 s), and every figure
+    # waited for it; the parent's reading (the warm-up's time) is single-threaded
+    for w in warm:
+        try:
+            w()
+        except Exception:  # a real failure is reported with the first request
+            pass
     # no cyclic garbage collection while drawing: matplotlib allocates tens of thousands
     # of objects per figure and the collector's passes cost a quarter of the drawing
     # time; a child draws a handful of figures and exits.  Everything alive now is frozen
