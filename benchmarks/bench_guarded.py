@@ -46,7 +46,7 @@ REPO = HERE.parent
 sys.path.insert(0, str(HERE))
 
 from bench_build import CHILD as BUILD_CHILD  # noqa: E402
-from bench_startup import _load, _time  # noqa: E402
+from bench_startup import _load, _time, baseline_src, write_printout  # noqa: E402
 
 #: the C solver's speed-up, run under one version's PYTHONPATH (bench_codegen's bench)
 CODEGEN_CHILD = r"""
@@ -138,15 +138,8 @@ def main(argv: list[str] | None = None) -> int:
 
     with tempfile.TemporaryDirectory(prefix="volcal-guarded-") as tmp:
         work = Path(tmp)
-        base = work / "baseline"
-        base.mkdir()
-        archive = subprocess.run(
-            ["git", "-C", str(REPO), "archive", a.baseline_ref, "src"],
-            check=True, capture_output=True,
-        ).stdout  # fmt: skip
-        subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
-        compileall.compile_dir(base / "src", quiet=1)
-        sides: dict[str, Path | None] = {"this": None, "baseline": base / "src"}
+        sides: dict[str, Path | None] = {"this": None,
+                                         "baseline": baseline_src(a.baseline_ref, work)}
         for side, src in sides.items():  # warm-up: the file cache, the model caches
             _time(["--help"], src, 0)
             _time(["mc", "--example", "mcv754", "--trials", "100", "--out",
@@ -192,10 +185,7 @@ def main(argv: list[str] | None = None) -> int:
                      f"{_median(pairs):.3f} ({min(pairs):.3f}-{max(pairs):.3f})")
     lines += ["", "medians of the runs; this / baseline: median (range) of the run pairs; "
               "for (x) figures larger is faster"]
-    text = "\n".join(lines) + "\n"
-    print(text, end="")
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(text, encoding="utf-8")
+    write_printout(lines, a.out)
     return 0
 
 
