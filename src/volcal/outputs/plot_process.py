@@ -254,6 +254,12 @@ class PlotProcess:
         errors: list[str] = []
         while any(self._pending):
             for snd in self._senders:
+                if isinstance(snd.error, (BrokenPipeError, ConnectionResetError, EOFError)):
+                    # the child is gone (a figure sent to it after it died)
+                    raise RuntimeError(
+                        f"the plotting process ended unexpectedly (a plot request could "
+                        f"not be sent: {snd.error})"
+                    )
                 if snd.error is not None:
                     raise RuntimeError(f"could not send a plot request: {snd.error}")
             busy = [c for c, n in zip(self._conns, self._pending) if n]
