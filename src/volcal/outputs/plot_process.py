@@ -3,7 +3,7 @@
 Matplotlib costs a third of a second to import and its drawing is pure Python: on the
 critical path of a short run it is most of the time.  :class:`PlotProcess` forks a child
 at the start of a command, before the parent imports the numerics; it imports matplotlib
-and draws a throw-away figure (fonts, text layout caches, the PNG writer) on the other core
+and writes a throw-away line of text (the font, the PNG writer) on the other core
 while the parent reads, solves and writes, then forks the other plotting children from its
 warmed-up self (one import of matplotlib, not one per child).  The parent then sends
 ``(function, args)`` requests: the function is a module-level drawing function (pickled by
@@ -34,10 +34,9 @@ Request = tuple[Callable[..., Any], tuple]
 def warm_up() -> None:
     """Import matplotlib's Agg canvas and write one line of text into a tiny PNG in
     memory (:func:`volcal.outputs.figures.save`): the font file, the text layout and the
-    PNG writer (Pillow) are loaded once,
-    in the first plotting child, for all of them.  A warm-up figure with every kind of
-    artist the plots use cost 0.1 s of the plotting children's time (a twentieth) and
-    saved no more than this in the figures drawn after it."""
+    PNG writer (Pillow) are loaded once, in the first plotting child, for all of them.  A
+    warm-up figure with every kind of artist the plots use cost 0.1 s of the plotting
+    children's time and saved no more than that in the figures drawn after it."""
     import io
 
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -105,9 +104,10 @@ def _zygote(  # pragma: no cover - runs in a child
 
     watch_parent(parent)
     # at the parent's priority: niced, the warm-up got almost no processor while other
-    # programs ran (with two of them busy on the two cores, matplotlib's import ended after
-    # the parent had sent every figure, 1.5 s in, instead of 0.9 s), and every figure
-    # waited for it; the parent's reading (the warm-up's time) is single-threaded
+    # programs kept the two cores busy (matplotlib's import ended 1.4-1.6 s in, after the
+    # parent had sent every figure, instead of 0.7-0.9 s) and every figure waited for it;
+    # the command's processes as a whole get their share of a busy machine this way.  The
+    # parent meanwhile reads the table with one thread (BLAS too: volcal.cli.main)
     for w in warm:
         try:
             w()
@@ -254,12 +254,6 @@ class PlotProcess:
         errors: list[str] = []
         while any(self._pending):
             for snd in self._senders:
-                if isinstance(snd.error, (BrokenPipeError, ConnectionResetError, EOFError)):
-                    # the child is gone (a figure sent to it after it died)
-                    raise RuntimeError(
-                        f"the plotting process ended unexpectedly (a plot request could "
-                        f"not be sent: {snd.error})"
-                    )
                 if snd.error is not None:
                     raise RuntimeError(f"could not send a plot request: {snd.error}")
             busy = [c for c, n in zip(self._conns, self._pending) if n]
