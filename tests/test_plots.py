@@ -174,24 +174,22 @@ def test_correlations_name_the_strongest_pairs():
 def test_titles_placed_before_drawing_give_matplotlibs_picture(tmp_path, monkeypatch):
     """figures.save places the axes' titles before drawing where nothing can be above
     them (sparing matplotlib a second layout of the y tick labels): the PNGs are byte for
-    byte those of matplotlib's own placement, on the five plots of a result and where the
-    y axis shows an offset text (errors of about 1e-8 um; a title long enough to meet
-    that text, which matplotlib moves up, is left to it)."""
+    byte those of matplotlib's own placement, on two plots of a result (y axes with a
+    ScalarFormatter; the strongest pairs' names, a FixedFormatter) and where the y axis
+    shows an offset text (values of about 1e-9) under a title wide enough to meet it,
+    which matplotlib moves up: left to matplotlib."""
     from volcal.outputs import figures as F
-    from volcal.outputs.plots import plot_requests
+    from volcal.outputs.plots import correlations_data
 
     res = _result()
     comp = component_error_table(
         res.error_model, res.theta, res.cov_theta, res.identifiable, COMPONENT_POINTS
     )
-    cases = [(name, draw, data) for name, draw, data, _ in plot_requests(res, comp)]
-    tiny = plot_requests(res, comp)[0][2]
-    for a in tiny["axes"]:
-        for p in a["panels"]:
-            for s in p["series"]:
-                s["y"] = s["y"] * 1e-9
-                s["u"] = None if s["u"] is None else s["u"] * 1e-9
-    cases.append(("tiny_component_errors.png", F.draw_component_errors, tiny))
+    cases = [
+        ("component_errors.png", F.draw_component_errors,
+         volcal.plots.component_errors_data(comp, res.error_model)),
+        ("correlations.png", F.draw_correlations, correlations_data(res)),
+    ]
 
     def offset_title(data, path):
         fig = F.figure(3.0, 2.0)
@@ -205,7 +203,7 @@ def test_titles_placed_before_drawing_give_matplotlibs_picture(tmp_path, monkeyp
     for name, draw, data in cases:
         fig = draw(data, tmp_path / name)
         settled += [ax._autotitlepos is False for ax in fig.axes if ax.get_title()]
-    assert sum(settled) >= 12  # the result's plots: placed ahead
+    assert sum(settled) == 7  # the result's plots (6 + 1 titles): placed ahead
     assert fig.axes[0]._autotitlepos is not False  # the offset text: left to matplotlib
     monkeypatch.setattr(F, "_settle_titles", lambda fig: None)
     for name, draw, data in cases:
