@@ -103,12 +103,14 @@ def _zygote(  # pragma: no cover - runs in a child
     from volcal.base.processes import watch_parent
 
     watch_parent(parent)
-    # at the parent's priority: niced, the warm-up got almost no processor while other
-    # programs kept the two cores busy (matplotlib's import ended 1.4-1.6 s in, after the
-    # parent had sent every figure, instead of 0.7-0.9 s) and every figure waited for it;
-    # the command's processes as a whole get their share of a busy machine this way (whole
-    # runs paired with a niced version under a load of 3: the same time within 1 %).  The
-    # parent meanwhile reads the table with one thread (BLAS too: volcal.cli.main)
+    # below the parent while both compute: the parent's reading and solving is the
+    # critical path, the warm-up only has to end before the first figure is asked for (the
+    # same time within 1 % as at the parent's priority, whole runs paired under a load of
+    # 3; volcal plan's and volcal mc's workers keep both cores busy meanwhile)
+    try:
+        os.nice(10)
+    except OSError:  # pragma: no cover
+        pass
     for w in warm:
         try:
             w()
@@ -255,8 +257,15 @@ class PlotProcess:
         errors: list[str] = []
         while any(self._pending):
             for snd in self._senders:
-                if snd.error is not None:
-                    raise RuntimeError(f"could not send a plot request: {snd.error}")
+                error = snd.error  # read once: the sending thread may set it meanwhile
+                if isinstance(error, (BrokenPipeError, ConnectionResetError, EOFError)):
+                    # the child is gone (a figure sent to it after it died)
+                    raise RuntimeError(
+                        f"the plotting process ended unexpectedly (a plot request could "
+                        f"not be sent: {error})"
+                    )
+                if error is not None:
+                    raise RuntimeError(f"could not send a plot request: {error}")
             busy = [c for c, n in zip(self._conns, self._pending) if n]
             ready = wait_any(busy, timeout)
             if not ready:
