@@ -206,6 +206,39 @@ def test_written_out_gradient_is_the_criterion_s_derivative():
         assert np.allclose(g, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max()), crit
 
 
+def test_information_kept_for_a_design_is_the_one_computed_afresh():
+    """The information matrices the scorer keeps (a plan's design is scored again and
+    again) are those of the problem's Jacobian for that design, whatever a caller does to
+    the matrix it got, and are computed again in a new parameterisation."""
+    _, _, _, ev, sel = _evaluator()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ev.freeze(S_LEFT_RIGHT, sel)
+    sc = ev.scorer
+
+    def fresh(S, selected):
+        A = sc.jacobian(S, selected)[:, sc.free] @ sc.Z
+        return A.T @ A
+
+    M = ev.information(S_LEFT_RIGHT, sel)
+    assert np.array_equal(M, fresh(S_LEFT_RIGHT, sel))
+    M[:] = 0.0  # the caller's copy
+    other = sel.copy()
+    other[np.flatnonzero(~sel)[:3]] = True
+    designs = [(S_LEFT_RIGHT, sel), (S_LEFT_RIGHT + 25.0, sel), (S_LEFT_RIGHT, other)]
+    designs += [(S_LEFT_RIGHT, None), (S_LEFT_RIGHT - 25.0, other), (S_LEFT_RIGHT, sel)]
+    for S, selected in designs:  # more designs than are kept
+        assert np.array_equal(ev.information(S, selected), fresh(S, selected))
+    # another basis of the free directions (a rotation Q): Q^T M Q, not the kept M
+    M0 = fresh(S_LEFT_RIGHT, sel)
+    Q, _ = np.linalg.qr(np.random.default_rng(2).normal(size=(sc.Z.shape[1],) * 2))
+    sc.set_frozen(sc.free, sc.Z @ Q, sc.B @ Q, sc.theta_rows)
+    M2 = ev.information(S_LEFT_RIGHT, sel)
+    assert np.array_equal(M2, fresh(S_LEFT_RIGHT, sel))
+    assert np.allclose(M2, Q.T @ M0 @ Q, rtol=1e-9, atol=1e-9 * np.abs(M0).max())
+    assert not np.allclose(M2, M0, rtol=1e-3)
+
+
 def test_criterion_rows_are_the_identification_jacobian():
     """The evaluator's information is J^T J of the problem's own Jacobian (the rows
     identify solves with), restricted to the free directions."""
