@@ -704,3 +704,35 @@ def _simulate_and_identify_the_plan(out, tmp_path, capsys):
              str(out / "measurement_plan.csv"), "--tools", "0,0,0", "--seed", "1",
              "--out", str(tmp_path / "xt"))  # fmt: skip
     assert r.returncode == 2 and "--tools" in r.stderr and not (tmp_path / "xt").exists()
+
+
+def test_placement_solver_without_the_weights_multipliers_ends_at_the_same_stations(
+    monkeypatch,
+):
+    """The placement's IPOPT solver is built without the Lagrangian's gradient wrt the
+    weights (nlpsol's ``nlp_grad``: reverse AD through the criterion graph, for
+    multipliers the search never reads); a solver with it ends a start at the same
+    stations, to the bit, after the same iterations."""
+    import casadi as ca
+
+    from volcal.analysis.planning import search
+
+    seen = []
+    run_chunk = search._PlacementKernel.run_chunk
+
+    def spy(self, chunk):
+        seen.append((self, chunk))
+        return run_chunk(self, chunk)
+
+    monkeypatch.setattr(search._PlacementKernel, "run_chunk", spy)
+    _gradient_search(1, workers=1)
+    kernel, (_, S0, regions, w) = seen[0]
+    nlp, lbg, ubg = kernel.problems[regions]
+    opts = search._placement_options(kernel.max_iter, kernel.grad_f)
+    assert opts.pop("no_nlp_grad") is True and opts.pop("calc_lam_p") is False
+    full = ca.nlpsol("full", "ipopt", nlp, opts)
+    ours = kernel.solver(regions)
+    assert "nlp_grad" in full.get_function() and "nlp_grad" not in ours.get_function()
+    x = [np.asarray(s(x0=S0.ravel(), p=w, lbg=lbg, ubg=ubg)["x"]) for s in (full, ours)]
+    assert np.array_equal(x[0], x[1])
+    assert full.stats()["iter_count"] == ours.stats()["iter_count"] > 1

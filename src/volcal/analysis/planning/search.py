@@ -471,12 +471,6 @@ def gradient_placement(
             {"kind": "gradient", "key": key, "rng": rng_after[m - 1], "history": history},
         )
 
-    if chunks:
-        # the first solver built works out the sparsity of the criterion's graph, which
-        # the graph keeps (a third of a second for trunnion_ac, 0.03 s for each solver
-        # after it): once here, before forked workers inherit it, not once in each process;
-        # this process's first start (the last, see run_chunks) uses it
-        kernel.solver(chunks[-1][2])
     before = [v for v, _ in results]
     for (i, *_), (value, S, iters) in run_chunks(
         kernel, chunks, workers=workers, scheduler=scheduler
@@ -507,7 +501,7 @@ class _PlacementKernel:
     weights, with its constraint bounds), the objective's gradient Function, the scorer
     and the sampler's constraint check, picklable (CasADi Functions travel serialised).
     Each process builds the IPOPT solver of an assignment when a start first needs it and
-    keeps it (building one, its derivatives' sparsity included, is about 0.05 s: in the
+    keeps it (building one is a few milliseconds, see :func:`_placement_solver`: in the
     processes that solve, not before the work is shared out).
     ``run_chunk((index, S0, regions, weights))`` solves from the start design S0 (K, 3)
     mm and returns (criterion of the result, or inf where it breaks a constraint; stations
@@ -643,26 +637,32 @@ def _placement_problem(s, pp, f, g_base, lbg, ubg, cons, regions):
 def _placement_solver(nlp: ca.Function, max_iter: int, grad_f: ca.Function) -> ca.Function:
     """IPOPT on the NLP of :func:`_placement_problem`, the objective's value and gradient
     from the Function ``grad_f(s, pp)`` (written out rather than reverse AD)."""
-    return ca.nlpsol(
-        "placement",
-        "ipopt",
-        nlp,
-        {
-            "ipopt.print_level": 0,
-            "print_time": False,
-            "ipopt.hessian_approximation": "limited-memory",
-            # the quasi-Newton update inside the augmented system (one solve per step)
-            # instead of Sherman-Morrison's back-solves per stored pair: the same step,
-            # a third less of IPOPT's own time with hundreds of reading constraints
-            "ipopt.limited_memory_aug_solver": "extended",
-            "ipopt.max_iter": max_iter,
-            "ipopt.tol": 1e-6,
-            "ipopt.acceptable_tol": 1e-4,
-            "ipopt.sb": "yes",
-            "ipopt.bound_relax_factor": 0.0,
-            "grad_f": grad_f,
-        },
-    )
+    return ca.nlpsol("placement", "ipopt", nlp, _placement_options(max_iter, grad_f))
+
+
+def _placement_options(max_iter: int, grad_f: ca.Function) -> dict[str, Any]:
+    """The options of :func:`_placement_solver`."""
+    return {
+        "ipopt.print_level": 0,
+        "print_time": False,
+        "ipopt.hessian_approximation": "limited-memory",
+        # the quasi-Newton update inside the augmented system (one solve per step)
+        # instead of Sherman-Morrison's back-solves per stored pair: the same step,
+        # a third less of IPOPT's own time with hundreds of reading constraints
+        "ipopt.limited_memory_aug_solver": "extended",
+        "ipopt.max_iter": max_iter,
+        "ipopt.tol": 1e-6,
+        "ipopt.acceptable_tol": 1e-4,
+        "ipopt.sb": "yes",
+        "ipopt.bound_relax_factor": 0.0,
+        "grad_f": grad_f,
+        # no multipliers of the parameters (the weights): nlpsol would otherwise build
+        # the Lagrangian's gradient wrt them, reverse AD through the whole criterion
+        # graph (0.07 s for the first solver of a graph, 0.013 s for each later one),
+        # for an output the search never reads; the iterates are the same (a test)
+        "calc_lam_p": False,
+        "no_nlp_grad": True,
+    }
 
 
 # ---- pose exchange ---------------------------------------------------------------------
