@@ -569,12 +569,21 @@ def _gradient_search_setup():
     return ev, sampler, sel
 
 
-def _gradient_search(starts, ck=None, **where):
+def _gradient_search(starts, ck=None, initial=False, **where):
     from volcal.analysis.planning.search import gradient_placement
 
     ev, sampler, sel = _gradient_search_setup()
+    S0 = sampler.draw(np.random.default_rng(11), ev.n_stations) if initial else None
     return gradient_placement(
-        ev, sampler, selected=sel, starts=starts, seed=5, max_iter=15, checkpoint=ck, **where
+        ev,
+        sampler,
+        selected=sel,
+        starts=starts,
+        seed=5,
+        max_iter=15,
+        checkpoint=ck,
+        initial=S0,
+        **where,
     )
 
 
@@ -611,6 +620,24 @@ def test_gradient_search_same_result_serially_in_processes_and_on_dask(
         assert [h["best"] for h in serial.history] == [h["best"] for h in other.history], name
         if name != "resumed in processes":  # counts the iterations it ran itself
             assert serial.evaluations == other.evaluations, name
+
+
+def test_gradient_search_from_a_given_design_same_result_in_processes(monkeypatch):
+    """With a start design given (a later round's: it is shared out among the last), the
+    same stations, criterion, history and iterations in this process as in two worker
+    processes and with this process solving starts too; the history lists the starts in
+    their order, the given design first."""
+    monkeypatch.setenv("VOLCAL_MP_START", "fork")
+    serial = _gradient_search(4, initial=True, workers=1)
+    assert [h["step"] for h in serial.history] == [0, 1, 2, 3]
+    for workers in (2, None):
+        other = _gradient_search(4, initial=True, workers=workers)
+        assert np.array_equal(serial.stations, other.stations), workers
+        assert serial.value == other.value, workers
+        assert serial.history == [
+            dict(h, seconds=s["seconds"]) for h, s in zip(other.history, serial.history)
+        ]
+        assert serial.evaluations == other.evaluations, workers
 
 
 def test_bad_constraints_name_the_setting_file(tmp_path, capsys):
