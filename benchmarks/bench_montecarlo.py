@@ -43,6 +43,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scipy-trials", type=int, default=200)
     ap.add_argument("--casadi-scipy-trials", type=int, default=50)
     ap.add_argument("--out", type=Path, default=HERE / "results" / "montecarlo.md")
+    ap.add_argument("--json", type=Path, default=None,
+                    help="also write the table's rows (name, trials, seconds, seconds for "
+                    "--trials trials) to this JSON file (benchmarks/bench_guarded.py)")
     args = ap.parse_args(argv)
 
     import casadi as ca
@@ -216,6 +219,12 @@ def main(argv=None) -> int:
     print(text)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
+    if args.json is not None:
+        import json
+
+        args.json.write_text(json.dumps(
+            [{"name": name, "trials": n, "s": tm, "s_all_trials": t10}
+             for name, n, tm, t10 in rows]))
     return 0
 
 

@@ -85,6 +85,27 @@ def _read_stage(argv: list[str]) -> float | None:
     return float(json.loads(doc.read_text(encoding="utf-8"))["timings_s"]["reading the data"])
 
 
+def baseline_src(ref: str, work: Path) -> Path:
+    """The ``src/`` folder of git revision ``ref``, extracted below ``work`` and
+    byte-compiled (as an installed copy is): the folder to put first on PYTHONPATH."""
+    base = work / "baseline"
+    base.mkdir()
+    archive = subprocess.run(
+        ["git", "-C", str(REPO), "archive", ref, "src"], check=True, capture_output=True
+    ).stdout
+    subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
+    compileall.compile_dir(base / "src", quiet=1)
+    return base / "src"
+
+
+def write_printout(lines: list[str], out: Path) -> None:
+    """Print the lines and write them to ``out`` (its folder made when missing)."""
+    text = "\n".join(lines) + "\n"
+    print(text, end="")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text, encoding="utf-8")
+
+
 def _time(argv: list[str], src: Path | None, expect: int) -> float:
     env = dict(os.environ)
     if src is not None:
@@ -143,16 +164,7 @@ def main(argv: list[str] | None = None) -> int:
             )  # fmt: skip
         sides: dict[str, Path | None] = {"this": None}
         if a.baseline_ref:
-            base = work / "baseline"
-            base.mkdir()
-            archive = subprocess.run(
-                ["git", "-C", str(REPO), "archive", a.baseline_ref, "src"],
-                check=True,
-                capture_output=True,
-            ).stdout
-            subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
-            compileall.compile_dir(base / "src", quiet=1)
-            sides["baseline"] = base / "src"
+            sides["baseline"] = baseline_src(a.baseline_ref, work)
         times: dict[tuple[str, str], list[float]] = {}
         stages: dict[str, list[float]] = {}
         for name, (args, code) in commands.items():
@@ -185,10 +197,7 @@ def main(argv: list[str] | None = None) -> int:
                 pairs = [x / y for x, y in zip(stages["this"], t)]
                 row += f"  {statistics.median(pairs):.3f}"
             lines.append(row)
-    text = "\n".join(lines) + "\n"
-    print(text, end="")
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(text, encoding="utf-8")
+    write_printout(lines, a.out)
     return 0
 
 

@@ -276,12 +276,14 @@ VOLCAL_STAGES = {
     "solving": ("solving",),
     "covariance": ("uncertainty and identifiability",),
     "write": ("writing the tables",),
+    "adequacy": ("testing the model's adequacy",),
 }
 
 
 def stage_table(df: pd.DataFrame) -> str:
     """Per-stage seconds side by side (volcal / scipy) for every size, one thread count."""
-    stages = ["startup", "read", "model", "setup", "solving", "covariance", "write", "plots"]
+    stages = ["startup", "read", "model", "setup", "solving", "covariance", "adequacy", "write",
+              "plots"]
     lines = ["readings | " + " | ".join(f"{s} v/s" for s in stages)]
     for _, r in df.iterrows():
         cells = []

@@ -27,6 +27,7 @@ from hypothesis import strategies as st
 
 from volcal.base.exceptions import InputError
 from volcal.measurement import cells
+from volcal.measurement import tables as loader
 from volcal.measurement.cells import ScannedTable, scan_measurements
 from volcal.measurement.tables import load_measurements
 from volcal.model.spec import resolve_model
@@ -55,14 +56,17 @@ EDITS = (
 
 
 @contextlib.contextmanager
-def _pandas_only():
-    """The loader with the standard-library reading turned off (every file to pandas)."""
-    saved = cells.MAX_SCAN_BYTES
-    cells.MAX_SCAN_BYTES = -1
+def _pandas_only(typed: bool = False):
+    """The loader with the standard-library reading turned off (every file to pandas);
+    typed: with the typed reading of a clean file (numbers parsed by pandas' C parser,
+    loader._read_typed) tried first, as for a file above MAX_SCAN_BYTES; otherwise the text
+    reading alone (every cell read as text, then to_numeric: the reference)."""
+    saved = cells.MAX_SCAN_BYTES, loader.TYPED_READING
+    cells.MAX_SCAN_BYTES, loader.TYPED_READING = -1, typed
     try:
         yield
     finally:
-        cells.MAX_SCAN_BYTES = saved
+        cells.MAX_SCAN_BYTES, loader.TYPED_READING = saved
 
 
 def _number(draw, lo: float, hi: float) -> str:
@@ -206,6 +210,53 @@ def test_the_standard_library_reading_is_pandas_reading(case):
         if ref is not None:
             _same_measurements(got, ref)
         assert path.read_bytes() == data  # inputs never modified
+
+
+@settings(
+    max_examples=60,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+@given(tables())
+def test_the_typed_reading_of_a_large_file_is_the_text_reading(case):
+    """A file above MAX_SCAN_BYTES is first read with its number columns parsed by pandas'
+    C parser (loader._read_typed); a file that is not clean goes to the text reading. On
+    the drawn files (spoilt or not): the same error, warnings and Measurements as the text
+    reading alone, and the typed reading takes every clean file it is given."""
+    model, data = case
+    spec = SPECS[model]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "meas.csv"
+        path.write_bytes(data)
+        with _pandas_only():
+            ref, ref_err, ref_warn = _outcome(lambda: load_measurements(path, spec))
+        with _pandas_only(typed=True):
+            got, err, warn = _outcome(lambda: load_measurements(path, spec))
+        assert (err, warn) == (ref_err, ref_warn), data
+        if ref is not None:
+            _same_measurements(got, ref)
+        assert path.read_bytes() == data  # inputs never modified
+
+
+def test_the_typed_reading_takes_a_clean_file_and_leaves_a_spoilt_one(tmp_path):
+    """The typed reading reads a clean file (so that the test above compares it, not only
+    its fallback) and declines one with a bad cell, a blank line, an infinity or an empty
+    id, each of which the text reading then reports."""
+    spec = SPECS["mcv754_wxyzt"]
+    clean = "\n".join(GOOD) + "\n"
+    raw = loader._read_typed(_write(tmp_path, clean), spec, None)
+    assert raw is not None and raw.body[3].dtype == np.float64
+    assert list(raw.rows) == list(range(2, len(GOOD) + 1))
+    for spoilt in (
+        clean.replace(",803,", ",4x5.2,"),
+        clean.replace("\nA,p2,", "\n\nA,p2,"),
+        clean.replace(",803,", ",inf,"),
+        clean.replace("\nA,p2,", "\n,p2,"),
+        clean.replace(",803,", ",nan,"),
+    ):
+        assert loader._read_typed(_write(tmp_path, spoilt), spec, None) is None, spoilt
 
 
 def _write(tmp_path: Path, text: str, bom: bool = False) -> Path:

@@ -1746,6 +1746,10 @@ def save_result(
             log.info("evaluating the volumetric error on the grid")
             grid = volumetric_grid_table(machine, em, result.theta, result.cov_theta, grid_points)
             grid.to_csv(tmp / "volumetric_grid.csv", index=False)
+        # the adequacy test (kept on the result) is a pass over every reading: a stage of
+        # its own, so that its time is recorded rather than hidden in the document's
+        with progress.stage("testing the model's adequacy"):
+            assess(result)
         doc = _result_document(
             result, data_name=data_name, options=options, grid=grid, created=created
         )
