@@ -12,10 +12,12 @@ that finds a worse plan shows).  Prints medians (and the range) as a table.
 With ``--baseline-python PY`` (the interpreter of another installation, e.g. the main
 branch's virtual environment) the two versions run in turn, run by run (this one, then
 the baseline), the ratio of each pair is printed (median and range: pairs taken close in
-time cancel most of a shared machine's drift), and the plans are compared: the largest
-station difference (mm), whether the selected poses are the same (a rotary axis at -180
-and +180 deg is one pose), and the difference of the criterion (negative: this version's
-plan is better).
+time cancel most of a shared machine's drift), and the plans are compared: whether the
+stations and the criterion are identical to the bit, which of the written stations.csv,
+poses.csv, measurement_plan.csv and prediction_volumetric.csv differ byte for byte, the
+largest station difference (mm), whether the selected poses are the same (a rotary axis
+at -180 and +180 deg is one pose), and the difference of the criterion (negative: this
+version's plan is better).
 
 With ``--baseline-args='--workers 1'`` (and no baseline interpreter) this version runs in
 turn with and without those flags: the placement starts solved side by side (the default)
@@ -92,8 +94,16 @@ def _compare(new: Path, base: Path) -> str:
     cn = json.loads((new / "summary.json").read_text())["criterion_value"]
     cb = json.loads((base / "summary.json").read_text())["criterion_value"]
     pn, pb = _poses(new), _poses(base)
+    same = np.array_equal(Sn, Sb) and cn == cb
+    tables = [
+        f
+        for f in ("stations.csv", "poses.csv", "measurement_plan.csv", "prediction_volumetric.csv")
+        if (new / f).read_bytes() != (base / f).read_bytes()
+    ]
     return (
-        f"stations differ by at most {np.abs(Sn - Sb).max():.4f} mm; "
+        ("identical to the bit (stations, criterion), " if same else "")
+        + (f"tables differing: {', '.join(tables)}; " if tables else "the same tables; ")
+        + f"stations differ by at most {np.abs(Sn - Sb).max():.2e} mm; "
         f"selected poses {'the same' if pn == pb else 'differ'} ({sum(pn.values())} poses"
         f"{'' if pn == pb else f', {sum((pn - pb).values())} exchanged'}); "
         f"criterion {cn:.10f} um here, {cb:.10f} um baseline, difference {cn - cb:+.2e} um"

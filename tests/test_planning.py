@@ -206,6 +206,39 @@ def test_written_out_gradient_is_the_criterion_s_derivative():
         assert np.allclose(g, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max()), crit
 
 
+def test_information_kept_for_a_design_is_the_one_computed_afresh():
+    """The information matrices the scorer keeps (a plan's design is scored again and
+    again) are those of the problem's Jacobian for that design, whatever a caller does to
+    the matrix it got, and are computed again in a new parameterisation."""
+    _, _, _, ev, sel = _evaluator()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ev.freeze(S_LEFT_RIGHT, sel)
+    sc = ev.scorer
+
+    def fresh(S, selected):
+        A = sc.jacobian(S, selected)[:, sc.free] @ sc.Z
+        return A.T @ A
+
+    M = ev.information(S_LEFT_RIGHT, sel)
+    assert np.array_equal(M, fresh(S_LEFT_RIGHT, sel))
+    M[:] = 0.0  # the caller's copy
+    other = sel.copy()
+    other[np.flatnonzero(~sel)[:3]] = True
+    designs = [(S_LEFT_RIGHT, sel), (S_LEFT_RIGHT + 25.0, sel), (S_LEFT_RIGHT, other)]
+    designs += [(S_LEFT_RIGHT, None), (S_LEFT_RIGHT - 25.0, other), (S_LEFT_RIGHT, sel)]
+    for S, selected in designs:  # more designs than are kept
+        assert np.array_equal(ev.information(S, selected), fresh(S, selected))
+    # another basis of the free directions (a rotation Q): Q^T M Q, not the kept M
+    M0 = fresh(S_LEFT_RIGHT, sel)
+    Q, _ = np.linalg.qr(np.random.default_rng(2).normal(size=(sc.Z.shape[1],) * 2))
+    sc.set_frozen(sc.free, sc.Z @ Q, sc.B @ Q, sc.theta_rows)
+    M2 = ev.information(S_LEFT_RIGHT, sel)
+    assert np.array_equal(M2, fresh(S_LEFT_RIGHT, sel))
+    assert np.allclose(M2, Q.T @ M0 @ Q, rtol=1e-9, atol=1e-9 * np.abs(M0).max())
+    assert not np.allclose(M2, M0, rtol=1e-3)
+
+
 def test_criterion_rows_are_the_identification_jacobian():
     """The evaluator's information is J^T J of the problem's own Jacobian (the rows
     identify solves with), restricted to the free directions."""
@@ -536,12 +569,21 @@ def _gradient_search_setup():
     return ev, sampler, sel
 
 
-def _gradient_search(starts, ck=None, **where):
+def _gradient_search(starts, ck=None, initial=False, **where):
     from volcal.analysis.planning.search import gradient_placement
 
     ev, sampler, sel = _gradient_search_setup()
+    S0 = sampler.draw(np.random.default_rng(11), ev.n_stations) if initial else None
     return gradient_placement(
-        ev, sampler, selected=sel, starts=starts, seed=5, max_iter=15, checkpoint=ck, **where
+        ev,
+        sampler,
+        selected=sel,
+        starts=starts,
+        seed=5,
+        max_iter=15,
+        checkpoint=ck,
+        initial=S0,
+        **where,
     )
 
 
@@ -578,6 +620,24 @@ def test_gradient_search_same_result_serially_in_processes_and_on_dask(
         assert [h["best"] for h in serial.history] == [h["best"] for h in other.history], name
         if name != "resumed in processes":  # counts the iterations it ran itself
             assert serial.evaluations == other.evaluations, name
+
+
+def test_gradient_search_from_a_given_design_same_result_in_processes(monkeypatch):
+    """With a start design given (a later round's: it is shared out among the last), the
+    same stations, criterion, history and iterations in this process as in two worker
+    processes and with this process solving starts too; the history lists the starts in
+    their order, the given design first."""
+    monkeypatch.setenv("VOLCAL_MP_START", "fork")
+    serial = _gradient_search(4, initial=True, workers=1)
+    assert [h["step"] for h in serial.history] == [0, 1, 2, 3]
+    for workers in (2, None):
+        other = _gradient_search(4, initial=True, workers=workers)
+        assert np.array_equal(serial.stations, other.stations), workers
+        assert serial.value == other.value, workers
+        assert serial.history == [
+            dict(h, seconds=s["seconds"]) for h, s in zip(other.history, serial.history)
+        ]
+        assert serial.evaluations == other.evaluations, workers
 
 
 def test_bad_constraints_name_the_setting_file(tmp_path, capsys):
@@ -671,3 +731,35 @@ def _simulate_and_identify_the_plan(out, tmp_path, capsys):
              str(out / "measurement_plan.csv"), "--tools", "0,0,0", "--seed", "1",
              "--out", str(tmp_path / "xt"))  # fmt: skip
     assert r.returncode == 2 and "--tools" in r.stderr and not (tmp_path / "xt").exists()
+
+
+def test_placement_solver_without_the_weights_multipliers_ends_at_the_same_stations(
+    monkeypatch,
+):
+    """The placement's IPOPT solver is built without the Lagrangian's gradient wrt the
+    weights (nlpsol's ``nlp_grad``: reverse AD through the criterion graph, for
+    multipliers the search never reads); a solver with it ends a start at the same
+    stations, to the bit, after the same iterations."""
+    import casadi as ca
+
+    from volcal.analysis.planning import search
+
+    seen = []
+    run_chunk = search._PlacementKernel.run_chunk
+
+    def spy(self, chunk):
+        seen.append((self, chunk))
+        return run_chunk(self, chunk)
+
+    monkeypatch.setattr(search._PlacementKernel, "run_chunk", spy)
+    _gradient_search(1, workers=1)
+    kernel, (_, S0, regions, w) = seen[0]
+    nlp, lbg, ubg = kernel.problems[regions]
+    opts = search._placement_options(kernel.max_iter, kernel.grad_f)
+    assert opts.pop("no_nlp_grad") is True and opts.pop("calc_lam_p") is False
+    full = ca.nlpsol("full", "ipopt", nlp, opts)
+    ours = kernel.solver(regions)
+    assert "nlp_grad" in full.get_function() and "nlp_grad" not in ours.get_function()
+    x = [np.asarray(s(x0=S0.ravel(), p=w, lbg=lbg, ubg=ubg)["x"]) for s in (full, ours)]
+    assert np.array_equal(x[0], x[1])
+    assert full.stats()["iter_count"] == ours.stats()["iter_count"] > 1

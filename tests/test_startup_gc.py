@@ -65,3 +65,33 @@ def test_main_with_argv_leaves_the_callers_collector_alone():
         "print(rc, gc.isenabled(), gc.get_freeze_count())\n"
     )
     assert out == "0 True 0"
+
+
+def test_plan_as_program_plans_with_the_collector_on(tmp_path: Path):
+    """Run as the program, plan imports and reads its setting with the collector paused,
+    then resumes it (the start-up's objects frozen) before the planning (probed where the
+    setting is read and where the planning starts; the second probe stops the command)."""
+    code = (
+        "import gc, sys\n"
+        "import volcal.analysis.planning as planning\n"
+        "import volcal.analysis.planning.setting as setting\n"
+        "from volcal.base.exceptions import InputError\n"
+        "seen = []\n"
+        "load = setting.load_setting\n"
+        "def reading(*a, **k):\n"
+        "    seen.append(gc.isenabled())\n"
+        "    return load(*a, **k)\n"
+        "def probe(*a, **k):\n"
+        "    raise InputError(f'probe {seen} {gc.isenabled()} {gc.get_freeze_count() > 0}')\n"
+        "setting.load_setting = reading\n"
+        "planning.plan = probe\n"
+        "from volcal.cli.main import main\n"
+        "sys.argv = ['volcal', 'plan', '--setting', 'mcv754', '--no-plots', '--out', "
+        f"{str(tmp_path / 'out')!r}]\n"
+        "rc = main()\n"
+        "print(rc, gc.isenabled())\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert "probe [False] True True" in r.stderr, r.stderr
+    assert r.stdout.strip() == "2 True", r.stderr  # an error returns its code (exit 2)
+    assert not (tmp_path / "out").exists()

@@ -322,6 +322,38 @@ def write_plan(
     docstring) atomically into ``out_dir``; returns its path.  ``plotter``: a
     :class:`volcal.outputs.plot_process.PlotProcess` started early (the command line's),
     which draws ``plan.png`` while this process writes the tables; None: drawn here."""
+    from volcal.outputs.figures import draw_plan
+
+    def writer(d: Path) -> None:
+        # the volumetric prediction first and plan.png asked for at once: the plotting
+        # child draws it (about 0.3 s) while this process computes the other predictions,
+        # the NC programs and the set-up sheet, instead of after them
+        vol = result.volumetric_uncertainty()
+        if plots and plotter is not None:
+            plotter.draw(draw_plan, _plot_data(result, vol), d / "plan.png")
+        files = _plan_contents(result, vol, dialects, dwell_s, feed_mm_min)
+        for name, table in files["tables"].items():
+            table.to_csv(d / name, index=False)
+        for name, text in files["texts"].items():
+            (d / name).write_text(text)
+        if plots and plotter is not None:
+            plotter.wait()  # the folder is renamed into place with its figure
+        elif plots:
+            draw_plan(_plot_data(result, vol), d / "plan.png")
+
+    return write_folder(out_dir, PLAN_FILES, "a measurement plan", writer, force=force)
+
+
+def _plan_contents(
+    result: Any,
+    vol: pd.DataFrame,
+    dialects: Sequence[str],
+    dwell_s: float,
+    feed_mm_min: float,
+) -> dict[str, dict[str, Any]]:
+    """The files of a plan but plan.png: ``{"tables": {file name: DataFrame}, "texts":
+    {file name: text}}``, in the order they are written; ``vol``: the plan's
+    :meth:`volumetric_uncertainty`."""
     m = result.machine
     mp = result.measurement_plan()
     mp_nc = result.measurement_plan(with_tool_index=True)
@@ -347,10 +379,9 @@ def write_plan(
         )
         for d in dialects
     }
-    vol = result.volumetric_uncertainty()
     motions = result.error_motion_uncertainty()
     params = result.parameter_uncertainty()
-    summary = result.summary()
+    summary = result.summary(vol=vol)
     summary["field_not_determined"] = int((~result.field_determined()).sum())
     summary["violations"] = int(len(result.violations()))
     summary["settings"] = dict(result.settings, half_angle_deg=half)
@@ -368,32 +399,26 @@ def write_plan(
         ],
         columns=["search", "step", "best", "seconds"],
     )
-
-    from volcal.outputs.figures import draw_plan
-
-    def writer(d: Path) -> None:
-        if plots and plotter is not None:  # drawn in the child while the tables are written
-            plotter.draw(draw_plan, _plot_data(result, vol), d / "plan.png")
-        result.stations.to_csv(d / "stations.csv", index=False)
-        result.poses.to_csv(d / "poses.csv", index=False)
-        mp.to_csv(d / "measurement_plan.csv", index=False)
-        for name, text in programs.items():
-            (d / f"program_{name}.nc").write_text(text)
-        params.to_csv(d / "prediction_parameters.csv", index=False)
-        motions.to_csv(d / "prediction_error_motions.csv", index=False)
-        vol.to_csv(d / "prediction_volumetric.csv", index=False)
-        hist.to_csv(d / "search_history.csv", index=False)
-        (d / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-        (d / "report.md").write_text(_report(summary, vol, motions, pred))
-        if add is not None and pred is not None:
-            pred.to_csv(d / "prediction_instruments.csv", index=False)
-            for name in add.instruments:
-                table = add.table(name)
-                if len(table):
-                    table.to_csv(d / f"added_{name}.csv", index=False)
-        if plots and plotter is not None:
-            plotter.wait()  # the folder is renamed into place with its figure
-        elif plots:
-            draw_plan(_plot_data(result, vol), d / "plan.png")
-
-    return write_folder(out_dir, PLAN_FILES, "a measurement plan", writer, force=force)
+    tables = {
+        "stations.csv": result.stations,
+        "poses.csv": result.poses,
+        "measurement_plan.csv": mp,
+    }
+    texts = {f"program_{name}.nc": text for name, text in programs.items()}
+    tables.update(
+        {
+            "prediction_parameters.csv": params,
+            "prediction_error_motions.csv": motions,
+            "prediction_volumetric.csv": vol,
+            "search_history.csv": hist,
+        }
+    )
+    texts["summary.json"] = json.dumps(summary, indent=2) + "\n"
+    texts["report.md"] = _report(summary, vol, motions, pred)
+    if add is not None and pred is not None:
+        tables["prediction_instruments.csv"] = pred
+        for name in add.instruments:
+            table = add.table(name)
+            if len(table):
+                tables[f"added_{name}.csv"] = table
+    return {"tables": tables, "texts": texts}

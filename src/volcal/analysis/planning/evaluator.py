@@ -335,9 +335,12 @@ class PlanEvaluator:
             H.append(ZZ[i] * pr.scale[i][:, None])
         used = [b for b, Hb in enumerate(H) if np.any(Hb)]  # all zero: held, or unmoved
         used = self._merge_proportional(f_V, N, H, used)
+        # each H_b converted to a CasADi matrix once (about 7 ms for 960 x 70), one node
+        # used by A and by the gradient
+        H_dm = {b: ca.MX(ca.DM(H[b])) for b in used}
         A: ca.MX = ca.MX(N, r)
         for b in used:
-            A = A + ca.repmat(V[b, :].T, 1, r) * ca.DM(H[b])
+            A = A + ca.repmat(V[b, :].T, 1, r) * H_dm[b]
         M = dense_mtimes(A.T, A)
         # f and the r x r matrix Q with df = -<A Q, dA> (times 2): I and A are
         # trace(M^-1 W) / n, so Q = M^-1 W M^-1 / n; D is det(M)^(-1/r), Q = f M^-1 / r.
@@ -367,7 +370,7 @@ class PlanEvaluator:
         GA = -2.0 * dense_mtimes(A, Q)
         dV = ca.MX(3 + nps, N)
         for b in used:
-            dV[b, :] = ca.sum2(GA * ca.DM(H[b])).T
+            dV[b, :] = ca.sum2(GA * H_dm[b]).T
         self._sym_rows = rows
         return s, w, f, f_Vt(s, w, dV)
 
@@ -447,6 +450,7 @@ class Scorer:
         self.B_r: np.ndarray = np.zeros((0, 0))
         self.theta_rows: np.ndarray = np.zeros(0, int)
         self._call: NumpyCall | None = None
+        self._info: dict[tuple[bytes, bytes | None], np.ndarray] = {}
 
     def set_frozen(
         self, free: np.ndarray, Z: np.ndarray, B: np.ndarray, theta_rows: np.ndarray
@@ -454,6 +458,7 @@ class Scorer:
         """The free variables, the basis of the directions the datum leaves, the scaled
         volumetric map B (3 n_eval, r) and the rows of Z that are error parameters."""
         self.free, self.Z, self.B, self.theta_rows = free, Z, B, theta_rows
+        self._info = {}  # computed in another parameterisation
         # the I-criterion needs only B^T B = R^T R: ||L^-1 B^T||_F = ||L^-1 R^T||_F with R
         # (at most r x r) from a QR of B, a right-hand side of r columns, not 3 n_eval
         self.B_r = sla.qr(B, mode="r", check_finite=False)[0][: B.shape[1]] if B.size else B
@@ -466,6 +471,7 @@ class Scorer:
         d = dict(self.__dict__)
         d["jac"] = self.jac.serialize()
         d["_call"] = None
+        d["_info"] = {}
         return d
 
     def __setstate__(self, d: dict[str, Any]) -> None:
@@ -517,8 +523,21 @@ class Scorer:
         return self.jacobian(stations, selected)[:, self.free] @ self.Z
 
     def information(self, stations: np.ndarray, selected: np.ndarray | None = None) -> np.ndarray:
-        A = self.reduced_jacobian(stations, selected)
-        return A.T @ A
+        """Z^T J^T J Z (r, r) of a design.  The last few are kept: a plan's design is
+        scored before and after each search and again for each prediction written (each
+        a Jacobian of every candidate reading); the same numbers, computed once."""
+        key = (
+            np.asarray(stations, float).tobytes(),
+            None if selected is None else np.asarray(selected, bool).tobytes(),
+        )
+        M = self._info.get(key)
+        if M is None:
+            A = self.reduced_jacobian(stations, selected)
+            M = A.T @ A
+            if len(self._info) >= 4:
+                self._info.pop(next(iter(self._info)))
+            self._info[key] = M
+        return M.copy()
 
     @staticmethod
     def _factor(M: np.ndarray) -> np.ndarray | None:

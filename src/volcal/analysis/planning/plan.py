@@ -448,8 +448,11 @@ class PlanResult:
         p0, _, _ = self.machine.evaluate(ev.eval_q, ev.eval_t, np.zeros(self.machine.n_errors))
         return np.asarray(fns.determined(ev.G_eval, p0), bool)
 
-    def summary(self) -> dict[str, Any]:
-        vol = self.volumetric_uncertainty()
+    def summary(self, *, vol: pd.DataFrame | None = None) -> dict[str, Any]:
+        """The plan's figures, searches, margins and slack as plain data; ``vol``: its
+        :meth:`volumetric_uncertainty` where the caller has it already."""
+        if vol is None:
+            vol = self.volumetric_uncertainty()
         return {
             "model": self.machine.spec.name,
             "stations": int(len(self.stations_mm)),

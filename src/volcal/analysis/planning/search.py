@@ -336,7 +336,7 @@ def gradient_placement(
     thread, so the result does not depend on where they ran.  The best start is the one
     of least criterion, the first of equal ones.  ``progress(n - 1, best)`` after the n-th
     start to finish, with the best criterion of the finished ones."""
-    from volcal.analysis.uncertainty.parallel import run_chunks
+    from volcal.analysis.uncertainty.parallel import default_workers, run_chunks
 
     t0 = time.perf_counter()
     if ev.frozen is None:
@@ -443,6 +443,14 @@ def gradient_placement(
             g, lbg, ubg = _reading_rows(rows_of, cons, regions, P, sampler.centre)
             problems[regions] = _placement_problem(s, pp, f, g, lbg, ubg, cons, regions)
         chunks.append((i, S0, regions, ev.weights(S0, selected)))
+    side_by_side = scheduler is not None or (workers or default_workers()) > 1
+    if side_by_side and n_done == 0 and initial is not None and chunks and chunks[0][0] == 0:
+        # the start at ``initial`` (in a later round the plan's stations, an optimum for
+        # the previous selection: the fewest iterations, 12 against 25-60 for mcv754) in
+        # the middle: the workers take the starts from the front and this process from
+        # the back (run_chunks), so it is among the last taken, where a short start
+        # evens out the processes' ends; results are kept by start, whatever the order
+        chunks.insert(len(chunks) // 2, chunks.pop(0))
     kernel = _PlacementKernel(problems, grad_f, max_iter, scorer, sampler, selected)
     base = len(results)  # starts done before (a checkpoint); drawn[i] is start base + i
     ended: dict[int, tuple[float, np.ndarray]] = {}
@@ -471,12 +479,6 @@ def gradient_placement(
             {"kind": "gradient", "key": key, "rng": rng_after[m - 1], "history": history},
         )
 
-    if chunks:
-        # the first solver built works out the sparsity of the criterion's graph, which
-        # the graph keeps (a third of a second for trunnion_ac, 0.03 s for each solver
-        # after it): once here, before forked workers inherit it, not once in each process;
-        # this process's first start (the last, see run_chunks) uses it
-        kernel.solver(chunks[-1][2])
     before = [v for v, _ in results]
     for (i, *_), (value, S, iters) in run_chunks(
         kernel, chunks, workers=workers, scheduler=scheduler
@@ -507,7 +509,7 @@ class _PlacementKernel:
     weights, with its constraint bounds), the objective's gradient Function, the scorer
     and the sampler's constraint check, picklable (CasADi Functions travel serialised).
     Each process builds the IPOPT solver of an assignment when a start first needs it and
-    keeps it (building one, its derivatives' sparsity included, is about 0.05 s: in the
+    keeps it (building one is a few milliseconds, see :func:`_placement_solver`: in the
     processes that solve, not before the work is shared out).
     ``run_chunk((index, S0, regions, weights))`` solves from the start design S0 (K, 3)
     mm and returns (criterion of the result, or inf where it breaks a constraint; stations
@@ -643,26 +645,32 @@ def _placement_problem(s, pp, f, g_base, lbg, ubg, cons, regions):
 def _placement_solver(nlp: ca.Function, max_iter: int, grad_f: ca.Function) -> ca.Function:
     """IPOPT on the NLP of :func:`_placement_problem`, the objective's value and gradient
     from the Function ``grad_f(s, pp)`` (written out rather than reverse AD)."""
-    return ca.nlpsol(
-        "placement",
-        "ipopt",
-        nlp,
-        {
-            "ipopt.print_level": 0,
-            "print_time": False,
-            "ipopt.hessian_approximation": "limited-memory",
-            # the quasi-Newton update inside the augmented system (one solve per step)
-            # instead of Sherman-Morrison's back-solves per stored pair: the same step,
-            # a third less of IPOPT's own time with hundreds of reading constraints
-            "ipopt.limited_memory_aug_solver": "extended",
-            "ipopt.max_iter": max_iter,
-            "ipopt.tol": 1e-6,
-            "ipopt.acceptable_tol": 1e-4,
-            "ipopt.sb": "yes",
-            "ipopt.bound_relax_factor": 0.0,
-            "grad_f": grad_f,
-        },
-    )
+    return ca.nlpsol("placement", "ipopt", nlp, _placement_options(max_iter, grad_f))
+
+
+def _placement_options(max_iter: int, grad_f: ca.Function) -> dict[str, Any]:
+    """The options of :func:`_placement_solver`."""
+    return {
+        "ipopt.print_level": 0,
+        "print_time": False,
+        "ipopt.hessian_approximation": "limited-memory",
+        # the quasi-Newton update inside the augmented system (one solve per step)
+        # instead of Sherman-Morrison's back-solves per stored pair: the same step,
+        # a third less of IPOPT's own time with hundreds of reading constraints
+        "ipopt.limited_memory_aug_solver": "extended",
+        "ipopt.max_iter": max_iter,
+        "ipopt.tol": 1e-6,
+        "ipopt.acceptable_tol": 1e-4,
+        "ipopt.sb": "yes",
+        "ipopt.bound_relax_factor": 0.0,
+        "grad_f": grad_f,
+        # no multipliers of the parameters (the weights): nlpsol would otherwise build
+        # the Lagrangian's gradient wrt them, reverse AD through the whole criterion
+        # graph (0.07 s for the first solver of a graph, 0.013 s for each later one),
+        # for an output the search never reads; the iterates are the same (a test)
+        "calc_lam_p": False,
+        "no_nlp_grad": True,
+    }
 
 
 # ---- pose exchange ---------------------------------------------------------------------

@@ -856,6 +856,9 @@ def ipopt_resolve(
         "hess_lag": pr.hess_lag,
         "grad_f": pr.grad_f,
         "error_on_fail": False,
+        # the data's multipliers are not read (see volcal.solve.ipopt)
+        "calc_lam_p": False,
+        "no_nlp_grad": True,
     }
     S = ca.nlpsol("verify", "ipopt", pr.nlp, opts)
     q, t, _, w = unpack_data(pr.machine.n_axes, p)
