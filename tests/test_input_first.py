@@ -43,6 +43,62 @@ def test_cli_reports_a_bad_table_before_building(tmp_path, capsys, no_build):
     assert not (tmp_path / "out").exists()
 
 
+def test_cli_starts_the_plotting_processes_once_the_cells_are_checked(tmp_path, monkeypatch):
+    """A good table: the plotting processes start after its rows and cells are checked
+    (the standard library's reading) and before the loader's checks of the whole table;
+    an error there (here: the loader's) ends the command with exit code 2."""
+    import volcal.measurement.cells as cells
+    import volcal.measurement.tables as tables
+    from volcal.outputs.plot_process import PlotProcess
+
+    calls = []
+    scan = cells.scan_measurements
+
+    def scanned(*args, **kwargs):
+        calls.append("scan")
+        return scan(*args, **kwargs)
+
+    def started(cls, *args, **kwargs):
+        calls.append("start")  # no process: plotting() then yields None
+
+    def load(*args, **kwargs):
+        calls.append("load")
+        raise InputError("duplicate reading", source="good.csv")
+
+    monkeypatch.setattr(cells, "scan_measurements", scanned)
+    monkeypatch.setattr(PlotProcess, "start", classmethod(started))
+    monkeypatch.setattr(tables, "load_measurements", load)
+    path = tmp_path / "good.csv"
+    pd.DataFrame(
+        {"station": ["A"] * 4, "point": ["1", "2", "3", "4"], "X": [0.0, 10.0, 20.0, 30.0],
+         "Y": 0.0, "Z": 0.0, "length": [800.0, 801.0, 802.0, 803.0]}
+    ).to_csv(path, index=False)
+    code = volcal.cli.main.main(["identify", "--model", "mcv754_wxyzt", "--data", str(path),
+                                 "--out", str(tmp_path / "out")])
+    assert code == 2
+    assert calls == ["scan", "start", "load"]
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_failing_command_ends_its_plotting_processes_at_once():
+    """A command that fails inside ``plotting()`` (a bad table found once the plotting
+    processes are started) terminates them at once instead of waiting for the first one
+    to finish importing matplotlib."""
+    import signal
+
+    from volcal.outputs.plot_process import plotting
+
+    proc = None
+    with pytest.raises(InputError, match="bad"):
+        with plotting(True) as plotter:
+            if plotter is None:
+                pytest.skip("no plotting processes on this platform")
+            proc = plotter._proc
+            raise InputError("bad table")
+    assert proc is not None and not proc.is_alive()
+    assert proc.exitcode == -signal.SIGTERM  # ended by the parent, not by itself
+
+
 def test_api_reports_a_bad_table_before_building(tmp_path, no_build):
     from volcal.analysis.identify import identify
 

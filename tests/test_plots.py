@@ -169,3 +169,43 @@ def test_correlations_name_the_strongest_pairs():
     ticks = {t.get_text() for t in fig.axes[0].get_xticklabels()}
     assert {"axis X", "axis A", "axis C"} <= ticks
     assert min(t.get_fontsize() for t in _texts(fig)) >= 8
+
+
+def test_titles_placed_before_drawing_give_matplotlibs_picture(tmp_path, monkeypatch):
+    """figures.save places the axes' titles before drawing where nothing can be above
+    them (sparing matplotlib a second layout of the y tick labels): the PNGs are byte for
+    byte those of matplotlib's own placement, on two plots of a result (y axes with a
+    ScalarFormatter; the strongest pairs' names, a FixedFormatter) and where the y axis
+    shows an offset text (values of about 1e-9) under a title wide enough to meet it,
+    which matplotlib moves up: left to matplotlib."""
+    from volcal.outputs import figures as F
+    from volcal.outputs.plots import correlations_data
+
+    res = _result()
+    comp = component_error_table(
+        res.error_model, res.theta, res.cov_theta, res.identifiable, COMPONENT_POINTS
+    )
+    cases = [
+        ("component_errors.png", F.draw_component_errors,
+         volcal.plots.component_errors_data(comp, res.error_model)),
+        ("correlations.png", F.draw_correlations, correlations_data(res)),
+    ]
+
+    def offset_title(data, path):
+        fig = F.figure(3.0, 2.0)
+        ax = fig.add_axes((0.25, 0.2, 0.7, 0.55))
+        ax.plot([0.0, 1.0], [1e-9, 3e-9])
+        ax.set_title("a title as wide as the axes, over the offset text", fontsize=10)
+        return F.save(fig, path)
+
+    cases.append(("offset_title.png", offset_title, None))
+    settled = []
+    for name, draw, data in cases:
+        fig = draw(data, tmp_path / name)
+        settled += [ax._autotitlepos is False for ax in fig.axes if ax.get_title()]
+    assert sum(settled) == 7  # the result's plots (6 + 1 titles): placed ahead
+    assert fig.axes[0]._autotitlepos is not False  # the offset text: left to matplotlib
+    monkeypatch.setattr(F, "_settle_titles", lambda fig: None)
+    for name, draw, data in cases:
+        draw(data, tmp_path / f"mpl_{name}")
+        assert (tmp_path / name).read_bytes() == (tmp_path / f"mpl_{name}").read_bytes(), name

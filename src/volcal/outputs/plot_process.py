@@ -3,7 +3,7 @@
 Matplotlib costs a third of a second to import and its drawing is pure Python: on the
 critical path of a short run it is most of the time.  :class:`PlotProcess` forks a child
 at the start of a command, before the parent imports the numerics; it imports matplotlib
-and draws a throw-away figure (fonts, text layout caches, the PNG writer) on the other core
+and writes a throw-away line of text (the font, the PNG writer) on the other core
 while the parent reads, solves and writes, then forks the other plotting children from its
 warmed-up self (one import of matplotlib, not one per child).  The parent then sends
 ``(function, args)`` requests: the function is a module-level drawing function (pickled by
@@ -32,28 +32,22 @@ Request = tuple[Callable[..., Any], tuple]
 
 
 def warm_up() -> None:
-    """Import matplotlib's Agg canvas and draw one small figure with the artists the plots
-    use (text, lines, an image, a filled band, arrows, a colour bar) into memory: the
-    first figure of a process costs twice the later ones."""
+    """Import matplotlib's Agg canvas and write one line of text into a tiny PNG in
+    memory (:func:`volcal.outputs.figures.save`): the font file, the text layout and the
+    PNG writer (Pillow) are loaded once, in the first plotting child, for all of them.  A
+    warm-up figure with every kind of artist the plots use cost 0.1 s of the plotting
+    children's time and saved no more than that in the figures drawn after it."""
     import io
 
-    import numpy as np
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(3, 2))
+    from volcal.outputs.figures import save
+
+    fig = Figure(figsize=(1.0, 0.5))
     FigureCanvasAgg(fig)
-    ax1, ax2 = fig.subplots(1, 2)
-    x = np.linspace(0.0, 1.0, 5)
-    ax1.plot(x, x, ".", label="a", rasterized=True)
-    ax1.fill_between(x, x - 0.1, x + 0.1, alpha=0.2, linewidth=0)
-    ax1.legend(fontsize=7)
-    ax1.set_title("warm-up", fontsize=9)
-    im = ax2.imshow(np.eye(3), cmap="viridis")
-    ax2.quiver([0.0], [0.0], [1.0], [1.0])
-    fig.colorbar(im, ax=ax2, label="c")
-    fig.suptitle("warm-up")
-    fig.savefig(io.BytesIO(), dpi=50)
+    fig.text(0.5, 0.5, "error (µm) −1.5", fontsize=9, ha="center")
+    save(fig, io.BytesIO(), dpi=20)  # as the figures are written (hinting, PNG level)
 
 
 def _serve_requests(conn, ahead: Sequence[Request] = ()) -> None:  # pragma: no cover - child
@@ -110,7 +104,9 @@ def _zygote(  # pragma: no cover - runs in a child
 
     watch_parent(parent)
     # below the parent while both compute: the parent's reading and solving is the
-    # critical path, the warm-up only has to end before the first figure is asked for
+    # critical path, the warm-up only has to end before the first figure is asked for (the
+    # same time within 1 % as at the parent's priority, whole runs paired under a load of
+    # 3; volcal plan's and volcal mc's workers keep both cores busy meanwhile)
     try:
         os.nice(10)
     except OSError:  # pragma: no cover
@@ -261,8 +257,15 @@ class PlotProcess:
         errors: list[str] = []
         while any(self._pending):
             for snd in self._senders:
-                if snd.error is not None:
-                    raise RuntimeError(f"could not send a plot request: {snd.error}")
+                error = snd.error  # read once: the sending thread may set it meanwhile
+                if isinstance(error, (BrokenPipeError, ConnectionResetError, EOFError)):
+                    # the child is gone (a figure sent to it after it died)
+                    raise RuntimeError(
+                        f"the plotting process ended unexpectedly (a plot request could "
+                        f"not be sent: {error})"
+                    )
+                if error is not None:
+                    raise RuntimeError(f"could not send a plot request: {error}")
             busy = [c for c, n in zip(self._conns, self._pending) if n]
             ready = wait_any(busy, timeout)
             if not ready:
@@ -280,13 +283,15 @@ class PlotProcess:
         if errors:
             raise RuntimeError("plotting failed:\n" + "\n".join(errors))
 
-    def close(self) -> None:
-        """End the plotting children (after their figures, or at once on an error)."""
+    def close(self, abort: bool = False) -> None:
+        """End the plotting children: after their figures, or at once on an error or when
+        ``abort`` (the command failed: a child still importing matplotlib is not waited
+        for)."""
         for snd in self._senders:
-            snd.close(timeout=2.0)
+            snd.close(timeout=0.0 if abort else 2.0)
         for c in self._conns:
             c.close()
-        busy = any(self._pending)
+        busy = abort or any(self._pending)
         self._proc.join(timeout=2.0 if not busy else 0.0)
         if self._proc.is_alive():  # the others end with it (PR_SET_PDEATHSIG)
             self._proc.terminate()
@@ -312,6 +317,11 @@ def plotting(
         plotter = PlotProcess.start(workers=workers, warm=warm, ahead=ahead)
     try:
         yield plotter
+    except BaseException:
+        if plotter is not None:  # the command failed: its error is not kept waiting
+            plotter.close(abort=True)
+            plotter = None
+        raise
     finally:
         if plotter is not None:
             plotter.close()

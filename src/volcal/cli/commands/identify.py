@@ -21,6 +21,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+from collections.abc import Callable
+from contextlib import ExitStack
 from pathlib import Path
 
 # kept here (not imported from volcal.analysis.identify) so that `volcal --help` stays light
@@ -247,10 +249,15 @@ def _inside(path: Path, folder: Path) -> bool:
         return False
 
 
-def _read_inputs(args: argparse.Namespace):
+def _read_inputs(args: argparse.Namespace, rows_checked: Callable[[], object] = lambda: None):
     """The measurement table (and the stations table) read and validated first, before
-    the model is built, the solver imported or the plotting processes started: a bad
-    table is reported at once (exit code 2).  Returns (Measurements, stations table or
+    the model is built or the solver imported, and its cells before the plotting
+    processes are started: a bad table is reported at once (exit code 2).
+    ``rows_checked`` is called once every row and cell of the table is checked when that
+    is before pandas' import (the tracker's tables, read with the standard library): the
+    caller starts the plotting processes there, a third of a second earlier than after
+    the reading (the whole-table checks, e.g. duplicate readings, come after; an error
+    there ends the plotting processes at once).  Returns (Measurements, stations table or
     None, seconds spent reading the measurement table)."""
     import time
 
@@ -276,6 +283,9 @@ def _read_inputs(args: argparse.Namespace):
         if args.instrument == "tracker":
             source = scan_measurements(args.data, spec) or args.data
     t_scan = time.perf_counter() - t0
+    if source is not args.data:  # the rows and cells read and checked (not yet the
+        # whole-table checks: duplicates, readings per station, geometry)
+        rows_checked()
     from volcal.measurement.instruments import get_instrument
     from volcal.measurement.tables import (
         load_instrument_stations,
@@ -308,12 +318,23 @@ def run(args: argparse.Namespace) -> int:
     # a bad input ends the program without the interpreter's teardown too: the error is
     # raised before anything is opened that a `with` does not close (volcal.cli.main)
     args.exit_now_on_error = True
-    inputs = _read_inputs(args)
-    # then, before the numerics are imported: two children that import matplotlib on the
-    # other core while this process solves, build the frames of the figures each will
-    # draw, then draw the plots two at a time while this one writes the report
-    with plotting(not args.no_plots, ahead=_frames_ahead(args)) as plotter:
-        code = _run(args, plotter, inputs)
+    # once the table's rows are checked, before the numerics are imported: two children
+    # that import matplotlib on the other core while this process reads and solves, build
+    # the frames of the figures each will draw, then draw the plots two at a time while
+    # this one writes the report.  Started as soon as the table's cells are known good
+    # (for the tracker's tables before pandas' import: the children's work, not this
+    # process's, is what the default outputs wait for), else once it is read
+    with ExitStack() as stack:
+        plotters: list = []
+
+        def start() -> None:
+            if not plotters:
+                ahead = _frames_ahead(args)
+                plotters.append(stack.enter_context(plotting(not args.no_plots, ahead=ahead)))
+
+        inputs = _read_inputs(args, start)
+        start()
+        code = _run(args, plotters[0], inputs)
     # everything is written and closed: skip the interpreter's teardown (0.1 s of freeing
     # modules; see volcal.cli.main._exit_now)
     args.exit_now = True
