@@ -99,6 +99,49 @@ def test_a_failing_command_ends_its_plotting_processes_at_once():
     assert proc.exitcode == -signal.SIGTERM  # ended by the parent, not by itself
 
 
+#: plotting processes started and ended at once, 100 times, in a process whose SIGTERM
+#: handler raises KeyboardInterrupt (as the command line's does)
+_START_AND_ABORT = """
+import os, signal
+from volcal.outputs.plot_process import PlotProcess
+
+def handler(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+signal.signal(signal.SIGTERM, handler)
+me = os.getpid()
+for i in range(100):
+    try:
+        pp = PlotProcess.start(workers=2)
+        if pp is None:
+            break
+        pp.close(abort=True)
+    except KeyboardInterrupt:
+        if os.getpid() != me:  # a child went on as a copy of this process
+            print("copy of the parent", flush=True)
+            os._exit(0)
+        raise
+print("done", flush=True)
+"""
+
+
+def test_plotting_processes_ended_at_once_never_run_the_parents_handler():
+    """A failing command ends its plotting children right after forking them.  A child
+    inherits the command line's SIGTERM handler (it raises KeyboardInterrupt) until it
+    sets its own; signalled before that, it raised the KeyboardInterrupt inside
+    multiprocessing's start-up ("Exception ignored in: _after_fork", "Process volcal-plots:"
+    tracebacks: 53 in 60 starts) and, once, escaped it and went on as a copy of the test
+    session.  The signals are now held while forking and taken by the child once its
+    handlers are the defaults: 100 starts and ends, no traceback, no copy."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", _START_AND_ABORT], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout == "done\n", r.stdout
+    assert "Traceback" not in r.stderr and "KeyboardInterrupt" not in r.stderr, r.stderr[-3000:]
+
+
 def test_api_reports_a_bad_table_before_building(tmp_path, no_build):
     from volcal.analysis.identify import identify
 
