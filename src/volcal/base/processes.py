@@ -4,8 +4,16 @@ garbage collector paused while a command line program imports its libraries."""
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 
-__all__ = ["watch_parent", "return_freed_memory", "pause_gc", "resume_gc"]
+__all__ = [
+    "watch_parent",
+    "signals_held_while_forking",
+    "return_freed_memory",
+    "pause_gc",
+    "resume_gc",
+]
 
 
 def watch_parent(parent: int) -> None:
@@ -27,6 +35,9 @@ def watch_parent(parent: int) -> None:
         pass
     if os.getppid() != parent:  # the parent died before prctl took effect
         os._exit(1)
+    # the signals the parent held while forking (signals_held_while_forking) are taken
+    # now, with this process's own handlers
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
 
     def watch() -> None:
         while True:
@@ -35,6 +46,25 @@ def watch_parent(parent: int) -> None:
                 os._exit(1)
 
     threading.Thread(target=watch, name="volcal-parent-watch", daemon=True).start()
+
+
+@contextmanager
+def signals_held_while_forking() -> Iterator[None]:
+    """In the parent, around the start of children that call :func:`watch_parent`: Ctrl-C
+    and SIGTERM held back (blocked in this thread; the children inherit the mask) until
+    the block ends here and, in each child, until :func:`watch_parent` has set its
+    handlers.  A forked child runs the parent's handlers until then: the command line's
+    raises KeyboardInterrupt, which, raised inside multiprocessing's start-up code,
+    escaped the child's bootstrap, and the child went on as a copy of the parent (a
+    command that fails ends its plotting children right after forking them)."""
+    import signal
+
+    held = {signal.SIGINT, signal.SIGTERM}
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 def return_freed_memory() -> None:

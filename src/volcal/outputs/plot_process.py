@@ -21,7 +21,6 @@ elsewhere and the caller draws in its own process.
 from __future__ import annotations
 
 import os
-import signal
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
@@ -103,8 +102,7 @@ def _zygote(  # pragma: no cover - runs in a child
     ahead = list(ahead) + [()] * (len(conns) - len(ahead))
     from volcal.base.processes import watch_parent
 
-    watch_parent(parent)  # SIGTERM: the default action; SIGINT ignored (the parent's)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})  # see start
+    watch_parent(parent)  # its handlers, then the signals held while forking (start)
     # below the parent while both compute: the parent's reading and solving is the
     # critical path, the warm-up only has to end before the first figure is asked for (the
     # same time within 1 % as at the parent's priority, whole runs paired under a load of
@@ -233,19 +231,12 @@ class PlotProcess:
             name="volcal-plots",
             daemon=True,
         )
-        # Ctrl-C and SIGTERM held back while forking: a child inherits the command line's
-        # handler (which raises KeyboardInterrupt) and, signalled before _zygote has reset
-        # it (a failing command ends its plotting children at once), raised it inside
-        # multiprocessing's start-up code, where it escaped the child's bootstrap: the
-        # child went on as a copy of the parent (a second test session, a second
-        # "interrupted").  The child takes the signals held for it once its handlers are
-        # the defaults (_zygote)
-        held = {signal.SIGINT, signal.SIGTERM}
-        mask = signal.pthread_sigmask(signal.SIG_BLOCK, held)
-        try:
+        # a failing command ends its plotting children right after the fork: the child
+        # takes Ctrl-C and SIGTERM only once _zygote has set its own handlers
+        from volcal.base.processes import signals_held_while_forking
+
+        with signals_held_while_forking():
             proc.start()
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         for _, there in pairs:
             there.close()
         return cls(proc, [here for here, _ in pairs])

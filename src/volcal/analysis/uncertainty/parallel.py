@@ -18,6 +18,7 @@ import pickle
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
+from volcal.base.processes import signals_held_while_forking as _signals_held_while_forking
 from volcal.base.processes import watch_parent as _watch_parent
 
 __all__ = ["run_chunks", "default_workers"]
@@ -165,7 +166,10 @@ def _run_pool(kernel, chunks: list, n: int, helps: bool, start: Callable[[], Non
             os.environ["OPENBLAS_NUM_THREADS"] = old
     done = False
     try:
-        pending = {pool.submit(_run_local, i, c) for i, c in enumerate(chunks)}
+        # fork: the workers start with the first submit; an error or Ctrl-C stops them at
+        # once (below), so they take the signals only once their handlers are set
+        with _signals_held_while_forking():
+            pending = {pool.submit(_run_local, i, c) for i, c in enumerate(chunks)}
         # fork: every worker started with the first submit; spawn: exec'd children
         start()
 
