@@ -303,8 +303,11 @@ def exponents(df: pd.DataFrame, cols: list[str]) -> dict[str, float]:
         return out
     x = np.log(df["readings"].to_numpy(float))
     for c in cols:
-        y = np.log(np.maximum(df[c].to_numpy(float), 1e-9))
-        ok = np.isfinite(y)  # a column measured at some sizes only (tree memory)
+        v = df[c].to_numpy(float)
+        # a column measured at some sizes only (tree memory), or a difference clamped at 0
+        # (the plots, when the run with them was the faster): those sizes left out
+        y = np.log(np.where(v > 0, v, np.nan))
+        ok = np.isfinite(y)
         if ok.sum() >= 2:
             out[c] = float(np.polyfit(x[ok], y[ok], 1)[0])
     return out

@@ -161,6 +161,33 @@ def tables(draw) -> tuple[str, bytes]:
     return model, data
 
 
+def _DRAWN(max_examples: int):  # noqa: N802 - used as a decorator, like hypothesis' own
+    """The drawn files' settings: a fixed sequence of examples (derandomised, no example
+    database), so that a run checks the same files as the last."""
+    return settings(
+        max_examples=max_examples,
+        deadline=None,
+        derandomize=True,
+        database=None,
+        suppress_health_check=[HealthCheck.too_slow],
+    )
+
+
+@contextlib.contextmanager
+def _written(case):
+    """A drawn file written to a temporary folder: (spec, path, its bytes, the text
+    reading's outcome); afterwards the file is checked unchanged (inputs never modified)."""
+    model, data = case
+    spec = SPECS[model]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "meas.csv"
+        path.write_bytes(data)
+        with _pandas_only():
+            ref = _outcome(lambda: load_measurements(path, spec))
+        yield spec, path, data, ref
+        assert path.read_bytes() == data
+
+
 def _outcome(read):
     """(result, error, warnings) of one reading."""
     with warnings.catch_warnings(record=True) as caught:
@@ -180,22 +207,10 @@ def _same_measurements(a, b) -> None:
     assert a.table.equals(b.table)
 
 
-@settings(
-    max_examples=100,
-    deadline=None,
-    derandomize=True,
-    database=None,
-    suppress_health_check=[HealthCheck.too_slow],
-)
+@_DRAWN(max_examples=100)
 @given(tables())
 def test_the_standard_library_reading_is_pandas_reading(case):
-    model, data = case
-    spec = SPECS[model]
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "meas.csv"
-        path.write_bytes(data)
-        with _pandas_only():
-            ref, ref_err, ref_warn = _outcome(lambda: load_measurements(path, spec))
+    with _written(case) as (spec, path, data, (ref, ref_err, ref_warn)):
         scanned, err, warn = _outcome(lambda: scan_measurements(path, spec))
         if err is not None:  # refused before pandas: the loader's error and warnings
             assert ref_err is not None, (err, data)
@@ -209,35 +224,21 @@ def test_the_standard_library_reading_is_pandas_reading(case):
         assert got_warn == ref_warn
         if ref is not None:
             _same_measurements(got, ref)
-        assert path.read_bytes() == data  # inputs never modified
 
 
-@settings(
-    max_examples=60,
-    deadline=None,
-    derandomize=True,
-    database=None,
-    suppress_health_check=[HealthCheck.too_slow],
-)
+@_DRAWN(max_examples=60)
 @given(tables())
 def test_the_typed_reading_of_a_large_file_is_the_text_reading(case):
     """A file above MAX_SCAN_BYTES is first read with its number columns parsed by pandas'
     C parser (loader._read_typed); a file that is not clean goes to the text reading. On
     the drawn files (spoilt or not): the same error, warnings and Measurements as the text
     reading alone, and the typed reading takes every clean file it is given."""
-    model, data = case
-    spec = SPECS[model]
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "meas.csv"
-        path.write_bytes(data)
-        with _pandas_only():
-            ref, ref_err, ref_warn = _outcome(lambda: load_measurements(path, spec))
+    with _written(case) as (spec, path, data, (ref, ref_err, ref_warn)):
         with _pandas_only(typed=True):
             got, err, warn = _outcome(lambda: load_measurements(path, spec))
         assert (err, warn) == (ref_err, ref_warn), data
         if ref is not None:
             _same_measurements(got, ref)
-        assert path.read_bytes() == data  # inputs never modified
 
 
 def test_the_typed_reading_takes_a_clean_file_and_leaves_a_spoilt_one(tmp_path):

@@ -237,6 +237,18 @@ def _is_blank(v: Any) -> bool:
 _CONVERT_HINT = _cells.CONVERT_HINT
 
 
+#: How pandas reads a measurement file: every cell as written (no missing-value words, blank
+#: lines kept so that row numbers are the file's), blanks after a separator skipped, a
+#: UTF-8 byte-order mark allowed
+_CSV_OPTIONS: dict[str, Any] = {
+    "keep_default_na": False,
+    "na_filter": False,
+    "skip_blank_lines": False,
+    "skipinitialspace": True,
+    "encoding": "utf-8-sig",
+}
+
+
 def _read_raw(
     source: str | Path | pd.DataFrame | ScannedTable, name: str | None, what: str
 ) -> _Raw:
@@ -276,11 +288,7 @@ def _read_raw(
             path,
             header=None,
             dtype=str,
-            keep_default_na=False,
-            na_filter=False,
-            skip_blank_lines=False,
-            skipinitialspace=True,
-            encoding="utf-8-sig",
+            **_CSV_OPTIONS,
         )
     except pd.errors.EmptyDataError:
         raise InputError(
@@ -374,11 +382,7 @@ def _read_typed(path: Path, spec: MachineSpec, name: str | None) -> _Raw | None:
             header=None,
             skiprows=1,
             dtype=dtypes,
-            keep_default_na=False,
-            na_filter=False,
-            skip_blank_lines=False,
-            skipinitialspace=True,
-            encoding="utf-8-sig",
+            **_CSV_OPTIONS,
         )
     except (ValueError, OSError, pd.errors.ParserError, pd.errors.EmptyDataError):
         return None  # a cell that is not a number, a long row, not UTF-8, no rows ...
