@@ -650,6 +650,8 @@ def _placement_solver(nlp: ca.Function, max_iter: int, grad_f: ca.Function) -> c
 
 def _placement_options(max_iter: int, grad_f: ca.Function) -> dict[str, Any]:
     """The options of :func:`_placement_solver`."""
+    from volcal.solve.ipopt import NO_PARAMETER_MULTIPLIERS
+
     return {
         "ipopt.print_level": 0,
         "print_time": False,
@@ -664,12 +666,10 @@ def _placement_options(max_iter: int, grad_f: ca.Function) -> dict[str, Any]:
         "ipopt.sb": "yes",
         "ipopt.bound_relax_factor": 0.0,
         "grad_f": grad_f,
-        # no multipliers of the parameters (the weights): nlpsol would otherwise build
-        # the Lagrangian's gradient wrt them, reverse AD through the whole criterion
-        # graph (0.07 s for the first solver of a graph, 0.013 s for each later one),
-        # for an output the search never reads; the iterates are the same (a test)
-        "calc_lam_p": False,
-        "no_nlp_grad": True,
+        # the weights' multipliers are never read: no reverse AD through the whole
+        # criterion graph for them (0.07 s for the first solver of a graph, 0.013 s for
+        # each later one); the iterates are the same (a test)
+        **NO_PARAMETER_MULTIPLIERS,
     }
 
 

@@ -844,6 +844,8 @@ def ipopt_resolve(
     in all, instead of stepping at the rounding level until ``max_iter``."""
     import casadi as ca
 
+    from volcal.solve.ipopt import NO_PARAMETER_MULTIPLIERS
+
     pr = ider.problem
     opts = {
         "ipopt.print_level": 0,
@@ -856,9 +858,7 @@ def ipopt_resolve(
         "hess_lag": pr.hess_lag,
         "grad_f": pr.grad_f,
         "error_on_fail": False,
-        # the data's multipliers are not read (see volcal.solve.ipopt)
-        "calc_lam_p": False,
-        "no_nlp_grad": True,
+        **NO_PARAMETER_MULTIPLIERS,
     }
     S = ca.nlpsol("verify", "ipopt", pr.nlp, opts)
     q, t, _, w = unpack_data(pr.machine.n_axes, p)
