@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import re
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -99,6 +99,21 @@ def resolve_solver(solver: str, n_readings: int) -> str:
     if solver != "auto":
         return solver
     return "gauss-newton" if n_readings >= AUTO_GAUSS_NEWTON_READINGS else "ipopt"
+
+
+@dataclass(frozen=True)
+class Solved:
+    """What a single fit knows once its solve has ended, before its uncertainty stage
+    (``on_solved`` of :func:`_identify`): the machine, the error model, the error
+    parameters ``theta`` (the model's units) and the residual table of the result
+    (every reading's row with ``residual_um``, ``normalised_residual`` = residual / sigma
+    and ``rejected``).  A caller draws the figures that need no covariance from it while
+    the covariance is computed (``volcal identify``: the residual and volumetric plots)."""
+
+    machine: Machine
+    error_model: ErrorModel
+    theta: np.ndarray
+    residuals: pd.DataFrame
 
 
 @dataclass
@@ -1002,6 +1017,7 @@ def _identify(
     max_memory_gb: float | None = None,
     variance_components: bool = False,
     reject_groups: np.ndarray | None = None,
+    on_solved: Callable[[Solved], None] | None = None,
 ) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
@@ -1038,6 +1054,11 @@ def _identify(
     Several instruments' tables (issue 32; ``data`` a list, ``variance_components``) are
     joined by :func:`volcal.workflow.identify` (``volcal.identify``) through
     :func:`volcal.analysis.fusion.identify_datasets`, which calls this fit.
+
+    on_solved: called once with a :class:`Solved` (the estimates and the residual table)
+    when the solve has converged, before the uncertainty stage; a plain call between
+    stages (``volcal identify`` sends its plots of the residuals and of the volumetric
+    error to its plotting processes there).
     """
     several = isinstance(data, (list, tuple)) or variance_components
     if (
@@ -1164,6 +1185,15 @@ def _identify(
                 status=o.status,
             )
 
+    # the residual table and the estimates before the uncertainty stage: what needs no
+    # covariance can be used meanwhile (on_solved)
+    theta, st, frame = pr.unpack_x(x)
+    residuals = meas.table.copy()
+    residuals["residual_um"] = r * sigma * 1e3
+    residuals["normalised_residual"] = r
+    residuals["rejected"] = rejected
+    if on_solved is not None:
+        on_solved(Solved(machine, em, theta, residuals))
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
     with report_stage("uncertainty and identifiability"):
         cov = ider.covariance(x, p, fixed)
@@ -1175,7 +1205,6 @@ def _identify(
         if scale_covariance:
             cov = cov * chi2
             notes.append(f"covariance scaled by the residual variance factor {chi2:.3g}")
-        theta, st, frame = pr.unpack_x(x)
         nt = pr.n_theta
         cov_theta = cov[:nt, :nt]
         # The null space of the final phase without datum or pivots: which directions only move
@@ -1217,10 +1246,6 @@ def _identify(
         col = f"u_{base}_{rep}" if rep else f"u_{base}"
         stations_out[col] = np.sqrt(var_st[:, j]) * f
     stations_out["fixed"] = True if getattr(strat, "hold_stations", False) else st_fixed
-    residuals = meas.table.copy()
-    residuals["residual_um"] = resid_w * sigma * 1e3
-    residuals["normalised_residual"] = resid_w
-    residuals["rejected"] = rejected
     rej = residuals.loc[rejected].assign(row=meas.rows[rejected])
     conditions = {
         **ider.phase_conditions,

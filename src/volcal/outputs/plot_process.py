@@ -245,14 +245,19 @@ class PlotProcess:
     def workers(self) -> int:
         return len(self._conns)
 
-    def draw(self, func: Callable[..., Any], *args: Any, cost: float = 1.0) -> None:
-        """Ask for ``func(*args)`` (a module-level function; plain-data arguments)."""
+    def draw(
+        self, func: Callable[..., Any], *args: Any, cost: float = 1.0, child: int | None = None
+    ) -> int:
+        """Ask for ``func(*args)`` (a module-level function; plain-data arguments) from
+        the child with the least drawing queued, or from ``child``; returns which child
+        (a figure it keeps in memory is written by a later request to it)."""
         if not self._senders:
             self._senders = [_Sender(c) for c in self._conns]
-        i = min(range(len(self._conns)), key=lambda k: self._queued[k])
+        i = min(range(len(self._conns)), key=lambda k: self._queued[k]) if child is None else child
         self._senders[i].send((func, args))
         self._pending[i] += 1
         self._queued[i] += cost
+        return i
 
     def wait(self, timeout: float = 600.0) -> None:
         """Wait for every figure asked for; a failed figure, or none for ``timeout``
