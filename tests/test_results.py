@@ -679,6 +679,48 @@ def test_plots_sent_before_the_uncertainty_stage_are_the_same_files(case, tmp_pa
         assert (here / name).read_bytes() == (there / name).read_bytes(), name
 
 
+def test_a_plotting_child_of_a_process_without_matplotlib_draws_the_same_files(case,
+                                                                              tmp_path):
+    """A plotting child whose parent never imported matplotlib (as in ``volcal identify``)
+    imports it without building its artists' ``set`` docstrings (a quarter of the
+    import): the five figures of the result, drawn there from the saved folder, are byte
+    for byte those drawn in this process, and the child's docstrings were indeed left
+    out while this process's are whole."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(f"""
+        import sys
+        from pathlib import Path
+        from volcal.outputs.plot_process import PlotProcess
+        from volcal.outputs.plots import saved_plot_requests
+        from volcal.outputs.results import load_result
+
+        def docs(path):
+            import matplotlib.lines
+            Path(path).write_text(str(len(matplotlib.lines.Line2D.set.__doc__ or "")))
+
+        assert "matplotlib" not in sys.modules
+        pp = PlotProcess.start(workers=2)
+        out = Path({str(tmp_path)!r})
+        for name, draw, data, cost in saved_plot_requests(load_result({str(case["out"])!r})):
+            pp.draw(draw, data, out / name, cost=cost)
+        pp.draw(docs, out / "docs.txt", child=0)
+        pp.wait()
+        pp.close()
+        assert "matplotlib" not in sys.modules
+    """)
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=600)
+    for name in PLOT_FILES:
+        assert (tmp_path / name).read_bytes() == (case["out"] / name).read_bytes(), name
+    import matplotlib.lines
+
+    here = len(matplotlib.lines.Line2D.set.__doc__)
+    assert int((tmp_path / "docs.txt").read_text()) < 1000 < here
+
+
 def test_on_solved_gets_the_estimates_and_residuals_of_the_result(case):
     """identify's on_solved is called once, after the solve and before the uncertainty
     stage, with the parameters and the residual table the result then holds; not for
