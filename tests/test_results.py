@@ -723,8 +723,8 @@ def test_a_plotting_child_of_a_process_without_matplotlib_draws_the_same_files(c
 
 def test_on_solved_gets_the_estimates_and_residuals_of_the_result(case):
     """identify's on_solved is called once, after the solve and before the uncertainty
-    stage, with the parameters and the residual table the result then holds; not for
-    the classic pipeline (another pipeline, several fits)."""
+    stage, with the parameters and the residuals (station, residual, normalised residual,
+    rejected) the result then holds; not for the classic pipeline (another pipeline)."""
     import volcal
 
     seen = []
@@ -734,7 +734,10 @@ def test_on_solved_gets_the_estimates_and_residuals_of_the_result(case):
     solved = seen[0]
     assert solved.machine is res.machine and solved.error_model is res.error_model
     np.testing.assert_array_equal(solved.theta, res.theta)
-    assert solved.residuals is res.residuals
+    cols = ["station", "residual_um", "normalised_residual", "rejected"]
+    assert list(solved.residuals.columns) == cols
+    pd.testing.assert_frame_equal(solved.residuals.reset_index(drop=True),
+                                  res.residuals[cols].reset_index(drop=True))
     np.testing.assert_allclose(res.theta, case["res"].theta, rtol=0, atol=1e-12)
     seen.clear()
     volcal.identify(case["machine"], case["data"], error_model=case["em"],

@@ -105,10 +105,12 @@ def resolve_solver(solver: str, n_readings: int) -> str:
 class Solved:
     """What a single fit knows once its solve has ended, before its uncertainty stage
     (``on_solved`` of :func:`_identify`): the machine, the error model, the error
-    parameters ``theta`` (the model's units) and the residual table of the result
-    (every reading's row with ``residual_um``, ``normalised_residual`` = residual / sigma
-    and ``rejected``).  A caller draws the figures that need no covariance from it while
-    the covariance is computed (``volcal identify``: the residual and volumetric plots)."""
+    parameters ``theta`` (the model's units) and the residuals: a table of every
+    reading's ``station``, ``residual_um``, ``normalised_residual`` (residual / sigma) and
+    ``rejected``, the values of those columns of the result's residual table (which is
+    made after the uncertainty stage, not to hold a copy of the whole measurement table
+    through it).  A caller draws the figures that need no covariance from it while the
+    covariance is computed (``volcal identify``: the residual and volumetric plots)."""
 
     machine: Machine
     error_model: ErrorModel
@@ -1185,15 +1187,20 @@ def _identify(
                 status=o.status,
             )
 
-    # the residual table and the estimates before the uncertainty stage: what needs no
+    # the estimates and the residuals before the uncertainty stage: what needs no
     # covariance can be used meanwhile (on_solved)
     theta, st, frame = pr.unpack_x(x)
-    residuals = meas.table.copy()
-    residuals["residual_um"] = r * sigma * 1e3
-    residuals["normalised_residual"] = r
-    residuals["rejected"] = rejected
     if on_solved is not None:
-        on_solved(Solved(machine, em, theta, residuals))
+        solved = pd.DataFrame(
+            {
+                "station": meas.table["station"],
+                "residual_um": r * sigma * 1e3,
+                "normalised_residual": r,
+                "rejected": rejected,
+            }
+        )
+        on_solved(Solved(machine, em, theta, solved))
+        del solved
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
     with report_stage("uncertainty and identifiability"):
         cov = ider.covariance(x, p, fixed)
@@ -1246,6 +1253,10 @@ def _identify(
         col = f"u_{base}_{rep}" if rep else f"u_{base}"
         stations_out[col] = np.sqrt(var_st[:, j]) * f
     stations_out["fixed"] = True if getattr(strat, "hold_stations", False) else st_fixed
+    residuals = meas.table.copy()
+    residuals["residual_um"] = resid_w * sigma * 1e3
+    residuals["normalised_residual"] = resid_w
+    residuals["rejected"] = rejected
     rej = residuals.loc[rejected].assign(row=meas.rows[rejected])
     conditions = {
         **ider.phase_conditions,
