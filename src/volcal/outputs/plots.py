@@ -227,9 +227,10 @@ def residuals_data(table: pd.DataFrame, max_points: int = 4000) -> dict[str, Any
     zs = np.sort(z[keep & np.isfinite(z)])
     qq, lim = None, 1.0
     if len(zs):
-        theo = ndtri((np.arange(1, len(zs) + 1) - 0.5) / len(zs))
         sub = np.unique(np.linspace(0, len(zs) - 1, min(len(zs), max_points)).astype(int))
-        qq = (theo[sub], zs[sub])
+        # the normal quantiles of the points drawn only (sub holds the first and the last)
+        theo = ndtri((sub + 0.5) / len(zs))
+        qq = (theo, zs[sub])
         lim = float(max(abs(theo[0]), abs(theo[-1]), 1.0))
     idx = np.arange(1, len(r) + 1)
     step = max(1, len(r) // max_points)
