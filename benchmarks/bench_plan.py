@@ -25,8 +25,8 @@ against one after the other in the program itself.
 
 Before the runs, each version's modules are byte-compiled, as installing volcal does
 (``pip install`` compiles them; an editable install under PYTHONDONTWRITEBYTECODE, as on
-the project's machine, compiled its 50-odd modules again in every run: 0.3 s of every
-figure before this was done).
+the project's machine, compiled its 50-odd modules again in every run: 0.2-0.3 s of CPU
+in every figure before this was done).
 
 Run by hand (other jobs on the cores show in the wall times, less in the CPU times; the
 load average before and after is printed with them)::
