@@ -107,6 +107,25 @@ def test_numpy_and_casadi_bases_agree(trunnion, form, axis):
     assert np.abs(e_sx - em.values(q, th)).max() < 1e-12
 
 
+def test_basis_rows_of_chosen_errors(trunnion):
+    """``basis(q, errors)`` gives those errors' rows of the whole basis, in the order asked,
+    and the whole basis reproduces the error values (evaluated column by column by
+    ``values``) with each parameter's column in its own error's row only."""
+    em = ErrorModel(trunnion, {"C": ErrorForm("fourier", 3), "A": ErrorForm("bspline", segments=4),
+                               "X": ErrorForm("poly", 3)})
+    rng = np.random.default_rng(5)
+    q = rng.uniform(-1.0, 1.0, size=(57, len(trunnion.axes)))
+    th = rng.normal(size=em.n_params)
+    B = em.basis(q)
+    assert np.abs(np.einsum("nkp,p->nk", B, th) - em.values(q, th)).max() < 1e-12
+    own = np.zeros((em.n_errors, em.n_params), bool)
+    own[em.param_error_arr, np.arange(em.n_params)] = True
+    assert not np.any(B[:, ~own])
+    for rows in ([3], [em.n_errors - 1, 0, 7], list(range(em.n_errors))[::-2]):
+        assert np.array_equal(em.basis(q, rows), B[:, rows, :])
+    assert em.basis(q, []).shape == (57, 0, em.n_params)
+
+
 def test_fourier_reproduces_a_harmonic_function_exactly(trunnion):
     em = ErrorModel(trunnion, {"C": ErrorForm("fourier", 3)})
     f = lambda x: 2e-3 + 1e-3 * np.cos(x) - 4e-3 * np.sin(2 * x) + 5e-4 * np.cos(3 * x + 0.3)  # noqa: E731

@@ -41,7 +41,7 @@ axis position pos (file units) and ``<error>`` for a constant; units are those o
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from functools import lru_cache
 from typing import Any, Literal
 
@@ -266,6 +266,8 @@ class ErrorModel:
             self.param_error += [k] * len(labels)
             self.param_order += order
         self.param_error_arr = np.asarray(self.param_error, int)
+        # each error's parameters are contiguous, in error order: where each one's start
+        self._param_start = np.searchsorted(self.param_error_arr, np.arange(len(self.errors)))
         self._values_fn: ca.Function | None = None
 
     # ---- sizes and units ---------------------------------------------------------------
@@ -302,16 +304,20 @@ class ErrorModel:
         knots = np.deg2rad(f.knots) if rot else np.asarray(f.knots, float)
         return [_hat(x, knots, j) for j in range(len(knots))]
 
-    def basis(self, q: np.ndarray) -> np.ndarray:
-        """B(q): (N, n_errors, n_params) such that e = B theta; q (N, n_axes) internal units."""
+    def basis(self, q: np.ndarray, errors: Sequence[int] | None = None) -> np.ndarray:
+        """B(q): (N, n_errors, n_params) such that e = B theta; q (N, n_axes) internal units.
+
+        With ``errors`` (indices into :attr:`errors`) only those rows, in that order: (N,
+        len(errors), n_params).  A caller that needs a few errors' rows asks for them alone
+        (the whole basis of the bundled 3-axis example on an axis' 401 positions is 7 MB,
+        nearly all zeros, and was the peak of a small identification's memory)."""
         q = np.atleast_2d(np.asarray(q, float))
-        B = np.zeros((q.shape[0], self.n_errors, self.n_params))
-        col = 0
-        for k, s in enumerate(self.errors):
-            cols = self._basis_columns(k, q[:, self._axis_index[s.axis]])
-            for c in cols:
-                B[:, k, col] = c
-                col += 1
+        rows = range(self.n_errors) if errors is None else [int(k) for k in errors]
+        B = np.zeros((q.shape[0], len(rows), self.n_params))
+        for i, k in enumerate(rows):
+            cols = self._basis_columns(k, q[:, self._axis_index[self.errors[k].axis]])
+            for j, c in zip(self._param_start[k] + np.arange(len(cols)), cols):
+                B[:, i, j] = c
         return B
 
     def _columns(self, q: np.ndarray):

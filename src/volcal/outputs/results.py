@@ -180,9 +180,10 @@ def _axis_unit(spec: MachineSpec, name: str) -> str:
 
 def _axis_sweeps(error_model: ErrorModel, n: int):
     """Per axis with component error motions: (axis spec, positions (n,) in file units
-    mm / deg over its travel, indices of its component errors, basis (n, n_errors,
-    n_params) at those positions with the other axes at their reference).  The one
-    set-up of :func:`component_error_table` and :func:`error_motion_table`."""
+    mm / deg over its travel, indices of its component errors, their rows of the basis
+    (n, len(indices), n_params) at those positions with the other axes at their
+    reference).  The one set-up of :func:`component_error_table` and
+    :func:`error_motion_table`."""
     em = error_model
     spec = em.spec
     ref = np.array([np.deg2rad(a.reference) if a.is_rotary else a.reference for a in spec.axes])
@@ -193,7 +194,7 @@ def _axis_sweeps(error_model: ErrorModel, n: int):
         pos = np.linspace(a.travel[0], a.travel[1], n)
         q = np.tile(ref, (n, 1))
         q[:, j] = np.deg2rad(pos) if a.is_rotary else pos
-        yield a, pos, comps, em.basis(q)
+        yield a, pos, comps, em.basis(q, comps)
 
 
 def component_error_table(
@@ -223,14 +224,14 @@ def component_error_table(
         df = pd.DataFrame({"axis": a.name, f"position_{unit}": pos})
         if f"position_{unit}" not in pos_cols:
             pos_cols.append(f"position_{unit}")
-        for k in comps:
+        for i, k in enumerate(comps):
             s = em.errors[k]
             f, u_name = _unit_factor(s.unit)
             col = f"{s.name}_{u_name}"
-            df[col] = B[:, k, :] @ theta * f
+            df[col] = B[:, i, :] @ theta * f
             value_cols.append(col)
             if cov is not None:
-                var = np.einsum("np,pq,nq->n", B[:, k, :], cov, B[:, k, :])
+                var = np.einsum("np,pq,nq->n", B[:, i, :], cov, B[:, i, :])
                 u = np.sqrt(np.clip(var, 0.0, None)) * f
                 if not ident[em.param_error_arr == k].all():
                     u[:] = np.nan
@@ -294,15 +295,15 @@ def error_motion_table(
     cov = None if cov_theta is None else np.nan_to_num(np.asarray(cov_theta, float))
     rows = []
     for a, pos, comps, B in _axis_sweeps(em, n):
-        for k in comps:
+        for i, k in enumerate(comps):
             s = em.errors[k]
             f, u_name = _unit_factor(s.unit)
-            y = B[:, k, :] @ theta * f
+            y = B[:, i, :] @ theta * f
             y[np.abs(y) < 1e-9] = 0.0  # rounding noise of a value the datum makes zero
             lo, hi = int(np.argmin(y)), int(np.argmax(y))
             u = float("nan")
             if cov is not None and ident[em.param_error_arr == k].all():
-                d = B[hi, k, :] - B[lo, k, :]
+                d = B[hi, i, :] - B[lo, i, :]
                 u = float(np.sqrt(max(float(d @ cov @ d), 0.0))) * f
             rows.append(
                 {

@@ -392,7 +392,7 @@ class PlanResult:
                 q[:, j] = np.deg2rad(pos) if a.is_rotary else pos
             else:
                 pos, q = np.array([np.nan]), ref[None]
-            b = em.basis(q)[:, k, :]  # (n, n_params)
+            b = em.basis(q, [k])[:, 0, :]  # (n, n_params)
             var = np.einsum("np,pq,nq->n", b, cov, b)
             f, unit = (1e3, "um") if s.quantity == "translation" else (1e6, "urad")
             for x, v in zip(pos, var):

@@ -726,7 +726,7 @@ def error_motion_rows(
             q = np.zeros((1, len(em.spec.axes)))
             v = float(m_.group(2))
             q[0, em.spec.axis_names.index(a.name)] = np.deg2rad(v) if a.is_rotary else v
-            r = em.basis(q)[0, k]
+            r = em.basis(q, [k])[0, 0]
             units.append(s_.unit)
         rows.append(r)
         names.append(qn)
