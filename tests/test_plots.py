@@ -209,3 +209,35 @@ def test_titles_placed_before_drawing_give_matplotlibs_picture(tmp_path, monkeyp
     for name, draw, data in cases:
         draw(data, tmp_path / f"mpl_{name}")
         assert (tmp_path / name).read_bytes() == (tmp_path / f"mpl_{name}").read_bytes(), name
+
+
+def test_plan_png_drawn_in_a_frame_built_ahead_is_the_same_picture(tmp_path):
+    """``volcal plan``'s plotting child builds plan.png's frame while it waits
+    (figures.plan_frame_ahead: the first child only); the plan drawn into it is byte for
+    byte the one drawn without a frame, with and without the re-aimed reflector's centre,
+    and the frame is taken by the figure."""
+    from volcal.outputs import figures as F
+
+    rng = np.random.default_rng(3)
+    data = {
+        "stations_mm": rng.uniform(-900.0, 900.0, (4, 3)),
+        "points_mm": rng.uniform(-300.0, 300.0, (60, 3)),
+        "u_um": rng.uniform(0.1, 0.5, 60),
+        "centre_mm": None,
+    }
+    ahead = F.plan_frame_ahead(2)
+    assert len(ahead) == 2 and ahead[1] == [] and len(ahead[0]) == 1
+    for case, centre in (("plain", None), ("aimed", np.array([10.0, -20.0, 30.0]))):
+        d = dict(data, centre_mm=centre)
+        F.draw_plan(d, tmp_path / f"{case}.png")  # no frame built
+        try:
+            for func, args in ahead[0]:
+                func(*args)
+            assert ("plan",) in F._FRAMES
+            F.draw_plan(d, tmp_path / f"{case}_framed.png")
+            assert ("plan",) not in F._FRAMES  # taken
+        finally:
+            F._FRAMES.clear()
+        assert (tmp_path / f"{case}.png").read_bytes() == (
+            tmp_path / f"{case}_framed.png"
+        ).read_bytes(), case

@@ -207,11 +207,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    from volcal.outputs.figures import plan_frame_ahead
     from volcal.outputs.plot_process import plotting
 
     # first, before the numerics are imported: a child that imports matplotlib on the
-    # other core while this process plans, then draws plan.png while this one writes
-    with plotting(not args.no_plots, workers=1) as plotter:
+    # other core while this process plans, builds plan.png's frame while it waits, then
+    # draws the plan into it while this one writes
+    with plotting(not args.no_plots, workers=1, ahead=plan_frame_ahead) as plotter:
         code = _run(args, plotter)
     # everything this command opened is closed (worker processes joined, files written,
     # the plotting child ended): as the program it ends without the interpreter's
