@@ -615,7 +615,7 @@ def test_a_plotting_child_builds_its_frames_while_it_waits_and_survives_a_failin
     from volcal.outputs import figures
     from volcal.outputs.plot_process import _serve_requests
 
-    key, name, draw, data = _framed_requests(case)[2]  # residuals.png
+    key, name, draw, data = _framed_requests(case)[0]  # residuals.png
     assert key == ("residuals",)
     built = threading.Event()
 
@@ -640,25 +640,124 @@ def test_a_plotting_child_builds_its_frames_while_it_waits_and_survives_a_failin
 
 
 def test_frame_plan_gives_each_child_the_frames_of_the_figures_it_is_sent():
-    """With two children the figures (in the order sent, by drawing cost) go component
-    errors -> 0, correlations -> 1, volumetric map -> 1, residuals -> 0, residuals vs
-    axes -> 1 (the least drawing queued first), so those are the frames each builds;
-    one child builds them all."""
+    """With two children the figures (in the order sent: those that need no covariance
+    first, then by drawing cost) go volumetric map -> 0, residuals -> 1, component errors
+    -> 1, correlations -> 0, residuals vs axes -> 0 (the least drawing queued first), so
+    those are the frames each builds (the volumetric map has none); one child builds
+    them all."""
     from volcal.outputs.figures import frame_plan, prepare_frame
 
     plan = frame_plan(4, 2)
     assert all(f is prepare_frame for child in plan for f, _ in child)
     assert [[args[0] for _, args in child] for child in plan] == [
-        [("component_errors", 4), ("residuals",)],
         [("correlations",), ("residuals_vs_axes", 4)],
+        [("residuals",), ("component_errors", 4)],
     ]
     (one,) = frame_plan(3, 1)
     assert [args[0][0] for _, args in one] == [
+        "residuals",
         "component_errors",
         "correlations",
-        "residuals",
         "residuals_vs_axes",
     ]
+
+
+def test_plots_sent_before_the_uncertainty_stage_are_the_same_files(case, tmp_path):
+    """The residual and volumetric plots sent to the plotting children once the solve has
+    ended (before the result, hence its folder, exists: drawn into memory, written when
+    the folder is made) are byte for byte those drawn from the finished result; the other
+    three are drawn as before, and each figure is drawn once."""
+    from volcal.analysis.identify import Solved
+    from volcal.outputs.plot_process import PlotProcess
+    from volcal.outputs.plots import hold_solved_plots, solved_plot_requests
+
+    res = case["res"]
+    solved = Solved(res.machine, res.error_model, res.theta, res.residuals)
+    assert [n for n, *_ in solved_plot_requests(solved)] == ["volumetric_map.png",
+                                                             "residuals.png"]
+    pp = PlotProcess.start(workers=2)
+    if pp is None:
+        pytest.skip("no plotting process on this platform")
+    try:
+        held = hold_solved_plots(pp, solved)
+        # one to each child (the least drawing queued), as the frames built ahead expect
+        assert held == {"volumetric_map.png": 0, "residuals.png": 1}
+        there = save_result(res, tmp_path / "there", data_name="measurements.csv",
+                            plotter=pp, held=held)
+        assert pp._pending == [0, 0]  # every request answered: 5 figures and 2 writes
+    finally:
+        pp.close()
+    here = case["out"]
+    pngs = sorted(p.name for p in here.glob("*.png"))
+    assert len(pngs) == 5 and pngs == sorted(p.name for p in there.glob("*.png"))
+    for name in pngs:
+        assert (here / name).read_bytes() == (there / name).read_bytes(), name
+
+
+def test_a_plotting_child_of_a_process_without_matplotlib_draws_the_same_files(case,
+                                                                              tmp_path):
+    """A plotting child whose parent never imported matplotlib (as in ``volcal identify``)
+    imports it without building its artists' ``set`` docstrings (a quarter of the
+    import): the five figures of the result, drawn there from the saved folder, are byte
+    for byte those drawn in this process, and the child's docstrings were indeed left
+    out while this process's are whole."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(f"""
+        import sys
+        from pathlib import Path
+        from volcal.outputs.plot_process import PlotProcess
+        from volcal.outputs.plots import saved_plot_requests
+        from volcal.outputs.results import load_result
+
+        def docs(path):
+            import matplotlib.lines
+            Path(path).write_text(str(len(matplotlib.lines.Line2D.set.__doc__ or "")))
+
+        assert "matplotlib" not in sys.modules
+        pp = PlotProcess.start(workers=2)
+        out = Path({str(tmp_path)!r})
+        for name, draw, data, cost in saved_plot_requests(load_result({str(case["out"])!r})):
+            pp.draw(draw, data, out / name, cost=cost)
+        pp.draw(docs, out / "docs.txt", child=0)
+        pp.wait()
+        pp.close()
+        assert "matplotlib" not in sys.modules
+    """)
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env, timeout=600)
+    for name in PLOT_FILES:
+        assert (tmp_path / name).read_bytes() == (case["out"] / name).read_bytes(), name
+    import matplotlib.lines
+
+    here = len(matplotlib.lines.Line2D.set.__doc__)
+    assert int((tmp_path / "docs.txt").read_text()) < 1000 < here
+
+
+def test_on_solved_gets_the_estimates_and_residuals_of_the_result(case):
+    """identify's on_solved is called once, after the solve and before the uncertainty
+    stage, with the parameters and the residuals (station, residual, normalised residual,
+    rejected) the result then holds; not for the classic pipeline (another pipeline)."""
+    import volcal
+
+    seen = []
+    res = volcal.identify(case["machine"], case["data"], error_model=case["em"],
+                          on_solved=seen.append)
+    assert len(seen) == 1
+    solved = seen[0]
+    assert solved.machine is res.machine and solved.error_model is res.error_model
+    np.testing.assert_array_equal(solved.theta, res.theta)
+    cols = ["station", "residual_um", "normalised_residual", "rejected"]
+    assert list(solved.residuals.columns) == cols
+    pd.testing.assert_frame_equal(solved.residuals.reset_index(drop=True),
+                                  res.residuals[cols].reset_index(drop=True))
+    np.testing.assert_allclose(res.theta, case["res"].theta, rtol=0, atol=1e-12)
+    seen.clear()
+    volcal.identify(case["machine"], case["data"], error_model=case["em"],
+                    strategy="classic", on_solved=seen.append)
+    assert seen == []
 
 
 def test_printed_positions_are_described_from_their_grid():

@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import re
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -99,6 +99,23 @@ def resolve_solver(solver: str, n_readings: int) -> str:
     if solver != "auto":
         return solver
     return "gauss-newton" if n_readings >= AUTO_GAUSS_NEWTON_READINGS else "ipopt"
+
+
+@dataclass(frozen=True)
+class Solved:
+    """What a single fit knows once its solve has ended, before its uncertainty stage
+    (``on_solved`` of :func:`_identify`): the machine, the error model, the error
+    parameters ``theta`` (the model's units) and the residuals: a table of every
+    reading's ``station``, ``residual_um``, ``normalised_residual`` (residual / sigma) and
+    ``rejected``, the values of those columns of the result's residual table (which is
+    made after the uncertainty stage, not to hold a copy of the whole measurement table
+    through it).  A caller draws the figures that need no covariance from it while the
+    covariance is computed (``volcal identify``: the residual and volumetric plots)."""
+
+    machine: Machine
+    error_model: ErrorModel
+    theta: np.ndarray
+    residuals: pd.DataFrame
 
 
 @dataclass
@@ -1002,6 +1019,7 @@ def _identify(
     max_memory_gb: float | None = None,
     variance_components: bool = False,
     reject_groups: np.ndarray | None = None,
+    on_solved: Callable[[Solved], None] | None = None,
 ) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings.
 
@@ -1038,6 +1056,11 @@ def _identify(
     Several instruments' tables (issue 32; ``data`` a list, ``variance_components``) are
     joined by :func:`volcal.workflow.identify` (``volcal.identify``) through
     :func:`volcal.analysis.fusion.identify_datasets`, which calls this fit.
+
+    on_solved: called once with a :class:`Solved` (the estimates and the residual table)
+    when the solve has converged, before the uncertainty stage; a plain call between
+    stages (``volcal identify`` sends its plots of the residuals and of the volumetric
+    error to its plotting processes there).
     """
     several = isinstance(data, (list, tuple)) or variance_components
     if (
@@ -1164,6 +1187,20 @@ def _identify(
                 status=o.status,
             )
 
+    # the estimates and the residuals before the uncertainty stage: what needs no
+    # covariance can be used meanwhile (on_solved)
+    theta, st, frame = pr.unpack_x(x)
+    if on_solved is not None:
+        solved = pd.DataFrame(
+            {
+                "station": meas.table["station"],
+                "residual_um": r * sigma * 1e3,
+                "normalised_residual": r,
+                "rejected": rejected,
+            }
+        )
+        on_solved(Solved(machine, em, theta, solved))
+        del solved
     p = pr.pack_data(meas.q_internal, meas.tool, meas.length, np.where(rejected, 0.0, weights))
     with report_stage("uncertainty and identifiability"):
         cov = ider.covariance(x, p, fixed)
@@ -1175,7 +1212,6 @@ def _identify(
         if scale_covariance:
             cov = cov * chi2
             notes.append(f"covariance scaled by the residual variance factor {chi2:.3g}")
-        theta, st, frame = pr.unpack_x(x)
         nt = pr.n_theta
         cov_theta = cov[:nt, :nt]
         # The null space of the final phase without datum or pivots: which directions only move

@@ -32,6 +32,8 @@ __all__ = [
     "draw_plan",
     "prepare_frame",
     "frame_plan",
+    "hold",
+    "write_held",
     "plan_frame_ahead",
     "COSTS",
 ]
@@ -117,14 +119,15 @@ _TICKS_AHEAD = 8
 
 
 #: the result folder's figures in the order ``volcal identify`` sends them to the plotting
-#: children, with their relative drawing time (seconds on the bundled example, warm
-#: matplotlib, one core), by which :class:`volcal.outputs.plot_process.PlotProcess`
-#: shares them between its children
+#: children (the two that need no covariance first: they are sent as soon as the solve
+#: has ended, :func:`volcal.outputs.plots.hold_solved_plots`), with their relative
+#: drawing time (seconds on the bundled example, warm matplotlib, one core), by which
+#: :class:`volcal.outputs.plot_process.PlotProcess` shares them between its children
 COSTS = {
-    "component_errors.png": 0.20,
-    "correlations.png": 0.14,
     "volumetric_map.png": 0.10,
     "residuals.png": 0.09,
+    "component_errors.png": 0.20,
+    "correlations.png": 0.14,
     "residuals_vs_axes.png": 0.09,
 }
 
@@ -179,6 +182,26 @@ def prepare_frame(key: tuple) -> None:
         ax.xaxis.get_major_ticks(_TICKS_AHEAD)
         ax.yaxis.get_major_ticks(_TICKS_AHEAD)
     _FRAMES[key] = (fig, axes)
+
+
+#: figures drawn before their result folder exists (:func:`hold`): PNG bytes by name
+_HELD: dict[str, bytes] = {}
+
+
+def hold(draw: Callable[..., Any], data: dict[str, Any], name: str) -> None:
+    """Draw ``draw(data)`` into PNG bytes kept in this process under ``name`` until
+    :func:`write_held` writes them: a plotting child draws a figure whose data are known
+    before the folder it goes to is made (the same bytes as drawn to the file)."""
+    import io
+
+    buf = io.BytesIO()
+    draw(data, buf)
+    _HELD[name] = buf.getvalue()
+
+
+def write_held(name: str, path: str | Path) -> None:
+    """Write the figure held under ``name`` (:func:`hold`) to ``path``."""
+    Path(path).write_bytes(_HELD.pop(name))
 
 
 def _message(text: str, path: Target):

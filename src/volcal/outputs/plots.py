@@ -20,7 +20,7 @@ folder's plots can be drawn in a plotting child process (:func:`plot_requests`).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +42,8 @@ __all__ = [
     "correlations_data",
     "plot_requests",
     "iter_plot_requests",
+    "solved_plot_requests",
+    "hold_solved_plots",
     "saved_plot_requests",
 ]
 
@@ -225,9 +227,10 @@ def residuals_data(table: pd.DataFrame, max_points: int = 4000) -> dict[str, Any
     zs = np.sort(z[keep & np.isfinite(z)])
     qq, lim = None, 1.0
     if len(zs):
-        theo = ndtri((np.arange(1, len(zs) + 1) - 0.5) / len(zs))
         sub = np.unique(np.linspace(0, len(zs) - 1, min(len(zs), max_points)).astype(int))
-        qq = (theo[sub], zs[sub])
+        # the normal quantiles of the points drawn only (sub holds the first and the last)
+        theo = ndtri((sub + 0.5) / len(zs))
+        qq = (theo, zs[sub])
         lim = float(max(abs(theo[0]), abs(theo[-1]), 1.0))
     idx = np.arange(1, len(r) + 1)
     step = max(1, len(r) // max_points)
@@ -418,16 +421,28 @@ def iter_plot_requests(
     *,
     residuals: pd.DataFrame | None = None,
     adequacy: Any = "assess",
+    skip: Collection[str] = (),
 ) -> Iterator[tuple[str, Any, dict, float]]:
     """:func:`plot_requests` one figure at a time, each as soon as its data are ready: a
     plotting child starts drawing the first while this process prepares the next, and
     the model adequacy test (for the title of ``residuals_vs_axes.png`` only) is computed
-    last, after the other figures are on their way."""
+    last, after the other figures are on their way.  ``skip``: the names of figures
+    asked for already (:func:`hold_solved_plots`)."""
     spec = result.machine.spec
     if residuals is None:
         residuals = result.residuals
-    # in the order of F.COSTS (the children's frames built ahead expect it)
+    # in the order of F.COSTS (the children's frames built ahead expect it); the first
+    # two are those of solved_plot_requests
     cost = F.COSTS
+    if "volumetric_map.png" not in skip:
+        yield (
+            "volumetric_map.png",
+            F.draw_volumetric_slices,
+            volumetric_slices_data(result.machine, result.error_model, result.theta),
+            cost["volumetric_map.png"],
+        )
+    if "residuals.png" not in skip:
+        yield ("residuals.png", F.draw_residuals, residuals_data(residuals), cost["residuals.png"])
     yield (
         "component_errors.png",
         F.draw_component_errors,
@@ -440,13 +455,6 @@ def iter_plot_requests(
         correlations_data(result),
         cost["correlations.png"],
     )
-    yield (
-        "volumetric_map.png",
-        F.draw_volumetric_slices,
-        volumetric_slices_data(result.machine, result.error_model, result.theta),
-        cost["volumetric_map.png"],
-    )
-    yield ("residuals.png", F.draw_residuals, residuals_data(residuals), cost["residuals.png"])
     if isinstance(adequacy, str) and adequacy == "assess":
         from volcal.analysis.adequacy import assess
 
@@ -464,6 +472,37 @@ def iter_plot_requests(
     )
 
 
+def solved_plot_requests(solved: Any) -> Iterator[tuple[str, Any, dict, float]]:
+    """The result folder's figures that need no covariance, ``volumetric_map.png`` and
+    ``residuals.png``, as :func:`iter_plot_requests` yields them, from what a fit knows
+    once its solve has ended (:class:`volcal.analysis.identify.Solved`): the same data,
+    so the same figures, as from the finished result."""
+    yield (
+        "volumetric_map.png",
+        F.draw_volumetric_slices,
+        volumetric_slices_data(solved.machine, solved.error_model, solved.theta),
+        F.COSTS["volumetric_map.png"],
+    )
+    yield (
+        "residuals.png",
+        F.draw_residuals,
+        residuals_data(solved.residuals),
+        F.COSTS["residuals.png"],
+    )
+
+
+def hold_solved_plots(plotter: Any, solved: Any) -> dict[str, int]:
+    """Send :func:`solved_plot_requests` to ``plotter``'s children
+    (:class:`volcal.outputs.plot_process.PlotProcess`) as soon as the solve has ended,
+    to be drawn while the uncertainty is computed and kept in memory until the result
+    folder exists (:func:`figures.hold`); returns ``{file name: child}`` for
+    :func:`volcal.outputs.results.save_result` (``held``), which has them written."""
+    held: dict[str, int] = {}
+    for name, draw, data, cost in solved_plot_requests(solved):
+        held[name] = plotter.draw(F.hold, draw, data, name, cost=cost)
+    return held
+
+
 def plot_requests(
     result: Any,
     component_table: pd.DataFrame,
@@ -471,11 +510,12 @@ def plot_requests(
     residuals: pd.DataFrame | None = None,
     adequacy: Any = "assess",
 ) -> list[tuple[str, Any, dict, float]]:
-    """The result folder's plots as ``(file name, drawing function, data, cost)``, the
-    most expensive first but for ``residuals_vs_axes.png``, which needs the adequacy test
-    (see :func:`iter_plot_requests`); cost: the relative drawing time (measured on the
-    example), by which :class:`volcal.outputs.plot_process.PlotProcess` shares them
-    between its children.
+    """The result folder's plots as ``(file name, drawing function, data, cost)`` in the
+    order of :data:`figures.COSTS`: those that need no covariance first (sent before the
+    uncertainty stage by ``volcal identify``), ``residuals_vs_axes.png``, which needs
+    the adequacy test, last (see :func:`iter_plot_requests`); cost: the relative drawing
+    time (measured on the example), by which :class:`volcal.outputs.plot_process.
+    PlotProcess` shares them between its children.
 
     result: an identification result, or a saved one (:func:`saved_plot_requests`);
     component_table: :func:`volcal.outputs.results.component_error_table`; residuals and

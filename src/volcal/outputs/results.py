@@ -1681,6 +1681,7 @@ def save_result(
     component_points: int = COMPONENT_POINTS,
     force: bool | None = None,
     plotter: PlotProcess | None = None,
+    held: Mapping[str, int] | None = None,
 ) -> Path:
     """Write the result folder (see the module docstring) and return its path.
 
@@ -1696,7 +1697,10 @@ def save_result(
     :func:`volcal.base.folders.check_out_dir`; the command line needs ``--force``).
     plotter: a :class:`volcal.outputs.plot_process.PlotProcess` started early (the
     command line does) that draws the plots while this process writes the rest; the
-    folder is renamed into place only once every plot is written.
+    folder is renamed into place only once every plot is written.  held: the figures
+    ``plotter``'s children drew before the folder existed and keep in memory, ``{file
+    name: child}`` (:func:`volcal.outputs.plots.hold_solved_plots`): written into the
+    folder, not drawn again.
     """
     t0 = time.perf_counter()
     from volcal.base.folders import write_folder
@@ -1721,8 +1725,15 @@ def save_result(
             with progress.stage("plotting"):
                 # the figures' data first, each sent as soon as it is ready: the plotting
                 # children (when there are some) draw them while this process prepares
-                # the next and then writes the tables and the report
-                for name, draw, data, cost in P.iter_plot_requests(result, comp):
+                # the next and then writes the tables and the report; those drawn already
+                # (held in memory by the children that drew them) are only written
+                skip = dict(held or {}) if plotter is not None else {}
+                if plotter is not None and skip:
+                    from volcal.outputs.figures import write_held
+
+                    for name, child in skip.items():
+                        plotter.draw(write_held, name, tmp / name, cost=0.0, child=child)
+                for name, draw, data, cost in P.iter_plot_requests(result, comp, skip=skip):
                     requests.append((name, draw, data, cost))
                     if plotter is not None:
                         plotter.draw(draw, data, tmp / name, cost=cost)

@@ -9,13 +9,13 @@ the classic pipeline or the single fit).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
-from volcal.analysis.identify import IdentificationResult
+from volcal.analysis.identify import IdentificationResult, Solved
 from volcal.measurement.tables import Measurements
 from volcal.model.machine import Machine
 from volcal.model.spec import MachineSpec
@@ -33,6 +33,7 @@ def identify(
     order_criterion: str = "bic",
     cv_folds: int = 5,
     progress: bool = False,
+    on_solved: Callable[[Solved], None] | None = None,
     **options: Any,
 ) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings (``volcal
@@ -51,6 +52,10 @@ def identify(
     :class:`volcal.analysis.fusion.DataSet`), one problem with chi2/dof per table in
     ``result.instruments``; ``variance_components=True``: each table's budget scale factor
     estimated (Helmert), see :func:`volcal.analysis.fusion.identify_datasets`.
+    on_solved: called with the estimates and the residual table
+    (:class:`volcal.analysis.identify.Solved`) before the uncertainty stage of a single
+    fit (not with several tables, ``degree="auto"`` or the classic strategy, whose
+    results come from several fits or another pipeline).
     """
     from volcal.base.threads import blas_threads
 
@@ -85,4 +90,12 @@ def identify(
             )
         from volcal.workflow.single import fit
 
-        return fit(model, data, stations, strategy=strategy, degree=degree, **options)
+        return fit(
+            model,
+            data,
+            stations,
+            strategy=strategy,
+            degree=degree,
+            on_solved=on_solved,
+            **options,
+        )

@@ -30,6 +30,7 @@ def fit(
         point_method=options.get("point_method", "sqrt"),
     )
     if isinstance(strat, ClassicPipeline):
+        options.pop("on_solved", None)  # a pipeline of its own, not the single fit
         return _classic(model, data, stations, **options)
     from volcal.analysis.identify import _identify
 

@@ -424,6 +424,18 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
         meas = [(d.instrument, d.source) for d in args.data_sets]
         several = {"variance_components": args.variance_components}
         stations = args.stations  # the tracker tables' stations (volcal.analysis.fusion)
+    # the residual and volumetric plots need no covariance: sent to the plotting children
+    # as soon as the solve has ended, drawn while the uncertainty is computed and the
+    # tables written, kept in memory until the result folder exists (save_result)
+    held: dict[str, int] = {}
+
+    def on_solved(solved) -> None:
+        from volcal.base import progress
+        from volcal.outputs.plots import hold_solved_plots
+
+        with progress.stage("plotting"):
+            held.update(hold_solved_plots(plotter, solved))
+
     res = identify(
         args.model,
         meas,
@@ -447,6 +459,7 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
         instrument=args.instrument,
         columns=args.columns,
         max_memory_gb=args.max_memory_gb,
+        on_solved=on_solved if plotter is not None else None,
         **several,
     )
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
@@ -485,6 +498,7 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
         plots=not args.no_plots,
         options=options,
         plotter=plotter,
+        held=held,
     )
     meta = json.loads((path / "result.json").read_text(encoding="utf-8"))
     adequacy = assess(res)  # computed once per result (kept on it), as in the report
