@@ -183,6 +183,13 @@ def main(argv: list[str] | None = None) -> int:
                     f"| {cell('plan_s')} | {cell('criterion_um', '.6f')} "
                     f"| {cell('evaluations', '.0f')} |"
                 )
+            for name, _ in versions:
+                # in run order: a first run slower than the rest is the cold start (files
+                # not yet in the page cache), not the program
+                comparisons.append(
+                    f"{setting}: {name}: wall of each run in order (s): "
+                    + " ".join(f"{r['wall_s']:.2f}" for r in runs[name])
+                )
             if len(versions) > 1:
                 for key in ("wall_s", "cpu_s"):
                     r = [a[key] / b[key] for a, b in zip(runs["this"], runs["baseline"])]
