@@ -434,15 +434,9 @@ def iter_plot_requests(
     # in the order of F.COSTS (the children's frames built ahead expect it); the first
     # two are those of solved_plot_requests
     cost = F.COSTS
-    if "volumetric_map.png" not in skip:
-        yield (
-            "volumetric_map.png",
-            F.draw_volumetric_slices,
-            volumetric_slices_data(result.machine, result.error_model, result.theta),
-            cost["volumetric_map.png"],
-        )
-    if "residuals.png" not in skip:
-        yield ("residuals.png", F.draw_residuals, residuals_data(residuals), cost["residuals.png"])
+    yield from _no_covariance_requests(
+        result.machine, result.error_model, result.theta, residuals, skip
+    )
     yield (
         "component_errors.png",
         F.draw_component_errors,
@@ -477,18 +471,36 @@ def solved_plot_requests(solved: Any) -> Iterator[tuple[str, Any, dict, float]]:
     ``residuals.png``, as :func:`iter_plot_requests` yields them, from what a fit knows
     once its solve has ended (:class:`volcal.analysis.identify.Solved`): the same data,
     so the same figures, as from the finished result."""
-    yield (
-        "volumetric_map.png",
-        F.draw_volumetric_slices,
-        volumetric_slices_data(solved.machine, solved.error_model, solved.theta),
-        F.COSTS["volumetric_map.png"],
+    return _no_covariance_requests(
+        solved.machine, solved.error_model, solved.theta, solved.residuals
     )
-    yield (
-        "residuals.png",
-        F.draw_residuals,
-        residuals_data(solved.residuals),
-        F.COSTS["residuals.png"],
-    )
+
+
+def _no_covariance_requests(
+    machine: Any,
+    error_model: Any,
+    theta: np.ndarray,
+    residuals: pd.DataFrame,
+    skip: Collection[str] = (),
+) -> Iterator[tuple[str, Any, dict, float]]:
+    """The requests of ``volumetric_map.png`` and ``residuals.png`` (no covariance
+    needed), each but those in ``skip``, its data made only when it is yielded: the one
+    definition of both for a finished result (:func:`iter_plot_requests`) and for a
+    fit whose solve has just ended (:func:`solved_plot_requests`)."""
+    if "volumetric_map.png" not in skip:
+        yield (
+            "volumetric_map.png",
+            F.draw_volumetric_slices,
+            volumetric_slices_data(machine, error_model, theta),
+            F.COSTS["volumetric_map.png"],
+        )
+    if "residuals.png" not in skip:
+        yield (
+            "residuals.png",
+            F.draw_residuals,
+            residuals_data(residuals),
+            F.COSTS["residuals.png"],
+        )
 
 
 def hold_solved_plots(plotter: Any, solved: Any) -> dict[str, int]:
