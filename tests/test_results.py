@@ -741,11 +741,21 @@ def test_on_solved_gets_the_estimates_and_residuals_of_the_result(case):
     stage, with the parameters and the residuals (station, residual, normalised residual,
     rejected) the result then holds; not for the classic pipeline (another pipeline)."""
     import volcal
+    from volcal.base import progress
 
-    seen = []
+    seen, stages = [], []
+
+    def on_solved(solved):
+        seen.append(solved)
+        stages.append(progress.timings())  # the stages ended when it was called
+
+    progress.reset_timings()
     res = volcal.identify(case["machine"], case["data"], error_model=case["em"],
-                          on_solved=seen.append)
+                          on_solved=on_solved)
     assert len(seen) == 1
+    # after the solve, before the uncertainty stage (whose covariance it must not wait for)
+    assert "solving" in stages[0] and "uncertainty and identifiability" not in stages[0]
+    assert "uncertainty and identifiability" in progress.timings()
     solved = seen[0]
     assert solved.machine is res.machine and solved.error_model is res.error_model
     np.testing.assert_array_equal(solved.theta, res.theta)
@@ -756,7 +766,7 @@ def test_on_solved_gets_the_estimates_and_residuals_of_the_result(case):
     np.testing.assert_allclose(res.theta, case["res"].theta, rtol=0, atol=1e-12)
     seen.clear()
     volcal.identify(case["machine"], case["data"], error_model=case["em"],
-                    strategy="classic", on_solved=seen.append)
+                    strategy="classic", on_solved=on_solved)
     assert seen == []
 
 
