@@ -669,22 +669,30 @@ def test_frame_plan_gives_each_child_the_frames_of_the_figures_it_is_sent():
     ]
 
 
-def test_font_tables_read_once_give_the_same_pictures(case, tmp_path, monkeypatch):
-    """A plotting child reads the font's tables once (plot_process._font_tables_read_once,
-    matplotlib 3.11): the figures drawn so are byte for byte those of the result folder,
-    drawn with matplotlib's own reading."""
+def test_font_lookups_cached_give_the_same_pictures(case, tmp_path, monkeypatch):
+    """A plotting child reads the font's tables once and looks a text's font files up
+    once per font properties (plot_process._font_lookups_cached, matplotlib 3.11): the
+    figures drawn so are byte for byte those of the result folder, drawn with
+    matplotlib's own look-ups."""
     import matplotlib
     import matplotlib.text as mtext
 
-    from volcal.outputs.plot_process import _font_tables_read_once
+    from volcal.outputs.plot_process import _font_lookups_cached
 
-    monkeypatch.setattr(mtext, "get_font", mtext.get_font)  # restored after the test
-    _font_tables_read_once()
+    manager = mtext.fontManager
+    # both restored after the test
+    monkeypatch.setattr(mtext, "get_font", mtext.get_font)
+    monkeypatch.setattr(manager, "_find_fonts_by_props", manager._find_fonts_by_props)
+    _font_lookups_cached()
     if not matplotlib.__version__.startswith("3.11."):
         assert mtext.get_font is matplotlib.font_manager.get_font  # left alone
         return
     assert mtext.get_font is not matplotlib.font_manager.get_font
-    font = mtext.get_font(mtext.fontManager._find_fonts_by_props(mtext.FontProperties()))
+    prop = mtext.FontProperties(size=9)
+    files = manager._find_fonts_by_props(prop)
+    assert manager._find_fonts_by_props(prop.copy()) is files  # looked up once
+    assert manager._find_fonts_by_props(mtext.FontProperties(size=10)) is not files
+    font = mtext.get_font(files)
     assert font.get_sfnt_table("head") is font.get_sfnt_table("head")  # read once
     for _, name, draw, data in _framed_requests(case):
         draw(data, tmp_path / name)
