@@ -98,6 +98,7 @@ def _font_lookups_cached() -> None:  # pragma: no cover - runs in a child
     versions of matplotlib are left as they are."""
     try:
         import matplotlib
+        import matplotlib.font_manager
         import matplotlib.text as mtext
     except Exception:  # reported with the first figure
         return
@@ -115,11 +116,12 @@ def _font_lookups_cached() -> None:  # pragma: no cover - runs in a child
             w = wrapped[id(font)] = _FontTables(font)
         return w
 
-    mtext.get_font = font_with_tables_read_once
+    # the name text.py's layout gets the font by (for its tables only)
+    mtext.get_font = font_with_tables_read_once  # type: ignore[attr-defined]
     # the font files of a text's properties: looked up once per properties (matplotlib
     # builds a key of six rcParams lists for its own cache at every look-up, 25 µs, for
     # every text laid out and drawn: 0.03 s); the child changes no font setting
-    manager = mtext.fontManager
+    manager = matplotlib.font_manager.fontManager
     find = manager._find_fonts_by_props
     found: dict = {}
 
@@ -132,7 +134,7 @@ def _font_lookups_cached() -> None:  # pragma: no cover - runs in a child
             files = found[prop.copy()] = find(prop)
             return files
 
-    manager._find_fonts_by_props = font_files
+    manager._find_fonts_by_props = font_files  # type: ignore[method-assign]  # this instance
 
 
 def _serve_requests(conn, ahead: Sequence[Request] = ()) -> None:  # pragma: no cover - child
