@@ -45,6 +45,11 @@ from volcal.model.numpy_call import NumpyCall
 #: calls (bytes); above it the bins are made again for each chunk and call
 GRAM_BINS_KEPT_BYTES = 32 * 2**20
 
+#: the largest size (bytes) of what :meth:`ChunkedEvaluator._chunks` keeps between calls:
+#: the poses' d(point)/d(theta) when it does not depend on theta, and the outputs of the
+#: last pass with derivatives; above it they are evaluated again for each pass
+PASS_KEPT_BYTES = 32 * 2**20
+
 __all__ = ["ChunkedEvaluator"]
 
 #: poses per chunk: large enough that the per-chunk Python and call overhead is small
@@ -83,6 +88,14 @@ class ChunkedEvaluator:
         ends = self._starts[np.minimum(np.arange(0, Np, self.pose_chunk) + self.pose_chunk, Np)]
         self.read_chunk = int(max(1, np.max(ends - self._starts[0 : Np : self.pose_chunk])))
         self._calls: dict[str, NumpyCall] = {}
+        #: whether d(point)/d(theta) is free of theta (the first-order model: the point is
+        #: linear in the error parameters); known once the pose function is built
+        self._g_free = False
+        #: per chunk of poses (its first pose): its q and t as evaluated and their
+        #: d(point)/d(theta) output, while ``_g_free`` and small (PASS_KEPT_BYTES)
+        self._g_kept: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        #: the last pass with derivatives: (scaled x, p, with G, its chunks), when small
+        self._pass_kept: tuple[np.ndarray, np.ndarray, bool, list] | None = None
 
     # ---- the mapped functions (built once, on first use) --------------------------------
     def _call(self, kind: str) -> NumpyCall:
@@ -98,7 +111,10 @@ class ChunkedEvaluator:
             # dense outputs (structural zeros stored): the numpy side then reshapes the
             # output buffers instead of scattering their nonzeros chunk after chunk
             sx = f.sx_in()
-            f = ca.Function(f.name() + "_dense", sx, [ca.densify(o) for o in f.call(sx)])
+            outs = f.call(sx)
+            if kind == "pose":
+                self._g_free = not ca.depends_on(outs[1], sx[2])
+            f = ca.Function(f.name() + "_dense", sx, [ca.densify(o) for o in outs])
             call = self._calls[kind] = NumpyCall(f.map(n))
         return call
 
@@ -140,15 +156,52 @@ class ChunkedEvaluator:
         q, t, m, w, theta_v, st, glob = self._split(xs, p)
         Bp, Br, nt = self.pose_chunk, self.read_chunk, self._nt
         with_g = derivatives and theta
+        xs = np.asarray(xs, float).ravel()
+        p = np.asarray(p, float).ravel()
+        if derivatives:
+            # a second pass at the same point with the same data (the datum's R factor,
+            # then the first Gauss-Newton system at the start point): the kept one
+            kept = self._pass_kept
+            if (
+                kept is not None
+                and (kept[2] or not with_g)
+                and np.array_equal(kept[0], xs)
+                and np.array_equal(kept[1], p)
+            ):
+                for ps, idx, pl, r, rows, G in kept[3]:
+                    yield ps, idx, pl, r, rows, G if with_g else None
+                return
         f_pose = self._call("pose" if with_g else "point")
         f_read = self._call("read" if derivatives else "value")
+        # d(point)/d(theta) free of theta: evaluated once per chunk of poses and kept
+        # while it is small; the passes after the first evaluate the point alone (the same
+        # numbers: the point is the same expression in both functions)
+        keep_g = with_g and self._g_free and 8 * 3 * nt * self.n_poses <= PASS_KEPT_BYTES
+        f_point = self._call("point") if keep_g and self._g_kept else f_pose
+        keep_pass = derivatives and (
+            8 * ((self._n_ps + self._n_g + 6) * self.n_readings + 3 * nt * self.n_poses)
+            <= PASS_KEPT_BYTES
+        )
+        chunks = []
         TH = np.repeat(theta_v[:, None], Bp, axis=1)
         GL = np.repeat(glob[:, None], Br, axis=1)
         for a in range(0, self.n_poses, Bp):
             b = min(a + Bp, self.n_poses)
             n = b - a
             fr = self._first[a:b]
-            out = f_pose(self._pad(q[fr].T, Bp), self._pad(t[fr].T, Bp), TH)
+            qc, tc = self._pad(q[fr].T, Bp), self._pad(t[fr].T, Bp)
+            g_kept = self._g_kept.get(a) if keep_g else None
+            if (
+                g_kept is not None
+                and np.array_equal(g_kept[0], qc)
+                and np.array_equal(g_kept[1], tc)
+            ):
+                out = [f_point(qc, tc, TH)[0], g_kept[2]]
+            else:
+                out = f_pose(qc, tc, TH)
+                if keep_g:
+                    out[1].flags.writeable = False  # shared between passes: read-only
+                    self._g_kept[a] = (qc, tc, out[1])
             P = out[0]
             idx = self._order[self._starts[a] : self._starts[b]]
             nr = len(idx)
@@ -166,11 +219,19 @@ class ChunkedEvaluator:
             if with_g:
                 # G: the transpose of (n_theta, 3 Bp) [G_0^T | G_1^T | ...]
                 G = out[1][:, : 3 * n].T.reshape(n, 3, nt)
-                yield slice(a, b), idx, pl, r, res[1][:, :nr], G
+                item = (slice(a, b), idx, pl, r, res[1][:, :nr], G)
             elif derivatives:
-                yield slice(a, b), idx, pl, r, res[1][:, :nr], None
+                item = (slice(a, b), idx, pl, r, res[1][:, :nr], None)
             else:
-                yield slice(a, b), idx, pl, r, None, None
+                item = (slice(a, b), idx, pl, r, None, None)
+            if keep_pass:
+                for v in item[1:]:
+                    if v is not None:
+                        v.flags.writeable = False  # kept for the next pass: read-only
+                chunks.append(item)
+            yield item
+        if keep_pass:  # every chunk evaluated (the caller did not stop early)
+            self._pass_kept = (xs.copy(), p.copy(), with_g, chunks)
 
     # ---- what the solvers and analyses take -----------------------------------------------
     def residuals(self, xs: np.ndarray, p: np.ndarray) -> np.ndarray:
