@@ -143,8 +143,8 @@ def test_the_gram_bins_are_kept_only_below_their_budget(monkeypatch):
 
 def test_what_is_kept_between_passes_gives_the_numbers_evaluated_afresh(monkeypatch):
     """d(point)/d(theta) of the first-order model does not depend on theta: it is
-    evaluated once per chunk and the later passes evaluate the point alone; the last pass
-    with derivatives is kept, and a second pass at the same point and data (the datum's R
+    evaluated once per chunk and the later passes evaluate the point alone; the pass of
+    an R factor is kept, and the next pass at the same point and data (the datum's R
     factor, then Gauss-Newton's first system) takes it.  Both give the numbers of an
     evaluator that keeps nothing, bit for bit; other data (other poses, other weights)
     are evaluated anew."""
@@ -163,7 +163,7 @@ def test_what_is_kept_between_passes_gives_the_numbers_evaluated_afresh(monkeypa
 
     ev._calls["read"] = counted  # type: ignore[assignment]
     got = [ev.gram(xs, p)]  # the kept pass: no evaluation
-    assert calls["read"] == 0
+    assert calls["read"] == 0 and ev._pass_kept is None  # taken once, then let go
     rng = np.random.default_rng(8)
     xs2 = xs + rng.normal(size=pr.n_x)
     got.append(ev.gram(xs2, p))  # the kept d(point)/d(theta), the point evaluated

@@ -97,7 +97,8 @@ class ChunkedEvaluator:
         #: per chunk of poses (its first pose): its q and t as evaluated and their
         #: d(point)/d(theta) output, while ``_g_free`` and small (PASS_KEPT_BYTES)
         self._g_kept: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        #: the last pass with derivatives: (scaled x, p, with G, its chunks), when small
+        #: the last R factor's pass: (scaled x, p, with G, its chunks), when small, until
+        #: the next pass with derivatives (the first Gauss-Newton system at that point)
         self._pass_kept: tuple[np.ndarray, np.ndarray, bool, list] | None = None
 
     # ---- the mapped functions (built once, on first use) --------------------------------
@@ -151,11 +152,20 @@ class ChunkedEvaluator:
         k = a.shape[1]
         return a if k == n else np.concatenate([a, np.repeat(a[:, -1:], n - k, axis=1)], 1)
 
-    def _chunks(self, xs: np.ndarray, p: np.ndarray, derivatives: bool, theta: bool = True):
+    def _chunks(
+        self,
+        xs: np.ndarray,
+        p: np.ndarray,
+        derivatives: bool,
+        theta: bool = True,
+        keep: bool = False,
+    ):
         """Per chunk of poses: (slice of poses, reading indices (pose-sorted), their local
         pose index, r, rows of d(r)/d(point, station, globals) (k, n_r) or None, G
         (n, 3, n_theta) or None).  ``theta=False``: no G (d(point)/d(theta) is not
-        evaluated) even with ``derivatives``."""
+        evaluated) even with ``derivatives``.  ``keep``: the pass is kept (read-only) for
+        the next pass with derivatives, which takes it when it is at the same x with the
+        same p."""
         q, t, m, w, theta_v, st, glob = self._split(xs, p)
         Bp, Br, nt = self.pose_chunk, self.read_chunk, self._nt
         with_g = derivatives and theta
@@ -164,7 +174,7 @@ class ChunkedEvaluator:
         if derivatives:
             # a second pass at the same point with the same data (the datum's R factor,
             # then the first Gauss-Newton system at the start point): the kept one
-            kept = self._pass_kept
+            kept, self._pass_kept = self._pass_kept, None
             if (
                 kept is not None
                 and (kept[2] or not with_g)
@@ -181,8 +191,10 @@ class ChunkedEvaluator:
         # numbers: the point is the same expression in both functions)
         keep_g = with_g and self._g_free and 8 * 3 * nt * self.n_poses <= PASS_KEPT_BYTES
         f_point = self._call("point") if keep_g and self._g_kept else f_pose
-        keep_pass = derivatives and (
-            8 * ((self._n_ps + self._n_g + 6) * self.n_readings + 3 * nt * self.n_poses)
+        keep_pass = (
+            keep
+            and derivatives
+            and 8 * ((self._n_ps + self._n_g + 6) * self.n_readings + 3 * nt * self.n_poses)
             <= PASS_KEPT_BYTES
         )
         chunks = []
@@ -357,7 +369,8 @@ class ChunkedEvaluator:
         width = nt + nps + ng
         r = np.empty(self.n_readings)
         acc = [StackedQR(width) for _ in range(n_st)]
-        for _ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
+        # kept: Gauss-Newton's first system is often at the point of the datum's R factor
+        for _ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True, keep=True):
             r[idx] = rc
             sti = self._station[idx]
             o = np.argsort(sti, kind="stable")
