@@ -231,14 +231,10 @@ class ChunkedEvaluator:
             )
             res = f_read(*args)
             r = res[0].ravel()[:nr]
-            if with_g:
-                # G: the transpose of (n_theta, 3 Bp) [G_0^T | G_1^T | ...]
-                G = out[1][:, : 3 * n].T.reshape(n, 3, nt)
-                item = (slice(a, b), idx, pl, r, res[1][:, :nr], G)
-            elif derivatives:
-                item = (slice(a, b), idx, pl, r, res[1][:, :nr], None)
-            else:
-                item = (slice(a, b), idx, pl, r, None, None)
+            rows = res[1][:, :nr] if derivatives else None
+            # G: the transpose of (n_theta, 3 Bp) [G_0^T | G_1^T | ...]
+            G = out[1][:, : 3 * n].T.reshape(n, 3, nt) if with_g else None
+            item = (slice(a, b), idx, pl, r, rows, G)
             if keep_pass:
                 for v in item[1:]:
                     if v is not None:
