@@ -155,13 +155,14 @@ def test_what_is_kept_between_passes_gives_the_numbers_evaluated_afresh(monkeypa
     calls = {"read": 0}
     R = ev.r_factor(xs, p)[1]
     assert ev._g_free and ev._g_kept and ev._pass_kept is not None
-    read = ev._calls["read"]
+    for key, call in list(ev._calls.items()):  # the readings' maps (whole and last chunk)
+        if key[0] == "read":
 
-    def counted(*args):
-        calls["read"] += 1
-        return read(*args)
+            def counted(*args, call=call):
+                calls["read"] += 1
+                return call(*args)
 
-    ev._calls["read"] = counted  # type: ignore[assignment]
+            ev._calls[key] = counted  # type: ignore[assignment]
     got = [ev.gram(xs, p)]  # the kept pass: no evaluation
     assert calls["read"] == 0 and ev._pass_kept is None  # taken once, then let go
     rng = np.random.default_rng(8)
@@ -191,3 +192,22 @@ def test_what_is_kept_between_passes_gives_the_numbers_evaluated_afresh(monkeypa
     ex = ChunkedEvaluator(exact, pose_chunk=7)
     ex.gram(xs, p)
     assert not ex._g_free and not ex._g_kept
+
+
+def test_a_maps_size_does_not_change_its_numbers():
+    """The last, partial chunk of poses is evaluated on maps of its own size instead of
+    padded to a whole chunk: each point is evaluated on its own, the same numbers, bit for
+    bit, as on the whole chunk's map (and the sums then the same as with padding)."""
+    pr, xs, p = _problem("mcv754_wxyzt", "tracker")
+    ev = ChunkedEvaluator(pr, pose_chunk=7)
+    rng = np.random.default_rng(9)
+    k = 3
+    for kind in ("pose", "point", "read", "value"):
+        whole = ev._call(kind)
+        args = [rng.normal(size=whole.f.size_in(i)) for i in range(whole.f.n_in())]
+        outs = whole(*args)
+        parts = ev._call(kind, k)(*[x[:, :k] for x in args])
+        assert len(parts) == len(outs)
+        for a, b in zip(outs, parts):
+            # the k points' outputs side by side: the whole map's first columns
+            assert b.shape[1] < a.shape[1] and np.array_equal(a[:, : b.shape[1]], b)
