@@ -139,3 +139,75 @@ def test_the_gram_bins_are_kept_only_below_their_budget(monkeypatch):
         r1, g1, H1 = remade.gram(xs, p)
         assert not remade.__dict__.get("_gram_bins")
         assert np.array_equal(r1, r) and np.array_equal(g1, g) and np.array_equal(H1, H)
+
+
+def test_what_is_kept_between_passes_gives_the_numbers_evaluated_afresh(monkeypatch):
+    """d(point)/d(theta) of the first-order model does not depend on theta: it is
+    evaluated once per chunk and the later passes evaluate the point alone; the pass of
+    an R factor is kept, and the next pass at the same point and data (the datum's R
+    factor, then Gauss-Newton's first system) takes it.  Both give the numbers of an
+    evaluator that keeps nothing, bit for bit; other data (other poses, other weights)
+    are evaluated anew."""
+    import volcal.problem.chunked as chunked
+
+    pr, xs, p = _problem("mcv754_wxyzt", "tracker")
+    ev = ChunkedEvaluator(pr, pose_chunk=7)
+    calls = {"read": 0}
+    R = ev.r_factor(xs, p)[1]
+    assert ev._g_free and ev._g_kept and ev._pass_kept is not None
+    for key, call in list(ev._calls.items()):  # the readings' maps (whole and last chunk)
+        if key[0] == "read":
+
+            def counted(*args, call=call):
+                calls["read"] += 1
+                return call(*args)
+
+            ev._calls[key] = counted  # type: ignore[assignment]
+    got = [ev.gram(xs, p)]  # the kept pass: no evaluation
+    assert calls["read"] == 0 and ev._pass_kept is None  # taken once, then let go
+    rng = np.random.default_rng(8)
+    xs2 = xs + rng.normal(size=pr.n_x)
+    got.append(ev.gram(xs2, p))  # the kept d(point)/d(theta), the point evaluated
+    assert calls["read"] > 0
+    q = p.copy()
+    n_ax = pr.machine.n_axes
+    q[: n_ax * pr.layout.n_readings] += 0.5  # other poses: d(point)/d(theta) anew
+    got.append(ev.gram(xs2, q))
+    w = p.copy()
+    w[-pr.layout.n_readings :] *= 2.0  # other weights at the same point
+    got.append(ev.gram(xs2, w))
+    R2 = ev.r_factor(xs2, w)[1]
+
+    monkeypatch.setattr(chunked, "PASS_KEPT_BYTES", 0)
+    fresh = ChunkedEvaluator(pr, pose_chunk=7)
+    want = [fresh.gram(xs, p), fresh.gram(xs2, p), fresh.gram(xs2, q), fresh.gram(xs2, w)]
+    assert not fresh._g_kept and fresh._pass_kept is None
+    for a, b in zip(got, want):
+        assert all(np.array_equal(u, v) for u, v in zip(a, b))
+    assert np.array_equal(R, fresh.r_factor(xs, p)[1])
+    assert np.array_equal(R2, fresh.r_factor(xs2, w)[1])
+
+    # the model to second order: its d(point)/d(theta) depends on theta, never kept
+    exact = IdentificationProblem(pr.machine, pr.error_model, pr.instrument, pr.layout, exact=True)
+    ex = ChunkedEvaluator(exact, pose_chunk=7)
+    ex.gram(xs, p)
+    assert not ex._g_free and not ex._g_kept
+
+
+def test_a_maps_size_does_not_change_its_numbers():
+    """The last, partial chunk of poses is evaluated on maps of its own size instead of
+    padded to a whole chunk: each point is evaluated on its own, the same numbers, bit for
+    bit, as on the whole chunk's map (and the sums then the same as with padding)."""
+    pr, xs, p = _problem("mcv754_wxyzt", "tracker")
+    ev = ChunkedEvaluator(pr, pose_chunk=7)
+    rng = np.random.default_rng(9)
+    k = 3
+    for kind in ("pose", "point", "read", "value"):
+        whole = ev._call(kind)
+        args = [rng.normal(size=whole.f.size_in(i)) for i in range(whole.f.n_in())]
+        outs = whole(*args)
+        parts = ev._call(kind, k)(*[x[:, :k] for x in args])
+        assert len(parts) == len(outs)
+        for a, b in zip(outs, parts):
+            # the k points' outputs side by side: the whole map's first columns
+            assert b.shape[1] < a.shape[1] and np.array_equal(a[:, : b.shape[1]], b)

@@ -101,3 +101,31 @@ def test_bad_forms_rejected(spec):
     em = ErrorModel(spec)
     with pytest.raises(InputError, match="unknown parameter"):
         em.theta_from_mapping({"EXX_9": 1.0})
+
+
+def test_values_and_apply_basis_are_the_basis_error_by_error(spec):
+    """values and apply_basis evaluate the columns of the errors that share an axis and a
+    form once: the numbers are each error's own basis, bit for bit, also where the errors
+    of one axis have different forms (a truth computed error by error from the basis)."""
+    forms = {
+        "EXX": ErrorForm("poly", 5),
+        "EYX": ErrorForm("table", knots=(0.0, 200.0, 500.0, 754.0)),
+        "EAX": ErrorForm("constant"),
+    }
+    em = ErrorModel(spec, forms)
+    rng = np.random.default_rng(3)
+    lo = np.array([a.travel[0] for a in spec.axes])
+    hi = np.array([a.travel[1] for a in spec.axes])
+    q = lo + rng.random((40, len(lo))) * (hi - lo)
+    theta = rng.normal(size=em.n_params)
+    B = em.basis(q)  # (N, n_errors, n_params): each error's own columns
+    e = np.zeros((len(q), em.n_errors))
+    for k in range(em.n_errors):
+        for j in np.flatnonzero(em.param_error_arr == k):
+            e[:, k] += theta[j] * B[:, k, j]
+    assert np.array_equal(em.values(q, theta), e)
+    A = rng.normal(size=(len(q), 3, em.n_errors))
+    want = np.empty((len(q), 3, em.n_params))
+    for j in range(em.n_params):
+        want[:, :, j] = A[:, :, em.param_error_arr[j]] * B[:, em.param_error_arr[j], j][:, None]
+    assert np.array_equal(em.apply_basis(A, q), want)

@@ -959,8 +959,9 @@ def initial_instrument(
         p0 = machine.nominal_points(meas.q_internal, meas.tool)
         sel = np.isin(meas.station_index, np.flatnonzero(missing))
         ids = [meas.station_ids[k] for k in np.flatnonzero(missing)]
-        local = {k: i for i, k in enumerate(np.flatnonzero(missing))}
-        idx = np.array([local[k] for k in meas.station_index[sel]], int)
+        # each selected reading's station among the missing ones (cumsum - 1 of the mask:
+        # the rank of its station in it), without a Python loop over the readings
+        idx = (np.cumsum(missing) - 1)[meas.station_index[sel]].astype(int)
         est[missing], glob_start = ins.start(ids, idx, p0[sel], meas.length[sel])
         if missing.all():  # globals only match stations that all come from the instrument
             glob = glob_start

@@ -324,9 +324,19 @@ class ErrorModel:
         """(error index, parameter index, basis column (N,)) of every parameter at poses q
         (N, n_axes) internal units; each error's columns evaluated once."""
         col = 0
+        # the errors of one axis with one form share their columns: evaluated once (the
+        # same numbers; 27 errors of a 3-axis machine have 3 distinct sets)
+        built: dict = {}
         for k, s in enumerate(self.errors):
-            for c in self._basis_columns(k, q[:, self._axis_index[s.axis]]):
-                yield k, col, np.broadcast_to(np.asarray(c, float), (q.shape[0],))
+            key = (s.axis, self.forms[k])
+            cols = built.get(key)
+            if cols is None:
+                cols = built[key] = [
+                    np.broadcast_to(np.asarray(c, float), (q.shape[0],))
+                    for c in self._basis_columns(k, q[:, self._axis_index[s.axis]])
+                ]
+            for c in cols:
+                yield k, col, c
                 col += 1
 
     def values(self, q: np.ndarray, theta: np.ndarray) -> np.ndarray:

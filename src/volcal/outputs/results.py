@@ -346,17 +346,19 @@ def error_motions_at_positions(
     of the 41 rows by default: exact rows, nothing interpolated)."""
     out = []
     t = component_table
-    for axis in dict.fromkeys(t["axis"].astype(str)):
-        sub = t[t["axis"].astype(str) == axis]
-        keep = [
-            c
-            for c in sub.columns
-            if c != "axis" and not c.startswith("u_") and sub[c].notna().all()
-        ]
+    axes = t["axis"].astype(str).to_numpy()
+    # the position and motion columns, tested for NaN once for the whole table (pandas'
+    # operations on each axis' rows and column cost more than the rest of the report)
+    cands = [c for c in t.columns if c != "axis" and not str(c).startswith("u_")]
+    missing = t[cands].isna().to_numpy()
+    for axis in dict.fromkeys(axes.tolist()):
+        at = np.flatnonzero(axes == axis)
+        full = ~missing[at].any(axis=0)
+        keep = [c for c, ok in zip(cands, full) if ok]
         if len(keep) < 2:  # a position column and at least one motion
             continue
-        rows = np.unique(np.round(np.linspace(0, len(sub) - 1, min(n, len(sub)))).astype(int))
-        out.append((axis, sub.iloc[rows][keep].reset_index(drop=True)))
+        rows = np.unique(np.round(np.linspace(0, len(at) - 1, min(n, len(at)))).astype(int))
+        out.append((axis, t.iloc[at[rows]][keep].reset_index(drop=True)))
     return out
 
 
@@ -1443,7 +1445,8 @@ def _error_motion_lines(
             pos = table.columns[0]
             table[pos] = [f"{v:g}" for v in table[pos]]  # positions in full, not 3 digits
             vals = table.columns[1:]
-            table[vals] = table[vals].mask(table[vals].abs() < 1e-9, 0.0)
+            v = table[vals].to_numpy(float)
+            table[vals] = np.where(np.abs(v) < 1e-9, 0.0, v)
             L += [f"Axis {axis}, {where}:", "", _md_table(table, ".3g"), ""]
     return L
 
@@ -1757,7 +1760,9 @@ def save_result(
             motions.to_csv(tmp / "error_motions.csv", index=False)
             log.info("evaluating the volumetric error on the grid")
             grid = volumetric_grid_table(machine, em, result.theta, result.cov_theta, grid_points)
-            grid.to_csv(tmp / "volumetric_grid.csv", index=False)
+            # all floats: write_table's text in about half of pandas' time (small tables
+            # with text columns are faster in pandas)
+            write_table(grid, tmp / "volumetric_grid.csv")
         # the adequacy test (kept on the result) is a pass over every reading: a stage of
         # its own, so that its time is recorded rather than hidden in the document's
         with progress.stage("testing the model's adequacy"):

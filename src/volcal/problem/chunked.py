@@ -45,6 +45,14 @@ from volcal.model.numpy_call import NumpyCall
 #: calls (bytes); above it the bins are made again for each chunk and call
 GRAM_BINS_KEPT_BYTES = 32 * 2**20
 
+#: the largest size (bytes) of each of what :meth:`ChunkedEvaluator._chunks` keeps between
+#: calls: the poses' d(point)/d(theta) when it does not depend on theta, and the outputs
+#: of the last pass with derivatives; above it they are evaluated again for each pass.
+#: They save a few percent of an identification's time; at 10^4 tracker readings they
+#: take 5 MB; at 10^5 readings (32 MB and 44 MB) they are not kept (the first alone
+#: raised the peak memory of `volcal identify` by 43 MB, 17 %)
+PASS_KEPT_BYTES = 16 * 2**20
+
 __all__ = ["ChunkedEvaluator"]
 
 #: poses per chunk: large enough that the per-chunk Python and call overhead is small
@@ -82,24 +90,44 @@ class ChunkedEvaluator:
         # the most readings of any chunk of poses: the size of the readings' map
         ends = self._starts[np.minimum(np.arange(0, Np, self.pose_chunk) + self.pose_chunk, Np)]
         self.read_chunk = int(max(1, np.max(ends - self._starts[0 : Np : self.pose_chunk])))
-        self._calls: dict[str, NumpyCall] = {}
+        self._calls: dict[tuple[str, int | None], NumpyCall] = {}
+        self._dense: dict[str, ca.Function] = {}
+        #: whether d(point)/d(theta) is free of theta (the first-order model: the point is
+        #: linear in the error parameters); known once the pose function is built
+        self._g_free = False
+        #: per chunk of poses (its first pose): its q and t as evaluated and their
+        #: d(point)/d(theta) output, while ``_g_free`` and small (PASS_KEPT_BYTES)
+        self._g_kept: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        #: the last R factor's pass: (scaled x, p, with G, its chunks), when small, until
+        #: the next pass with derivatives (the first Gauss-Newton system at that point)
+        self._pass_kept: tuple[np.ndarray, np.ndarray, bool, list] | None = None
 
     # ---- the mapped functions (built once, on first use) --------------------------------
-    def _call(self, kind: str) -> NumpyCall:
-        call = self._calls.get(kind)
+    def _call(self, kind: str, n: int | None = None) -> NumpyCall:
+        """The function of ``kind`` mapped over ``n`` poses / readings (default: a chunk's
+        size; the last chunk of poses is evaluated at its own size, without padding).
+        Each point is evaluated on its own: the numbers do not depend on the map's size."""
+        call = self._calls.get((kind, n))
         if call is None:
             pr = self.problem
-            f, n = {
+            f, size = {
                 "pose": (pr.f_pose, self.pose_chunk),
                 "point": (pr.f_point, self.pose_chunk),
                 "read": (pr.f_read, self.read_chunk),
                 "value": (pr.f_res, self.read_chunk),
             }[kind]
-            # dense outputs (structural zeros stored): the numpy side then reshapes the
-            # output buffers instead of scattering their nonzeros chunk after chunk
-            sx = f.sx_in()
-            f = ca.Function(f.name() + "_dense", sx, [ca.densify(o) for o in f.call(sx)])
-            call = self._calls[kind] = NumpyCall(f.map(n))
+            dense = self._dense.get(kind)
+            if dense is None:
+                # dense outputs (structural zeros stored): the numpy side then reshapes the
+                # output buffers instead of scattering their nonzeros chunk after chunk
+                sx = f.sx_in()
+                outs = f.call(sx)
+                if kind == "pose":
+                    self._g_free = not ca.depends_on(outs[1], sx[2])
+                dense = ca.Function(f.name() + "_dense", sx, [ca.densify(o) for o in outs])
+                self._dense[kind] = dense
+            # (the first map of a Function costs milliseconds, the next ones microseconds)
+            call = self._calls[(kind, n)] = NumpyCall(dense.map(size if n is None else n))
         return call
 
     # ---- the data vector ----------------------------------------------------------------
@@ -132,45 +160,108 @@ class ChunkedEvaluator:
         k = a.shape[1]
         return a if k == n else np.concatenate([a, np.repeat(a[:, -1:], n - k, axis=1)], 1)
 
-    def _chunks(self, xs: np.ndarray, p: np.ndarray, derivatives: bool, theta: bool = True):
+    def _chunks(
+        self,
+        xs: np.ndarray,
+        p: np.ndarray,
+        derivatives: bool,
+        theta: bool = True,
+        keep: bool = False,
+    ):
         """Per chunk of poses: (slice of poses, reading indices (pose-sorted), their local
         pose index, r, rows of d(r)/d(point, station, globals) (k, n_r) or None, G
         (n, 3, n_theta) or None).  ``theta=False``: no G (d(point)/d(theta) is not
-        evaluated) even with ``derivatives``."""
+        evaluated) even with ``derivatives``.  ``keep``: the pass is kept (read-only) for
+        the next pass with derivatives, which takes it when it is at the same x with the
+        same p."""
         q, t, m, w, theta_v, st, glob = self._split(xs, p)
         Bp, Br, nt = self.pose_chunk, self.read_chunk, self._nt
         with_g = derivatives and theta
+        xs = np.asarray(xs, float).ravel()
+        p = np.asarray(p, float).ravel()
+        if derivatives:
+            # a second pass at the same point with the same data (the datum's R factor,
+            # then the first Gauss-Newton system at the start point): the kept one
+            kept, self._pass_kept = self._pass_kept, None
+            if (
+                kept is not None
+                and (kept[2] or not with_g)
+                and np.array_equal(kept[0], xs)
+                and np.array_equal(kept[1], p)
+            ):
+                for ps, idx, pl, r, rows, G in kept[3]:
+                    yield ps, idx, pl, r, rows, G if with_g else None
+                return
         f_pose = self._call("pose" if with_g else "point")
         f_read = self._call("read" if derivatives else "value")
+        # d(point)/d(theta) free of theta: evaluated once per chunk of poses and kept
+        # while it is small; the passes after the first evaluate the point alone (the same
+        # numbers: the point is the same expression in both functions)
+        keep_g = with_g and self._g_free and 8 * 3 * nt * self.n_poses <= PASS_KEPT_BYTES
+        f_point = self._call("point") if keep_g and self._g_kept else f_pose
+        keep_pass = (
+            keep
+            and derivatives
+            and 8 * ((self._n_ps + self._n_g + 6) * self.n_readings + 3 * nt * self.n_poses)
+            <= PASS_KEPT_BYTES
+        )
+        chunks = []
         TH = np.repeat(theta_v[:, None], Bp, axis=1)
         GL = np.repeat(glob[:, None], Br, axis=1)
         for a in range(0, self.n_poses, Bp):
             b = min(a + Bp, self.n_poses)
             n = b - a
             fr = self._first[a:b]
-            out = f_pose(self._pad(q[fr].T, Bp), self._pad(t[fr].T, Bp), TH)
-            P = out[0]
             idx = self._order[self._starts[a] : self._starts[b]]
             nr = len(idx)
+            # a last chunk at most half full: maps of its own sizes (padded to a whole
+            # chunk it evaluated up to a chunk of copies: a sixth of the work at 10^4
+            # readings).  Making a map costs about as much as 1-3 of its evaluations,
+            # in proportion to its size: for a chunk nearly full, padding costs less.
+            small = n <= Bp // 2
+            Bc, Rc = (n, nr) if small else (Bp, Br)
+            fp, fq, fr_ = f_pose, f_point, f_read
+            if small:
+                fp = self._call("pose" if with_g else "point", n)
+                fq = self._call("point", n) if f_point is not f_pose else fp
+                fr_ = self._call("read" if derivatives else "value", nr)
+            qc, tc = self._pad(q[fr].T, Bc), self._pad(t[fr].T, Bc)
+            g_kept = self._g_kept.get(a) if keep_g else None
+            if (
+                g_kept is not None
+                and np.array_equal(g_kept[0], qc)
+                and np.array_equal(g_kept[1], tc)
+            ):
+                out = [fq(qc, tc, TH[:, :Bc])[0], g_kept[2]]
+            else:
+                out = fp(qc, tc, TH[:, :Bc])
+                if keep_g:
+                    out[1].flags.writeable = False  # shared between passes: read-only
+                    self._g_kept[a] = (qc, tc, out[1])
+            P = out[0]
             pl = self._pose[idx] - a
             sti = self._station[idx]
             args = (
-                self._pad(P[:, pl], Br),
-                self._pad(st[sti].T, Br),
-                GL,
-                self._pad(m[idx][None, :], Br),
-                self._pad(w[idx][None, :], Br),
+                self._pad(P[:, pl], Rc),
+                self._pad(st[sti].T, Rc),
+                GL[:, :Rc],
+                self._pad(m[idx][None, :], Rc),
+                self._pad(w[idx][None, :], Rc),
             )
-            res = f_read(*args)
+            res = fr_(*args)
             r = res[0].ravel()[:nr]
-            if with_g:
-                # G: the transpose of (n_theta, 3 Bp) [G_0^T | G_1^T | ...]
-                G = out[1][:, : 3 * n].T.reshape(n, 3, nt)
-                yield slice(a, b), idx, pl, r, res[1][:, :nr], G
-            elif derivatives:
-                yield slice(a, b), idx, pl, r, res[1][:, :nr], None
-            else:
-                yield slice(a, b), idx, pl, r, None, None
+            rows = res[1][:, :nr] if derivatives else None
+            # G: the transpose of (n_theta, 3 Bp) [G_0^T | G_1^T | ...]
+            G = out[1][:, : 3 * n].T.reshape(n, 3, nt) if with_g else None
+            item = (slice(a, b), idx, pl, r, rows, G)
+            if keep_pass:
+                for v in item[1:]:
+                    if v is not None:
+                        v.flags.writeable = False  # kept for the next pass: read-only
+                chunks.append(item)
+            yield item
+        if keep_pass:  # every chunk evaluated (the caller did not stop early)
+            self._pass_kept = (xs.copy(), p.copy(), with_g, chunks)
 
     # ---- what the solvers and analyses take -----------------------------------------------
     def residuals(self, xs: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -293,7 +384,8 @@ class ChunkedEvaluator:
         width = nt + nps + ng
         r = np.empty(self.n_readings)
         acc = [StackedQR(width) for _ in range(n_st)]
-        for _ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True):
+        # kept: Gauss-Newton's first system is often at the point of the datum's R factor
+        for _ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True, keep=True):
             r[idx] = rc
             sti = self._station[idx]
             o = np.argsort(sti, kind="stable")
