@@ -76,6 +76,32 @@ def test_volumetric_slices_cover_every_rotary_axis():
     assert z and all("A = 0 deg" in t and "C = 0 deg" in t for t in z), z
 
 
+def test_volumetric_map_drawn_in_a_frame_built_ahead_is_the_same_picture(tmp_path):
+    """``volcal identify``'s plotting child builds the volumetric map's frame from the
+    model alone, before the solve (figures.volumetric_frame_key: the slices along the
+    third linear axis and around each rotary axis, the travel's scale): the map of a
+    machine with two rotary axes takes it, and is byte for byte the map drawn without."""
+    from volcal.outputs import figures as F
+    from volcal.outputs.plots import volumetric_slices_data
+
+    m = Machine.from_model("trunnion_ac")
+    em = ErrorModel(m.spec)
+    th = draw_true_parameters(m, em, np.random.default_rng(2), 40.0)
+    data = volumetric_slices_data(m, em, th, n=9)
+    key = F.volumetric_frame_key([(*a.travel, a.is_rotary) for a in m.spec.axes])
+    assert key is not None and key[1] == len(data["slices"])
+    F.draw_volumetric_slices(data, tmp_path / "plain.png")
+    try:
+        F.prepare_frame(key)
+        F.draw_volumetric_slices(data, tmp_path / "framed.png")
+        assert key not in F._FRAMES  # taken
+    finally:
+        F._FRAMES.clear()
+    assert (tmp_path / "plain.png").read_bytes() == (tmp_path / "framed.png").read_bytes()
+    # no map without two linear axes: no frame
+    assert F.volumetric_frame_key([(0.0, 500.0, False), (0.0, 360.0, True)]) is None
+
+
 def _texts(fig):
     """Every visible non-empty text of a figure (titles, labels, tick labels, legends, keys)
     after drawing."""

@@ -563,11 +563,15 @@ def test_plots_drawn_by_the_plotting_processes_equal_those_drawn_here(case, tmp_
 
 def _framed_requests(case):
     """The module result's plot data, for the figures with a frame built ahead."""
+    from volcal.outputs.figures import volumetric_frame_key
     from volcal.outputs.plots import saved_plot_requests
 
     reqs = saved_plot_requests(load_result(case["out"]))
-    n = len(case["machine"].spec.axes)
+    axes = case["machine"].spec.axes
+    n = len(axes)
     keys = {
+        # from the model alone, as volcal identify builds it before the solve
+        "volumetric_map.png": volumetric_frame_key([(*a.travel, a.is_rotary) for a in axes]),
         "component_errors.png": ("component_errors", n),
         "correlations.png": ("correlations",),
         "residuals.png": ("residuals",),
@@ -583,7 +587,7 @@ def test_a_figure_drawn_in_a_frame_built_ahead_is_the_same_picture(case, tmp_pat
     from volcal.outputs import figures
 
     framed = _framed_requests(case)
-    assert len(framed) == 4
+    assert len(framed) == 5
     for key, name, draw, data in framed:
         figures.prepare_frame(key)
         assert key in figures._FRAMES
@@ -615,7 +619,7 @@ def test_a_plotting_child_builds_its_frames_while_it_waits_and_survives_a_failin
     from volcal.outputs import figures
     from volcal.outputs.plot_process import _serve_requests
 
-    key, name, draw, data = _framed_requests(case)[0]  # residuals.png
+    key, name, draw, data = _framed_requests(case)[1]  # residuals.png
     assert key == ("residuals",)
     built = threading.Event()
 
@@ -642,24 +646,57 @@ def test_a_plotting_child_builds_its_frames_while_it_waits_and_survives_a_failin
 def test_frame_plan_gives_each_child_the_frames_of_the_figures_it_is_sent():
     """With two children the figures (in the order sent: those that need no covariance
     first, then by drawing cost) go volumetric map -> 0, residuals -> 1, component errors
-    -> 1, correlations -> 0, residuals vs axes -> 0 (the least drawing queued first), so
-    those are the frames each builds (the volumetric map has none); one child builds
-    them all."""
+    -> 0, correlations -> 1, residuals vs axes -> 1 (the least drawing queued first), so
+    those are the frames each builds (the volumetric map's when its key is known); one
+    child builds them all."""
     from volcal.outputs.figures import frame_plan, prepare_frame
 
     plan = frame_plan(4, 2)
     assert all(f is prepare_frame for child in plan for f, _ in child)
     assert [[args[0] for _, args in child] for child in plan] == [
-        [("correlations",), ("residuals_vs_axes", 4)],
-        [("residuals",), ("component_errors", 4)],
+        [("component_errors", 4)],
+        [("residuals",), ("correlations",), ("residuals_vs_axes", 4)],
     ]
-    (one,) = frame_plan(3, 1)
+    vol = ("volumetric", 3, 800.0, 500.0)
+    assert [args[0] for _, args in frame_plan(4, 2, vol)[0]] == [vol, ("component_errors", 4)]
+    (one,) = frame_plan(3, 1, vol)
     assert [args[0][0] for _, args in one] == [
+        "volumetric",
         "residuals",
         "component_errors",
         "correlations",
         "residuals_vs_axes",
     ]
+
+
+def test_font_lookups_cached_give_the_same_pictures(case, tmp_path, monkeypatch):
+    """A plotting child reads the font's tables once and looks a text's font files up
+    once per font properties (plot_process._font_lookups_cached, matplotlib 3.11): the
+    figures drawn so are byte for byte those of the result folder, drawn with
+    matplotlib's own look-ups."""
+    import matplotlib
+    import matplotlib.text as mtext
+
+    from volcal.outputs.plot_process import _font_lookups_cached
+
+    manager = mtext.fontManager
+    # both restored after the test
+    monkeypatch.setattr(mtext, "get_font", mtext.get_font)
+    monkeypatch.setattr(manager, "_find_fonts_by_props", manager._find_fonts_by_props)
+    _font_lookups_cached()
+    if not matplotlib.__version__.startswith("3.11."):
+        assert mtext.get_font is matplotlib.font_manager.get_font  # left alone
+        return
+    assert mtext.get_font is not matplotlib.font_manager.get_font
+    prop = mtext.FontProperties(size=9)
+    files = manager._find_fonts_by_props(prop)
+    assert manager._find_fonts_by_props(prop.copy()) is files  # looked up once
+    assert manager._find_fonts_by_props(mtext.FontProperties(size=10)) is not files
+    font = mtext.get_font(files)
+    assert font.get_sfnt_table("head") is font.get_sfnt_table("head")  # read once
+    for _, name, draw, data in _framed_requests(case):
+        draw(data, tmp_path / name)
+        assert (tmp_path / name).read_bytes() == (case["out"] / name).read_bytes(), name
 
 
 def test_plots_sent_before_the_uncertainty_stage_are_the_same_files(case, tmp_path):

@@ -17,7 +17,7 @@ rasterised scatters, images instead of patches; and a plotting child builds the 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, BinaryIO, Literal
 
@@ -121,24 +121,30 @@ _TICKS_AHEAD = 8
 #: the result folder's figures in the order ``volcal identify`` sends them to the plotting
 #: children (the two that need no covariance first: they are sent as soon as the solve
 #: has ended, :func:`volcal.outputs.plots.hold_solved_plots`), with their relative
-#: drawing time (seconds on the bundled example, warm matplotlib, one core), by which
+#: drawing time (processor seconds at 10^4 readings of the benchmarks' mcv754_wxyzt, as
+#: a plotting child draws them: warm matplotlib, frames built ahead), by which
 #: :class:`volcal.outputs.plot_process.PlotProcess` shares them between its children
+#: (two: volumetric map and component errors to one, the other three to the other)
 COSTS = {
-    "volumetric_map.png": 0.10,
-    "residuals.png": 0.09,
-    "component_errors.png": 0.20,
-    "correlations.png": 0.14,
-    "residuals_vs_axes.png": 0.09,
+    "volumetric_map.png": 0.12,
+    "residuals.png": 0.12,
+    "component_errors.png": 0.25,
+    "correlations.png": 0.15,
+    "residuals_vs_axes.png": 0.10,
 }
 
 
-def frame_plan(n_axes: int, workers: int) -> list[list[tuple[Callable[..., Any], tuple]]]:
+def frame_plan(
+    n_axes: int, workers: int, volumetric: tuple | None = None
+) -> list[list[tuple[Callable[..., Any], tuple]]]:
     """The frames (:func:`prepare_frame`) each of ``workers`` plotting children builds
     while it waits for its first request: those of the figures it will be sent, a result
     of ``n_axes`` machine axes drawn in the order of :data:`COSTS`, each sent to the
-    child with the least drawing queued (as :meth:`PlotProcess.draw` does).  A frame that
+    child with the least drawing queued (as :meth:`PlotProcess.draw` does); the
+    volumetric map's when its key is given (:func:`volumetric_frame_key`).  A frame that
     does not match its figure (another layout, another child) is not used."""
     keys = {
+        "volumetric_map.png": volumetric,
         "component_errors.png": ("component_errors", n_axes),
         "correlations.png": ("correlations",),
         "residuals.png": ("residuals",),
@@ -149,7 +155,7 @@ def frame_plan(n_axes: int, workers: int) -> list[list[tuple[Callable[..., Any],
     for name, cost in COSTS.items():
         i = min(range(workers), key=lambda k: queued[k])
         queued[i] += cost
-        if name in keys:
+        if keys.get(name) is not None:
             plan[i].append((prepare_frame, (keys[name],)))
     return plan
 
@@ -285,20 +291,15 @@ def draw_volumetric_slices(data: dict[str, Any], path: Target = None):
     G1, G2 = np.meshgrid(g1, g2, indexing="ij")
     span1 = float(g1.max() - g1.min()) or 1.0
     span2 = float(g2.max() - g2.min()) or 1.0
-    # panel sizes (inches) follow the travel: 800 x 500 mm is drawn 800 x 500
-    ncol = min(len(slices), 3)
-    nrow = int(np.ceil(len(slices) / ncol))
-    gap_w, gap_h = 0.85, 1.0  # y labels; two-line titles and x labels
-    left, right, top, bottom = 0.75, 1.3, 0.9, 0.55
-    # at most MAX_WIDTH wide: the report shows it at its own size
-    pw = min(2.7, (MAX_WIDTH - left - right - (ncol - 1) * gap_w) / ncol)
-    # to scale within [0.8, 4] in of height; a travel too long for that (3000 x 100 mm)
-    # keeps the width and gives up the scale rather than grow past MAX_WIDTH
-    ph = float(np.clip(pw * span2 / span1, 0.8, 4.0))
-    pw = min(pw, ph * span1 / span2)
-    width = left + ncol * pw + (ncol - 1) * gap_w + right
-    height = top + nrow * ph + (nrow - 1) * gap_h + bottom + 0.25
-    fig = figure(width, height)
+    L = _volumetric_layout(len(slices), span1, span2)
+    ncol, pw, left, gap_w = L["ncol"], L["pw"], L["left"], L["gap_w"]
+    width, height = L["width"], L["height"]
+    # the figure, its panels and the colour bar's axes: built ahead when the plotting
+    # child knew the machine (volumetric_frame_key)
+    fig, (axes, cax) = _frame(
+        ("volumetric", len(slices), span1, span2),
+        lambda: _volumetric_frame(len(slices), span1, span2),
+    )
     ext = [g1.min(), g1.max(), g2.min(), g2.max()]
     step = max(1, len(g1) // 9)
     spacing = span1 / max(1, (len(g1) - 1) / step)
@@ -306,13 +307,7 @@ def draw_volumetric_slices(data: dict[str, Any], path: Target = None):
     # one scale for every panel: the largest error is drawn 1.6 arrow spacings long
     scale = vmax / (1.6 * spacing)
     im = quiv = None
-    axes = []
-    for k, s in enumerate(slices):
-        r, c = divmod(k, ncol)
-        x0 = left + c * (pw + gap_w)
-        y0 = bottom + 0.25 + (nrow - 1 - r) * (ph + gap_h)
-        ax = fig.add_axes((x0 / width, y0 / height, pw / width, ph / height))
-        axes.append(ax)
+    for ax, s in zip(axes, slices):
         im = ax.imshow(
             s["norm"].T,
             origin="lower",
@@ -336,12 +331,6 @@ def draw_volumetric_slices(data: dict[str, Any], path: Target = None):
         ax.set_title(s["title"], fontsize=9)
         ax.set_xlabel(data["labels"][0], fontsize=9)
         ax.set_ylabel(data["labels"][1], fontsize=9)
-        ax.tick_params(labelsize=8)
-        _few_ticks(ax)
-    cb_x = (width - right + 0.3) / width
-    cb_h = min(nrow * ph + (nrow - 1) * gap_h, 4.0)
-    cb_top = bottom + 0.25 + nrow * ph + (nrow - 1) * gap_h  # level with the first row
-    cax = fig.add_axes((cb_x, (cb_top - cb_h) / height, 0.15 / width, cb_h / height))
     fig.colorbar(im, cax=cax, label="|volumetric error| (µm)")
     cax.tick_params(labelsize=8)
     if quiv is not None:
@@ -367,6 +356,82 @@ def draw_volumetric_slices(data: dict[str, Any], path: Target = None):
         )
     fig.suptitle(data["title"], fontsize=10, y=1 - 0.3 / height)
     return save(fig, path)
+
+
+def _volumetric_layout(n: int, span1: float, span2: float) -> dict[str, Any]:
+    """Where the ``n`` panels of the volumetric map go (inches): three to a row, each to
+    scale with the travel of its two axes (``span1`` x ``span2`` mm)."""
+    # panel sizes (inches) follow the travel: 800 x 500 mm is drawn 800 x 500
+    ncol = min(n, 3)
+    nrow = int(np.ceil(n / ncol))
+    gap_w, gap_h = 0.85, 1.0  # y labels; two-line titles and x labels
+    left, right, top, bottom = 0.75, 1.3, 0.9, 0.55
+    # at most MAX_WIDTH wide: the report shows it at its own size
+    pw = min(2.7, (MAX_WIDTH - left - right - (ncol - 1) * gap_w) / ncol)
+    # to scale within [0.8, 4] in of height; a travel too long for that (3000 x 100 mm)
+    # keeps the width and gives up the scale rather than grow past MAX_WIDTH
+    ph = float(np.clip(pw * span2 / span1, 0.8, 4.0))
+    pw = min(pw, ph * span1 / span2)
+    width = left + ncol * pw + (ncol - 1) * gap_w + right
+    height = top + nrow * ph + (nrow - 1) * gap_h + bottom + 0.25
+    return {
+        "ncol": ncol,
+        "nrow": nrow,
+        "pw": pw,
+        "ph": ph,
+        "left": left,
+        "right": right,
+        "bottom": bottom,
+        "gap_w": gap_w,
+        "gap_h": gap_h,
+        "width": width,
+        "height": height,
+    }
+
+
+def _volumetric_frame(n: int, span1: float, span2: float):
+    """The volumetric map's figure, its ``n`` panels (styled) and its colour bar's axes:
+    what depends on the machine's travel and number of slices only, so it is built ahead
+    (:func:`volumetric_frame_key`)."""
+    L = _volumetric_layout(n, span1, span2)
+    ncol, nrow, pw, ph = L["ncol"], L["nrow"], L["pw"], L["ph"]
+    left, bottom, gap_w, gap_h = L["left"], L["bottom"], L["gap_w"], L["gap_h"]
+    width, height = L["width"], L["height"]
+    fig = figure(width, height)
+    axes = []
+    for k in range(n):
+        r, c = divmod(k, ncol)
+        x0 = left + c * (pw + gap_w)
+        y0 = bottom + 0.25 + (nrow - 1 - r) * (ph + gap_h)
+        ax = fig.add_axes((x0 / width, y0 / height, pw / width, ph / height))
+        ax.tick_params(labelsize=8)
+        _few_ticks(ax)
+        axes.append(ax)
+    cb_x = (width - L["right"] + 0.3) / width
+    cb_h = min(nrow * ph + (nrow - 1) * gap_h, 4.0)
+    cb_top = bottom + 0.25 + nrow * ph + (nrow - 1) * gap_h  # level with the first row
+    cax = fig.add_axes((cb_x, (cb_top - cb_h) / height, 0.15 / width, cb_h / height))
+    return fig, (axes, cax)
+
+
+def volumetric_frame_key(
+    axes: Sequence[tuple[float, float, bool]], heights: int = 3, angles: int = 4
+) -> tuple | None:
+    """The frame key (:func:`prepare_frame`) of the volumetric map of a machine whose
+    axes are ``(travel low, travel high, rotary?)`` (mm or deg), drawn with ``heights``
+    slices along the third linear axis and ``angles`` per rotary axis, as
+    :func:`volcal.outputs.plots.volumetric_slices_data` makes them; None without two
+    linear axes (no map).  Known before the solve: the frame is built while the
+    plotting child waits."""
+    lin = [(lo, hi) for lo, hi, rotary in axes if not rotary]
+    if len(lin) < 2:
+        return None
+    n = (heights if len(lin) > 2 else 1) + angles * sum(1 for *_, rotary in axes if rotary)
+    spans = []
+    for lo, hi in lin[:2]:
+        g = np.linspace(lo, hi, 2)  # the grid's ends, as the map's data have them
+        spans.append(float(g.max() - g.min()) or 1.0)
+    return ("volumetric", n, spans[0], spans[1])
 
 
 def draw_residuals(data: dict[str, Any], path: Target = None):
@@ -602,6 +667,7 @@ def _plan_frame():
 
 #: the frame builders of :func:`prepare_frame`, by the first item of its key
 _BUILDERS: dict[str, Callable[..., Any]] = {
+    "volumetric": _volumetric_frame,
     "component_errors": _component_frame,
     "residuals": _residuals_frame,
     "residuals_vs_axes": _residuals_vs_axes_frame,

@@ -343,19 +343,25 @@ def run(args: argparse.Namespace) -> int:
 
 def _frames_ahead(args: argparse.Namespace):
     """The plotting children's frames to build ahead (``workers -> plan``,
-    :func:`volcal.outputs.figures.frame_plan`), from the model's number of axes; None
-    when the model cannot be read here (the error is reported where it is built)."""
+    :func:`volcal.outputs.figures.frame_plan`), from the model's axes (their number, and
+    their travel for the volumetric map's); None when the model cannot be read here (the
+    error is reported where it is built)."""
     if args.no_plots:
         return None
     from volcal.model.spec import resolve_model
 
     try:
-        n_axes = len(resolve_model(args.model).axes)
+        axes = resolve_model(args.model).axes
     except Exception:
         return None
-    from volcal.outputs.figures import frame_plan
+    from volcal.outputs.figures import frame_plan, volumetric_frame_key
 
-    return lambda workers: frame_plan(n_axes, workers)
+    try:
+        vol = volumetric_frame_key([(a.travel[0], a.travel[1], a.is_rotary) for a in axes])
+    except Exception:  # no map, or one of another layout: drawn without a frame
+        vol = None
+    n_axes = len(axes)
+    return lambda workers: frame_plan(n_axes, workers, vol)
 
 
 def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
