@@ -211,3 +211,21 @@ def test_a_maps_size_does_not_change_its_numbers():
         for a, b in zip(outs, parts):
             # the k points' outputs side by side: the whole map's first columns
             assert b.shape[1] < a.shape[1] and np.array_equal(a[:, : b.shape[1]], b)
+
+
+def test_a_last_chunk_of_one_pose():
+    """A last chunk holding a single pose (a map over one point gives its single-column
+    outputs as vectors): the same residuals, bit for bit, and the same sums and R factor
+    (to rounding) as one chunk holding every pose."""
+    pr, xs, p = _problem("mcv754_wxyzt", "tracker")
+    n_poses = len(pr.layout.poses[1])
+    one = ChunkedEvaluator(pr, pose_chunk=n_poses - 1)  # the last chunk: one pose
+    whole = ChunkedEvaluator(pr, pose_chunk=n_poses + 5)
+    assert np.array_equal(one.residuals(xs, p), whole.residuals(xs, p))
+    r, g, H = one.gram(xs, p)
+    r1, g1, H1 = whole.gram(xs, p)
+    assert np.array_equal(r, r1)
+    assert np.max(np.abs(g - g1)) <= 1e-13 * np.abs(g1).max()
+    assert np.max(np.abs(H - H1)) <= 1e-13 * np.abs(H1).max()
+    R, R1 = one.r_factor(xs, p)[1], whole.r_factor(xs, p)[1]
+    assert np.max(np.abs(R.T @ R - R1.T @ R1)) <= 1e-12 * np.abs(H1).max()

@@ -206,8 +206,8 @@ class ChunkedEvaluator:
             <= PASS_KEPT_BYTES
         )
         chunks = []
-        TH = np.repeat(theta_v[:, None], Bp, axis=1)
-        GL = np.repeat(glob[:, None], Br, axis=1)
+        TH = np.repeat(theta_v[:, None], max(Bp, 2), axis=1)
+        GL = np.repeat(glob[:, None], max(Br, 2), axis=1)
         for a in range(0, self.n_poses, Bp):
             b = min(a + Bp, self.n_poses)
             n = b - a
@@ -219,12 +219,14 @@ class ChunkedEvaluator:
             # readings).  Making a map costs about as much as 1-3 of its evaluations,
             # in proportion to its size: for a chunk nearly full, padding costs less.
             small = n <= Bp // 2
-            Bc, Rc = (n, nr) if small else (Bp, Br)
+            # at least two: a map over one point returns its single-column outputs as
+            # vectors (volcal.model.numpy_call), a copy of the point pads it
+            Bc, Rc = (max(n, 2), max(nr, 2)) if small else (Bp, Br)
             fp, fq, fr_ = f_pose, f_point, f_read
             if small:
-                fp = self._call("pose" if with_g else "point", n)
-                fq = self._call("point", n) if f_point is not f_pose else fp
-                fr_ = self._call("read" if derivatives else "value", nr)
+                fp = self._call("pose" if with_g else "point", Bc)
+                fq = self._call("point", Bc) if f_point is not f_pose else fp
+                fr_ = self._call("read" if derivatives else "value", Rc)
             qc, tc = self._pad(q[fr].T, Bc), self._pad(t[fr].T, Bc)
             g_kept = self._g_kept.get(a) if keep_g else None
             if (
