@@ -831,3 +831,28 @@ def test_printed_positions_are_described_from_their_grid():
     for r in pp.itertuples():
         col = comp.loc[comp["axis"] == r.axis, f"{r.error_motion}_{r.unit}"]
         assert r.peak_to_peak_in_unit == pytest.approx(col.max() - col.min(), abs=1e-9)
+
+
+def test_identify_frees_the_ipopt_graph_and_builds_it_again(case):
+    """release_graph (what `volcal identify` asks for): the same result, bit for bit,
+    without the IPOPT solver and the CasADi graph of every reading once the fit has
+    converged; the identifier builds them again to solve again (and stays at the
+    answer)."""
+    import volcal
+    from volcal.measurement.tables import load_measurements
+
+    args = (case["machine"], case["data"])
+    kept = volcal.identify(*args, error_model=case["em"], solver="ipopt")
+    freed = volcal.identify(*args, error_model=case["em"], solver="ipopt", release_graph=True)
+    np.testing.assert_array_equal(freed.theta, kept.theta)
+    np.testing.assert_array_equal(freed.cov_theta, kept.cov_theta)
+    pd.testing.assert_frame_equal(freed.residuals, kept.residuals)
+    pd.testing.assert_frame_equal(freed.stations, kept.stations)
+    assert kept.identifier.solver is not None and "_graph" in kept.identifier.problem.__dict__
+    ider = freed.identifier
+    assert ider.solver is None and "_graph" not in ider.problem.__dict__
+    meas = load_measurements(case["data"], case["machine"].spec)
+    p = ider.problem.pack_data(meas.q_internal, meas.tool, meas.length, freed.state.weights)
+    x, outcomes, _, _ = ider.run("joint", freed.state.x, p)
+    assert ider.solver is not None and outcomes[-1].success
+    np.testing.assert_allclose(x, freed.state.x, rtol=1e-7, atol=1e-9)

@@ -215,6 +215,12 @@ class IdentificationProblem:
         self.units += list(ins.global_param_units)
 
     # ---- the whole-graph NLP (built on first use) -----------------------------------------
+    def release_graph(self) -> None:
+        """Free the graph of every reading (:attr:`_graph`, :attr:`jacobian`): built again,
+        the same, if asked for again."""
+        self.__dict__.pop("_graph", None)
+        self.__dict__.pop("jacobian", None)
+
     @cached_property
     def _graph(self) -> dict:
         """The CasADi graph of every reading: the NLP for IPOPT and the whole-problem

@@ -34,6 +34,7 @@ def identify(
     cv_folds: int = 5,
     progress: bool = False,
     on_solved: Callable[[Solved], None] | None = None,
+    release_graph: bool = False,
     **options: Any,
 ) -> IdentificationResult:
     """Identify the geometric errors of a machine from length readings (``volcal
@@ -97,5 +98,6 @@ def identify(
             strategy=strategy,
             degree=degree,
             on_solved=on_solved,
+            release_graph=release_graph,
             **options,
         )

@@ -31,6 +31,7 @@ def fit(
     )
     if isinstance(strat, ClassicPipeline):
         options.pop("on_solved", None)  # a pipeline of its own, not the single fit
+        options.pop("release_graph", None)
         return _classic(model, data, stations, **options)
     from volcal.analysis.identify import _identify
 

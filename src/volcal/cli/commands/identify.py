@@ -466,6 +466,8 @@ def _run(args: argparse.Namespace, plotter, inputs: tuple) -> int:
         columns=args.columns,
         max_memory_gb=args.max_memory_gb,
         on_solved=on_solved if plotter is not None else None,
+        # this command does not solve again: IPOPT's graph freed before the uncertainty
+        release_graph=True,
         **several,
     )
     log.info("solved (%s) in %.2f s; writing %s", res.status, res.seconds, out)
