@@ -837,7 +837,7 @@ def test_identify_frees_the_ipopt_graph_and_builds_it_again(case):
     """release_graph (what `volcal identify` asks for): the same result, bit for bit,
     without the IPOPT solver and the CasADi graph of every reading once the fit has
     converged; the identifier builds them again to solve again (and stays at the
-    answer)."""
+    answer).  No result holds what the chunked evaluation kept between its passes."""
     import volcal
     from volcal.measurement.tables import load_measurements
 
@@ -851,6 +851,10 @@ def test_identify_frees_the_ipopt_graph_and_builds_it_again(case):
     assert kept.identifier.solver is not None and "_graph" in kept.identifier.problem.__dict__
     ider = freed.identifier
     assert ider.solver is None and "_graph" not in ider.problem.__dict__
+    # nor do the results hold the passes the chunked evaluation kept for the solve
+    for res in (kept, freed):
+        chunked = res.identifier.problem.__dict__["chunked"]
+        assert chunked._pass_kept is None and not chunked._g_kept
     meas = load_measurements(case["data"], case["machine"].spec)
     p = ider.problem.pack_data(meas.q_internal, meas.tool, meas.length, freed.state.weights)
     x, outcomes, _, _ = ider.run("joint", freed.state.x, p)

@@ -1248,6 +1248,10 @@ def _identify(
             x, p, base_fixed, meas.q_internal[first], meas.tool[first]
         )
         split_gauge(ident, nt, sets, pr.scale[:nt])
+        # the passes kept for the solve and the uncertainty are not the result's to hold
+        chunked = pr.__dict__.get("chunked")
+        if chunked is not None:
+            chunked.forget()
     # a parameter taking part in an unidentifiable direction has no value of its own: its
     # value depends on which variable was held (reported), so it gets no uncertainty
     identifiable = ~ident.unidentifiable[:nt]

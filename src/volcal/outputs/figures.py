@@ -427,11 +427,9 @@ def volumetric_frame_key(
     if len(lin) < 2:
         return None
     n = (heights if len(lin) > 2 else 1) + angles * sum(1 for *_, rotary in axes if rotary)
-    spans = []
-    for lo, hi in lin[:2]:
-        g = np.linspace(lo, hi, 2)  # the grid's ends, as the map's data have them
-        spans.append(float(g.max() - g.min()) or 1.0)
-    return ("volumetric", n, spans[0], spans[1])
+    # the map's grid runs from end to end of the travel (linspace: the ends exact)
+    (lo1, hi1), (lo2, hi2) = lin[:2]
+    return ("volumetric", n, float(hi1 - lo1) or 1.0, float(hi2 - lo2) or 1.0)
 
 
 def draw_residuals(data: dict[str, Any], path: Target = None):

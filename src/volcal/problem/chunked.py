@@ -102,6 +102,15 @@ class ChunkedEvaluator:
         #: the next pass with derivatives (the first Gauss-Newton system at that point)
         self._pass_kept: tuple[np.ndarray, np.ndarray, bool, list] | None = None
 
+    def forget(self) -> None:
+        """Drop what :meth:`_chunks` keeps between passes (the poses' d(point)/d(theta),
+        the last R factor's pass): an identification does once its uncertainty is known,
+        so that the results a caller holds (several strategies compared, a session's
+        fits) do not each hold them; a later pass evaluates them again (the same
+        numbers)."""
+        self._g_kept.clear()
+        self._pass_kept = None
+
     # ---- the mapped functions (built once, on first use) --------------------------------
     def _call(self, kind: str, n: int | None = None) -> NumpyCall:
         """The function of ``kind`` mapped over ``n`` poses / readings (default: a chunk's

@@ -56,7 +56,10 @@ def identify(
     on_solved: called with the estimates and the residual table
     (:class:`volcal.analysis.identify.Solved`) before the uncertainty stage of a single
     fit (not with several tables, ``degree="auto"`` or the classic strategy, whose
-    results come from several fits or another pipeline).
+    results come from several fits or another pipeline).  release_graph: likewise for a
+    single fit only, its IPOPT solver and CasADi graph of every reading freed before the
+    uncertainty stage (:meth:`volcal.analysis.identify.Identifier.release_graph`; ``volcal
+    identify``, which solves no more, lowers its peak memory so).
     """
     from volcal.base.threads import blas_threads
 
