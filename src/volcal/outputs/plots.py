@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from volcal.base.distributions import norm_ppf
 from volcal.outputs import figures as F
 
 __all__ = [
@@ -213,8 +214,6 @@ def volumetric_slices(
 
 def residuals_data(table: pd.DataFrame, max_points: int = 4000) -> dict[str, Any]:
     """The data of :func:`residuals` (see :func:`figures.draw_residuals`)."""
-    from scipy.special import ndtri  # the normal quantile; scipy.stats costs 0.4 s to import
-
     r = table["residual_um"].to_numpy(float)
     rej = np.asarray(table["rejected"], bool) if "rejected" in table else np.zeros(len(r), bool)
     z = (
@@ -229,7 +228,7 @@ def residuals_data(table: pd.DataFrame, max_points: int = 4000) -> dict[str, Any
     if len(zs):
         sub = np.unique(np.linspace(0, len(zs) - 1, min(len(zs), max_points)).astype(int))
         # the normal quantiles of the points drawn only (sub holds the first and the last)
-        theo = ndtri((sub + 0.5) / len(zs))
+        theo = norm_ppf((sub + 0.5) / len(zs))
         qq = (theo, zs[sub])
         lim = float(max(abs(theo[0]), abs(theo[-1]), 1.0))
     idx = np.arange(1, len(r) + 1)
