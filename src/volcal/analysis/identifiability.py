@@ -106,7 +106,7 @@ def _r_factor(A: np.ndarray) -> np.ndarray:
     m, n = A.shape
     if m <= n:
         return np.vstack([A, np.zeros((n - m, n))]) if m < n else A.copy()
-    return np.linalg.qr(A, mode="r")[:n]
+    return np.asarray(np.linalg.qr(A, mode="r"))[:n]
 
 
 @dataclass
