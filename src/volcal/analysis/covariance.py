@@ -10,9 +10,8 @@ a-posteriori covariance for budgets that are only known up to a factor.
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg as sla
 
-from volcal.base.linalg import scale_columns
+from volcal.base.linalg import null_space, scale_columns
 
 
 def constrained_covariance(
@@ -91,7 +90,7 @@ def _datum_basis(C: np.ndarray | None, free: np.ndarray, d: np.ndarray) -> np.nd
         Cf = np.asarray(C, float)[:, free] * d
         Cf = Cf[np.linalg.norm(Cf, axis=1) > 0]
         if Cf.shape[0]:
-            return sla.null_space(Cf)
+            return null_space(Cf)
     return np.eye(len(free))
 
 

@@ -16,9 +16,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg as sla
 
-from volcal.base.linalg import scale_columns
+from volcal.base.linalg import null_space, pivot_order, scale_columns
 
 
 @dataclass
@@ -102,13 +101,12 @@ def _describe(v: np.ndarray, names: list[str], lead: int, rel: float = 1e-3) -> 
 
 
 def _r_factor(A: np.ndarray) -> np.ndarray:
-    """R of a QR factorisation (square, n x n); LAPACK geqrf through SciPy, which is much
-    faster than numpy's mode='r' on tall matrices.  A tall ``A`` is overwritten (the
-    callers pass a temporary: no second copy of the tall matrix)."""
+    """R of a QR factorisation (square, n x n); LAPACK geqrf through numpy (as fast as
+    scipy's on tall matrices, without scipy's import: :mod:`volcal.base.linalg`)."""
     m, n = A.shape
     if m <= n:
         return np.vstack([A, np.zeros((n - m, n))]) if m < n else A.copy()
-    return sla.qr(A, mode="r", overwrite_a=True, check_finite=False)[0][:n]
+    return np.asarray(np.linalg.qr(A, mode="r"))[:n]
 
 
 @dataclass
@@ -148,7 +146,7 @@ def scaled_constrained_svd(
     Cf = np.zeros((0, len(free))) if C is None or len(C) == 0 else np.asarray(C, float)[:, free]
     Cs = Cf * d
     Cs = Cs[np.linalg.norm(Cs, axis=1) > 0] if Cs.shape[0] else Cs
-    Z = sla.null_space(Cs) if Cs.shape[0] else np.eye(len(free))
+    Z = null_space(Cs) if Cs.shape[0] else np.eye(len(free))
     # One QR of the tall scaled Jacobian; everything else works on its small R factor
     # (J Z and J diag(norms) Z have the singular values of R Z and R diag(norms) Z).
     R = _r_factor(A)
@@ -215,7 +213,7 @@ def analyse_jacobian(
         W = N_y.T.copy()
         if prefer is not None:
             W = W * (1.0 + np.asarray(prefer, float)[free])[None, :]
-        _, _, piv = sla.qr(W, pivoting=True, mode="economic")
+        piv = pivot_order(W)
         pivots_free = [int(p) for p in piv[:k]]
         # reduced row echelon on the pivot columns: one direction per pivot variable
         R = np.linalg.solve(N_y[pivots_free, :].T, N_y.T)  # rows: directions, R[:, piv] = I

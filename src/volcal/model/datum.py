@@ -38,7 +38,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
-import scipy.linalg as sla
 
 if TYPE_CHECKING:  # pandas is imported where the table is built
     import pandas as pd
@@ -140,11 +139,7 @@ def null_space(
     m = rows if n_rows is None else int(n_rows)
     free, _, d, A = scale_columns(J, fixed)
     # one QR of the tall matrix, then the SVD of its small R factor
-    R = (
-        sla.qr(A, mode="r", overwrite_a=True, check_finite=False)[0][: len(free)]
-        if rows > len(free)
-        else A
-    )
+    R = np.linalg.qr(A, mode="r")[: len(free)] if rows > len(free) else A
     _, s, Vt = np.linalg.svd(R, full_matrices=True)
     s_full = np.zeros(len(free))
     s_full[: len(s)] = s

@@ -394,7 +394,7 @@ class ChunkedEvaluator:
         nt, nps, ng, n_st = self._nt, self._n_ps, self._n_g, self._n_st
         width = nt + nps + ng
         r = np.empty(self.n_readings)
-        acc = [StackedQR(width) for _ in range(n_st)]
+        acc = [StackedQR(width, expected_rows=self.n_readings) for _ in range(n_st)]
         # kept: Gauss-Newton's first system is often at the point of the datum's R factor
         for _ps, idx, pl, rc, rows, G in self._chunks(xs, p, derivatives=True, keep=True):
             r[idx] = rc

@@ -554,7 +554,7 @@ class DenseJacobian:
         bounds = np.searchsorted(st_sorted, np.arange(n_st + 1))
         top = StackedQR(self._n_x)
         for k in range(n_st):
-            acc = StackedQR(width)
+            acc = StackedQR(width, expected_rows=len(order))
             for start in range(int(bounds[k]), int(bounds[k + 1]), step):
                 sl = slice(start, min(start + step, int(bounds[k + 1])))
                 Jb = np.zeros((sl.stop - sl.start, width))

@@ -38,9 +38,9 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 
 from volcal.base import progress
+from volcal.base.linalg import cholesky_solve, cholesky_upper, null_space, solve_triangular
 from volcal.problem.residuals import IdentificationProblem
 from volcal.solve.outcome import SolveOutcome
 
@@ -51,18 +51,19 @@ def _qr_solve(A: np.ndarray, b: np.ndarray, *, rank_check: bool = False) -> np.n
     a diagonal of R below n eps times the largest, the tolerance
     ``numpy.linalg.matrix_rank`` applies to singular values, here on R's diagonal, which
     an unpivoted QR makes a cheap indicator rather than a rank-revealing one).  Q^T b is
-    applied from the Householder reflectors (LAPACK ormqr) without forming Q."""
+    formed by numpy (LAPACK orgqr; the systems are n_z x n_z, a few hundred at most)."""
     if A.shape[0] == 0:
         return np.zeros(0)
     if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
         return np.full(len(b), np.nan)  # the caller reports the invalid number
-    qtb, R = sla.qr_multiply(A, b, mode="right")
+    Q, R = np.linalg.qr(A)
+    qtb = Q.T @ b
     d = np.abs(np.diag(R))
     if d.min() == 0.0 or (rank_check and d.min() <= len(d) * np.finfo(float).eps * d.max()):
         raise np.linalg.LinAlgError(
             "singular system" if d.min() == 0.0 else "numerically singular system"
         )
-    return sla.solve_triangular(R, qtb, check_finite=False)
+    return solve_triangular(R, qtb)
 
 
 def _spd_solve(A: np.ndarray, b: np.ndarray, *, rank_check: bool = False) -> np.ndarray:
@@ -72,13 +73,13 @@ def _spd_solve(A: np.ndarray, b: np.ndarray, *, rank_check: bool = False) -> np.
     that a nearly singular system is solved, or refused, exactly as before."""
     if A.shape[0] and np.all(np.isfinite(A)) and np.all(np.isfinite(b)):
         try:
-            c = sla.cho_factor(A, check_finite=False)
+            U = cholesky_upper(A)
         except np.linalg.LinAlgError:
             pass
         else:
-            d = np.diag(c[0]) ** 2
+            d = np.diag(U) ** 2
             if d.min() > np.sqrt(np.finfo(float).eps) * d.max():
-                return sla.cho_solve(c, b, check_finite=False)
+                return cholesky_solve(U, b)
     return _qr_solve(A, b, rank_check=rank_check)
 
 
@@ -114,7 +115,7 @@ def feasible_basis(problem: IdentificationProblem, fixed: np.ndarray | None) -> 
     C[:, :nt] = problem.C * problem.scale[None, :nt]
     Cf = C[:, free]
     Cf = Cf[np.linalg.norm(Cf, axis=1) > 0]
-    Zf = sla.null_space(Cf) if Cf.shape[0] else np.eye(len(free))
+    Zf = null_space(Cf) if Cf.shape[0] else np.eye(len(free))
     Z = np.zeros((n, Zf.shape[1]))
     Z[free] = Zf
     return Z
