@@ -144,9 +144,11 @@ def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 #: streams of at least this many rows are factorised by LAPACK's tpqrt through scipy
-#: (about 4 ms less per 3,000-row block of 91 columns than numpy's geqrf of the stacked
-#: rows) instead of numpy: from here the saving exceeds scipy's import (~0.15 s)
-LAPACK_TPQRT_ROWS = 100_000
+#: instead of numpy: 1.2 against 2.5 us a row of 90 columns (geqrf does not block a
+#: matrix that narrow), and an identification factorises its rows twice (the datum's
+#: and the field's R), so from about 50,000 readings the saving exceeds scipy's import
+#: (~0.15 s)
+LAPACK_TPQRT_ROWS = 50_000
 
 
 class StackedQR:
