@@ -356,8 +356,7 @@ def residuals_vs_axes(result: Any, path: Target = None):
 def _datum_determined(result: Any, keep: np.ndarray) -> np.ndarray:
     """Mask of the parameters (among ``keep``) that the datum conditions in force determine
     from the others: one pivot column of C per independent condition."""
-    import scipy.linalg as sla
-
+    from volcal.base.linalg import pivot_order
     from volcal.model.datum import candidate_conditions
 
     em = result.error_model
@@ -372,8 +371,10 @@ def _datum_determined(result: Any, keep: np.ndarray) -> np.ndarray:
     Ck = C[:, cols]
     if not Ck.size:
         return out
-    _, R, piv = sla.qr(Ck, mode="economic", pivoting=True)
-    d = np.abs(np.diag(R))
+    # QR with column pivoting (no scipy import in a plotting run): the pivoted R's
+    # diagonal is the unpivoted QR's of the columns in pivot order
+    piv = pivot_order(Ck)
+    d = np.abs(np.diag(np.asarray(np.linalg.qr(Ck[:, piv], mode="r"))))
     rank = int(np.sum(d > 1e-10 * (d[0] if len(d) else 1.0)))
     out[cols[piv[:rank]]] = True
     return out
