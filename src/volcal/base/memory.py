@@ -3,20 +3,22 @@
 The peak resident memory of ``volcal identify`` grows with the readings times the
 unknowns (the Jacobian and the arrays of its size that the solver and the covariance
 hold) plus a part per reading (the table, the residuals, the per-reading results).  The
-factors below were measured with ``python benchmarks/bench_memory.py`` (peak resident
-set of ``volcal identify --no-plots`` on simulated mcv754_wxyzt tables of 12,288 to
-139,968 readings with 75 to 147 unknowns; least-squares fit, residuals below 16 MB;
-benchmarks/results/memory.txt):
+factors below were measured with ``python benchmarks/bench_memory.py --solver ipopt
+--grids 5 8 14 18`` (peak resident set of ``volcal identify --no-plots`` on simulated
+mcv754_wxyzt tables of 3,000 to 139,968 readings with 75 to 147 unknowns; least-squares
+fit, residuals below 26 MB; benchmarks/results/memory_ipopt.txt):
 
-    peak ~ 151 MB + readings x (2.40 kB + 47.2 B x unknowns)
+    peak ~ 133 MB + readings x (4.14 kB + 14.0 B x unknowns)
 
 That is the whole-graph path (IPOPT: the NLP's CasADi graph holds every reading's
 sparsity).  Gauss-Newton evaluates the problem in chunks of poses and never holds a
-Jacobian-sized array; measured the same way (``bench_memory.py --solver gauss-newton``,
-12,288 to 139,968 readings, largest residual 6.5 MB; checked at 997,536 readings x 111
-unknowns: 1.77 GB measured, 2.09 GB estimated):
+Jacobian-sized array; measured the same way (``bench_memory.py --solver gauss-newton
+--grids 5 8 14 18``, 3,000 to 139,968 readings, largest residual 12.5 MB;
+benchmarks/results/memory.txt):
 
-    peak ~ 149 MB + readings x (1.86 kB + 0.8 B x unknowns)
+    peak ~ 128 MB + readings x (1.08 kB + 2.7 B x unknowns)
+
+(The base fell by some 15 MB when scipy left the identification's imports.)
 
 :func:`check_memory` refuses a run whose estimate exceeds the memory available
 (the smaller of ``MemAvailable`` in /proc/meminfo and the room left under the control
@@ -42,13 +44,13 @@ __all__ = [
 ]
 
 #: measured (see the module docstring): the interpreter, CasADi, the model
-BASE_BYTES = 151e6
+BASE_BYTES = 133e6
 #: per reading, whatever the unknowns (table, residuals, per-reading results)
-BYTES_PER_READING = 2.40e3
+BYTES_PER_READING = 4.14e3
 #: per reading and unknown (the Jacobian and the arrays of its size)
-BYTES_PER_READING_UNKNOWN = 47.2
+BYTES_PER_READING_UNKNOWN = 14.0
 #: the same three factors for the chunked path (Gauss-Newton), measured likewise
-CHUNKED_FACTORS = (149e6, 1.86e3, 0.8)
+CHUNKED_FACTORS = (128e6, 1.08e3, 2.7)
 
 
 def estimate_peak_bytes(readings: int, unknowns: int, *, chunked: bool = False) -> float:
