@@ -313,3 +313,28 @@ def test_one_biased_tool_offset_among_fifteen_is_named():
     assert ad.verdict == "does_not_fit" and ad.cause == "tool_offset"
     assert "most of all at tool offset (0, 90, -95) mm" in ad.causes[0].text
     assert "(0, 90, -95) mm" in ad.causes[0].short
+
+
+def test_groupings_by_hashing_and_counting_are_np_uniques():
+    """The adequacy test groups readings by hashing and counting (linear in the readings;
+    np.unique sorts): the same distinct values in the same order and the same codes as
+    np.unique gives, on texts, mixed objects, integer cells and positions with -0.0."""
+    from volcal.analysis.adequacy import _dense, _factorize, position_bins
+
+    rng = np.random.default_rng(11)
+    texts = np.array(["LT2", "LT10", "LT1", "b", "A"], dtype=object)[rng.integers(0, 5, 500)]
+    mixed = np.array([1, "1", 2.5, 1], dtype=object)
+    for values in (texts, texts.astype(str), rng.integers(0, 40, 500), mixed):
+        names, codes = _factorize(values)
+        exp_names, exp_codes = np.unique(np.asarray(values).astype(str), return_inverse=True)
+        np.testing.assert_array_equal(names, exp_names)
+        np.testing.assert_array_equal(codes, exp_codes.ravel())
+    for cells in (rng.integers(0, 50, 1000) * 7, np.array([5, 5, 0, 9_000_000, 5])):
+        codes, counts = _dense(cells)
+        exp = np.unique(cells, return_inverse=True)[1].ravel()
+        np.testing.assert_array_equal(codes, exp)
+        np.testing.assert_array_equal(counts, np.bincount(exp))
+    v = rng.choice([-0.0, 0.0, 10.0, 20.5], 300)
+    code, centres = position_bins(v)
+    np.testing.assert_array_equal(centres, [0.0, 10.0, 20.5])
+    np.testing.assert_array_equal(code, np.searchsorted(centres, v))

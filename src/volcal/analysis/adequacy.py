@@ -77,7 +77,6 @@ import numpy as np
 import pandas as pd
 
 from volcal.base.distributions import chi2_ppf, log_f_sf, norm_cdf, poisson_sf
-from volcal.base.linalg import unique_rows
 
 __all__ = [
     "Adequacy",
@@ -371,25 +370,56 @@ def chi2_interval(dof: int, confidence: float = CONFIDENCE) -> tuple[float, floa
     return chi2_ppf(a, dof) / dof, chi2_ppf(1.0 - a, dof) / dof
 
 
+# The tests group 10^6 readings a dozen times over: every grouping here is a hash or a
+# count, O(readings), not a sort (np.unique sorts: its n log n made the adequacy test the
+# one stage of `volcal identify` growing faster than the readings, exponent 1.06-1.19
+# from 10^5 to 10^6).  Each gives what the np.unique call it replaces gave.
+
+
+def _factorize(values: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(np.asarray(values).astype(str), return_inverse=True)`` by hashing: the
+    distinct texts in sorted order and each value's index among them."""
+    codes, uniques = pd.factorize(np.asarray(values).ravel(), use_na_sentinel=False)
+    names, inv = np.unique(np.asarray(uniques).astype(str), return_inverse=True)
+    return names, inv.ravel()[codes]
+
+
+def _dense(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(codes, return_inverse=True)``'s inverse for non-negative integer codes of
+    moderate size (cells: station x bin): (codes numbered 0.. in order, readings per
+    code), by counting; other codes through np.unique."""
+    c = np.asarray(codes)
+    if c.dtype.kind in "iub" and len(c) and c.min() >= 0 and c.max() < 4 * len(c) + 4096:
+        counts = np.bincount(c)
+        present = counts > 0
+        return (np.cumsum(present) - 1)[c], counts[present]
+    inv = np.unique(c, return_inverse=True)[1].ravel()
+    return inv, np.bincount(inv)
+
+
+def _n_distinct(codes: np.ndarray) -> int:
+    """The number of distinct non-negative integer codes (``len(np.unique(codes))``)."""
+    return len(_dense(codes)[1])
+
+
 def position_bins(values: np.ndarray, max_bins: int = MAX_BINS) -> tuple[np.ndarray, np.ndarray]:
     """Bin index per reading and the bin centres: the distinct positions when there are at
     most ``max_bins`` of them, else quantile bins (ties kept together)."""
     v = np.asarray(values, float)
-    uniq = np.unique(np.round(v, 9))
+    r = np.round(v, 9) + 0.0  # -0.0 as 0.0: one position (np.unique took them as equal)
+    uniq = np.sort(pd.unique(r))  # hashing the readings, sorting the few distinct values
     if len(uniq) <= max_bins:
-        code = np.searchsorted(uniq, np.round(v, 9))
+        code = np.searchsorted(uniq, r)
         return code, uniq
     edges = np.unique(np.quantile(v, np.linspace(0.0, 1.0, max_bins + 1)[1:-1]))
-    code = np.searchsorted(edges, v, side="right")
-    code = np.unique(code, return_inverse=True)[1]
-    centres = np.array([np.mean(v[code == k]) for k in range(code.max() + 1)])
+    code, counts = _dense(np.searchsorted(edges, v, side="right"))
+    centres = np.bincount(code, weights=v) / counts
     return code, centres
 
 
 def _within_ss(z: np.ndarray, group: np.ndarray) -> tuple[float, int]:
     """Sum of squares of z about its group means, and the number of groups."""
-    g = np.unique(group, return_inverse=True)[1]
-    n = np.bincount(g)
+    g, n = _dense(group)
     s = np.bincount(g, weights=z)
     ss = float(np.sum(z * z) - np.sum(s * s / n))
     return max(ss, 0.0), len(n)
@@ -449,7 +479,7 @@ def _tool_structure(
     binning).  Then each offset alone against the others (within each station): the
     smallest p, multiplied by the number of offsets (Bonferroni: the chance that any of
     them is that far off by chance), names the offset when it is significant."""
-    codes = np.unique(codes, return_inverse=True)[1]
+    codes = _dense(codes)[0]
     n_t = int(codes.max()) + 1
     st = station.astype(np.int64)
     overall = _nested_f(z, st, st * n_t + codes, "tool offset", "", "tool_offset", n_t)
@@ -492,9 +522,9 @@ def _structure(
             cell, nb = _binned(station, positions[name].to_numpy(float))
             if nb >= 2:
                 out.append(_nested_f(z, station, cell, str(name), unit, "axis", nb))
-    if tools is not None and len(np.unique(tools)) > 1:
+    if tools is not None and _n_distinct(np.asarray(tools)) > 1:
         out.append(_tool_structure(z, station, np.asarray(tools), tool_names))
-    n_st = len(np.unique(station))
+    n_st = _n_distinct(station)
     if n_st > 1:
         zero = np.zeros_like(station)
         out.append(_nested_f(z, zero, station, "station", "", "station", n_st))
@@ -502,11 +532,12 @@ def _structure(
         # station scattering more than the others (Brown-Forsythe: the means of the
         # absolute deviations from each station's median)
         med = np.zeros(len(z))
-        for k in np.unique(station):
+        present = [int(k) for k in np.flatnonzero(np.bincount(station))]
+        for k in present:
             med[station == k] = np.median(z[station == k])
         spread = _nested_f(np.abs(z - med), zero, station, "station spread", "", "station", n_st)
         if spread is not None:
-            rms = {k: float(np.sqrt(np.mean(z[station == k] ** 2))) for k in np.unique(station)}
+            rms = {k: float(np.sqrt(np.mean(z[station == k] ** 2))) for k in present}
             worst = max(rms, key=lambda k: rms[k])
             name = station_names[worst] if station_names is not None else str(worst)
             spread = replace(spread, axis=f"station spread (widest {name})")
@@ -514,7 +545,7 @@ def _structure(
     if time is not None:
         t = np.asarray(time, float)
         fin = np.isfinite(t)
-        if fin.sum() > 2 * MAX_BINS and len(np.unique(t[fin])) > 1:
+        if fin.sum() > 2 * MAX_BINS and t[fin].min() != t[fin].max():
             cell, nb = _binned(station[fin], t[fin])
             out.append(_nested_f(z[fin], station[fin], cell, "time", "s", "time", nb))
     res = [s for s in out if s is not None]
@@ -652,9 +683,9 @@ def assess_residuals(
     if stations is None:
         st_names, st = np.array(["1"]), np.zeros(len(z_all), np.int64)[keep]
     else:
-        st_names, st = np.unique(np.asarray(stations).astype(str), return_inverse=True)
+        st_names, st = _factorize(stations)
         st = st[keep]
-    n_st = int(len(np.unique(st))) if n else 0
+    n_st = _n_distinct(st) if n else 0
     dof = n if dof is None else max(int(dof), 1)
     chi2_sum = float(np.sum(z * z))
     c2 = chi2_sum / dof if chi2_per_dof is None else float(chi2_per_dof)
@@ -692,7 +723,7 @@ def assess_residuals(
             u = list(units) if units is not None else [""] * len(pos.columns)
         tl, t_names = None, None
         if tools is not None:
-            uniq, codes = np.unique(np.asarray(tools).astype(str), return_inverse=True)
+            uniq, codes = _factorize(tools)
             tl, t_names = codes[keep][inl], [str(v) for v in uniq]
         tm = np.asarray(time, float)[keep][inl] if time is not None else None
         structure = _structure(z[inl], st[inl], pos, u, tl, tm, list(st_names), t_names)
@@ -932,10 +963,16 @@ def assess(result: Any) -> Adequacy:
         vals = rounded.to_numpy(float)
         if np.isfinite(vals).all():
             # the text of each distinct offset once (str(float) is the text astype(str)
-            # gives), handed to its readings: 10^4 readings share a handful of offsets
-            uniq, inv = unique_rows(vals)
-            keys = np.array([",".join(map(str, row)) for row in uniq.tolist()], dtype=object)
-            tools = keys[inv]
+            # gives), handed to its readings: 10^4 readings share a handful of offsets.
+            # The offsets told apart by hashing each column, not by sorting the rows
+            row = np.zeros(len(vals), np.int64)
+            for j in range(vals.shape[1]):
+                cj, uj = pd.factorize(vals[:, j])
+                row = pd.factorize(row * len(uj) + cj)[0]  # renumbered: stays below n
+            first = np.empty(int(row.max()) + 1 if len(row) else 0, np.int64)
+            first[row[::-1]] = np.arange(len(row))[::-1]  # each offset's first reading
+            keys = np.array([",".join(map(str, r)) for r in vals[first].tolist()], dtype=object)
+            tools = keys[row]
         else:
             txt = rounded.astype(str)
             key = txt[tcols[0]]
