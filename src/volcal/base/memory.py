@@ -14,7 +14,8 @@ That is the whole-graph path (IPOPT: the NLP's CasADi graph holds every reading'
 sparsity).  Gauss-Newton evaluates the problem in chunks of poses and never holds a
 Jacobian-sized array; measured the same way (``bench_memory.py --solver gauss-newton
 --grids 5 8 14 18``, 3,000 to 139,968 readings, largest residual 12.5 MB;
-benchmarks/results/memory.txt):
+benchmarks/results/memory.txt; checked at 997,536 readings x 111 unknowns: 1.47 GB
+measured without plots, 1.50 GB estimated):
 
     peak ~ 128 MB + readings x (1.08 kB + 2.7 B x unknowns)
 
