@@ -101,20 +101,6 @@ def test_stacked_qr_numpy_and_lapack_streams_agree() -> None:
     np.testing.assert_allclose(short.R.T @ short.R, A.T @ A, rtol=1e-9, atol=1e-8)
 
 
-def test_identification_path_imports_no_scipy_linalg() -> None:
-    """The modules of an identification (datum, Gauss-Newton, covariance, identifiability,
-    the chunked R factor) import no scipy.linalg: its import was ~0.15 s of a short run."""
-    code = (
-        "import sys\n"
-        "import volcal.analysis.identify, volcal.solve.gauss_newton, volcal.model.datum\n"
-        "import volcal.analysis.covariance, volcal.analysis.identifiability\n"
-        "import volcal.problem.chunked\n"
-        "print(sorted(m for m in sys.modules if m.startswith('scipy.linalg')))\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "[]", out.stdout
-
-
 def test_a_whole_identification_imports_no_scipy(tmp_path) -> None:
     """`volcal identify` with its default outputs, as the program (its plotting children
     forked from it included: an audit hook is inherited by a fork), imports no scipy

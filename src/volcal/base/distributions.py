@@ -216,6 +216,20 @@ def _gamma_series(a: float, x: float) -> float:
     raise ConvergenceError(f"the series of P(a, x) did not converge (a = {a:g}, x = {x:g})")
 
 
+def _lentz(d: float, c: float, an: float, bn: float) -> tuple[float, float, float]:
+    """One term a_n / (b_n + ...) of a continued fraction by the modified Lentz method:
+    the new (D, C) and the factor the convergent is multiplied by (a zero denominator
+    replaced by a tiny number, as the method does)."""
+    d = an * d + bn
+    if abs(d) < _TINY:
+        d = _TINY
+    c = bn + an / c
+    if abs(c) < _TINY:
+        c = _TINY
+    d = 1.0 / d
+    return d, c, d * c
+
+
 def _gamma_cf(a: float, x: float) -> float:
     """The continued fraction of Q(a, x) (Numerical Recipes 6.2.7, modified Lentz):
     Q = x^a e^-x / Gamma(a) times the returned value.  Called for x > a + 4 sqrt(a) + 1,
@@ -226,16 +240,8 @@ def _gamma_cf(a: float, x: float) -> float:
     d = 1.0 / b
     h = d
     for i in range(1, max_iter + 1):
-        an = -i * (i - a)
         b += 2.0
-        d = an * d + b
-        if abs(d) < _TINY:
-            d = _TINY
-        c = b + an / c
-        if abs(c) < _TINY:
-            c = _TINY
-        d = 1.0 / d
-        delta = d * c
+        d, c, delta = _lentz(d, c, -i * (i - a), b)
         h *= delta
         if abs(delta - 1.0) <= _EPS:
             return h
@@ -370,24 +376,9 @@ def _beta_cf(a: float, b: float, x: float, y: float) -> float:
     h = d
     for m in range(1, max_iter + 1):
         m2 = 2 * m
-        aa = m * (b - m) * x / ((qam + m2) * (a + m2))
-        d = 1.0 + aa * d
-        if abs(d) < _TINY:
-            d = _TINY
-        c = 1.0 + aa / c
-        if abs(c) < _TINY:
-            c = _TINY
-        d = 1.0 / d
-        h *= d * c
-        aa = -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2))
-        d = 1.0 + aa * d
-        if abs(d) < _TINY:
-            d = _TINY
-        c = 1.0 + aa / c
-        if abs(c) < _TINY:
-            c = _TINY
-        d = 1.0 / d
-        delta = d * c
+        d, c, even = _lentz(d, c, m * (b - m) * x / ((qam + m2) * (a + m2)), 1.0)
+        h *= even
+        d, c, delta = _lentz(d, c, -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2)), 1.0)
         h *= delta
         if abs(delta - 1.0) <= _EPS:
             return h
