@@ -11,10 +11,10 @@ independent truth) over the ranges the callers use.
 The methods are the standard ones (Numerical Recipes 3rd ed. 6.2 and 6.4; DiDonato & Morris
 1986 for the split between series and continued fraction):
 
-* the regularised incomplete gamma ``P(a, x)``: its power series below
-  ``x = a + 4 sqrt(a) + 1`` (summed in numpy blocks: a bounded number of terms, about
-  ``9 sqrt(a)`` near ``x = a``, each a ratio ``x / (a + j)``), else the continued fraction
-  of ``Q(a, x)`` (modified Lentz), which converges fast that far above the mean;
+* the regularised incomplete gamma ``P(a, x)``: its power series up to
+  ``x = a + sqrt(a) + 1`` (summed in numpy blocks: a bounded number of terms, about
+  ``10 sqrt(a)`` near ``x = a``, each a ratio ``x / (a + j)``), else the continued fraction
+  of ``Q(a, x)`` (modified Lentz), in O(sqrt(a)) iterations there;
 * the regularised incomplete beta ``I_x(a, b)`` in log form: its continued fraction
   (modified Lentz) for ``x < (a + 1) / (a + b + 2)``, else ``1 - I_{1-x}(b, a)``; the far
   tail therefore always comes from the fast side and keeps its log far below the float range;
@@ -199,8 +199,8 @@ def _log_beta(a: float, b: float) -> float:
 def _gamma_series(a: float, x: float) -> float:
     """``sum_{n>=0} x^n / ((a + 1) ... (a + n))`` (so that P(a, x) = that times
     x^a e^-x / Gamma(a + 1)), in numpy blocks of cumulative products.  Called for
-    x <= a + 4 sqrt(a) + 1: the terms peak at n ~ x - a and then fall like
-    exp(-n^2 / 2x), so about 4 sqrt(a) + 9 sqrt(x) terms reach double precision."""
+    x <= a + sqrt(a) + 1: the terms peak at n ~ x - a and then fall like
+    exp(-n^2 / 2x), so about sqrt(a) + 9 sqrt(x) terms reach double precision."""
     total, last, n = 1.0, 1.0, 0
     block = 64
     while n < _MAX_SERIES_TERMS:
@@ -232,8 +232,8 @@ def _lentz(d: float, c: float, an: float, bn: float) -> tuple[float, float, floa
 
 def _gamma_cf(a: float, x: float) -> float:
     """The continued fraction of Q(a, x) (Numerical Recipes 6.2.7, modified Lentz):
-    Q = x^a e^-x / Gamma(a) times the returned value.  Called for x > a + 4 sqrt(a) + 1,
-    where it converges in a few hundred iterations at most."""
+    Q = x^a e^-x / Gamma(a) times the returned value.  Called for x > a + sqrt(a) + 1,
+    where it converges in O(sqrt(a)) iterations (its bound: 1000 + 20 sqrt(a))."""
     max_iter = 1000 + int(20.0 * math.sqrt(a))
     b = x + 1.0 - a
     c = 1.0 / _TINY

@@ -79,11 +79,11 @@ def pivot_order(A: np.ndarray) -> np.ndarray:
     (``scipy.linalg.qr(A, pivoting=True)[2]``), by its unblocked algorithm (``laqp2``,
     which geqp3 runs on matrices of fewer than 128 columns): at each step the column of
     the largest remaining norm (the first of equal ones, see below), a Householder
-    reflection, and
-    the remaining norms downdated, recomputed where the downdate has lost half its
-    digits.  Only the first min(m, n) entries are chosen by norms; the others keep their
-    order.  For the small matrices of null directions the identifiability analysis
-    pivots (k x n, k the rank defect): no scipy import for them."""
+    reflection, and the remaining norms downdated, recomputed where the downdate has lost
+    half its digits.  Only the first min(m, n) entries are chosen by norms; the others
+    are where those exchanges left them.  For the small matrices the identifiability
+    analysis pivots (k null directions x n variables) and the datum conditions of the
+    correlation plot: no scipy import for them."""
     A = np.array(A, float)
     m, n = A.shape
     piv = np.arange(n)
